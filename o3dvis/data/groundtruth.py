@@ -1,0 +1,74 @@
+"""Ground-truth visibility by ray casting against a triangle mesh (Open3D, Embree)."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+
+__all__ = ["visibility_from_mesh", "sample_viewpoints", "as_legacy_mesh"]
+
+
+def as_legacy_mesh(mesh) -> o3d.geometry.TriangleMesh:
+    """Accepts a legacy or tensor TriangleMesh, or a ``(vertices, triangles)`` pair of arrays."""
+    if isinstance(mesh, o3d.geometry.TriangleMesh):
+        return mesh
+    if isinstance(mesh, o3d.t.geometry.TriangleMesh):
+        return mesh.to_legacy()
+    if isinstance(mesh, (tuple, list)) and len(mesh) == 2:
+        vertices = np.asarray(mesh[0], dtype=np.float64)
+        triangles = np.asarray(mesh[1], dtype=np.int32)
+        if vertices.ndim != 2 or vertices.shape[1] != 3 or triangles.ndim != 2 or triangles.shape[1] != 3:
+            raise ValueError("mesh arrays must be vertices (V, 3) and triangles (T, 3)")
+        if triangles.size and (triangles.min() < 0 or triangles.max() >= len(vertices)):
+            raise ValueError("triangle indices out of range of the vertices")
+        return o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices),
+                                         o3d.utility.Vector3iVector(triangles))
+    raise TypeError(f"expected an open3d TriangleMesh or (vertices, triangles), got {type(mesh).__name__}")
+
+
+def visibility_from_mesh(mesh, points, cameras, tolerance: float = 1e-4) -> np.ndarray:
+    """Which points of a mesh's surface each camera sees.
+
+    A point is visible from a camera when the first hit of the ray from the
+    camera towards the point lies no nearer than the point itself, up to
+    ``tolerance`` times the mesh's bounding-box diagonal.
+
+    Args:
+        mesh: ``o3d.geometry.TriangleMesh`` (legacy or tensor) or ``(vertices, triangles)``.
+        points: (N, 3) points on the mesh surface.
+        cameras: (3,) or (V, 3) camera positions.
+        tolerance: depth tolerance relative to the bounding-box diagonal.
+
+    Returns:
+        (V, N) bool array.
+    """
+    legacy = as_legacy_mesh(mesh)
+    if len(legacy.triangles) == 0:
+        raise ValueError("mesh has no triangles")
+    points = np.asarray(points, dtype=np.float64)
+    cameras = np.atleast_2d(np.asarray(cameras, dtype=np.float64))
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {points.shape}")
+    if cameras.ndim != 2 or cameras.shape[1] != 3:
+        raise ValueError(f"cameras must have shape (3,) or (V, 3), got {cameras.shape}")
+    if not (np.isfinite(points).all() and np.isfinite(cameras).all()):
+        raise ValueError("points and cameras must be finite")
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(legacy))
+    eps = tolerance * np.linalg.norm(legacy.get_max_bound() - legacy.get_min_bound())
+    out = np.empty((len(cameras), len(points)), dtype=bool)
+    for v, cam in enumerate(cameras):
+        offset = points - cam
+        dist = np.linalg.norm(offset, axis=1)
+        dirs = offset / np.maximum(dist, 1e-300)[:, None]
+        rays = np.concatenate([np.broadcast_to(cam, points.shape), dirs], axis=1).astype(np.float32)
+        t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        out[v] = t_hit >= dist - eps
+    return out
+
+
+def sample_viewpoints(num_views: int, center, radius: float, rng: np.random.Generator) -> np.ndarray:
+    """``num_views`` positions uniform on the sphere of ``radius`` around ``center``."""
+    d = rng.normal(size=(num_views, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return np.asarray(center, dtype=np.float64) + radius * d

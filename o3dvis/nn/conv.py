@@ -1,0 +1,124 @@
+"""Sparse convolutions on the non-empty nodes of an :class:`~o3dvis.nn.octree.Octree`.
+
+Each op gathers the features it needs through the octree's index tables and
+runs one dense matmul, so the cost is linear in the number of nodes.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+from .octree import Octree
+
+__all__ = ["OctreeConv", "OctreeDownsample", "OctreeUpsample", "ConvBnRelu", "ResBlock",
+           "octree_interpolate"]
+
+
+def _pad(x: Tensor) -> Tensor:
+    return torch.cat([x, x.new_zeros(1, x.shape[1])], dim=0)
+
+
+class _Linear(nn.Module):
+    """A weight of shape (taps * in_channels, out_channels) with fan-in init."""
+
+    def __init__(self, taps: int, in_channels: int, out_channels: int):
+        super().__init__()
+        self.in_channels, self.out_channels = in_channels, out_channels
+        self.weight = nn.Parameter(torch.empty(taps * in_channels, out_channels))
+        nn.init.normal_(self.weight, std=math.sqrt(2.0 / (taps * in_channels)))
+
+
+class OctreeConv(_Linear):
+    """3x3x3 convolution on the nodes of one level (same semantics as ``conv3d``, padding 1).
+
+    The weight row ``o * in_channels + c`` is the tap at offset index ``o`` of
+    :data:`~o3dvis.nn.octree._OFFSETS`, i.e. ``conv3d`` weight ``[:, c, i, j, k]``
+    with ``o = 9 i + 3 j + k``.
+    """
+
+    def __init__(self, in_channels: int, out_channels: int):
+        super().__init__(27, in_channels, out_channels)
+
+    def forward(self, x: Tensor, octree: Octree, level: int) -> Tensor:
+        nbr = octree.neighbours(level)
+        return _pad(x)[nbr].reshape(x.shape[0], -1) @ self.weight
+
+
+class OctreeDownsample(_Linear):
+    """Stride-2 convolution with a 2x2x2 kernel: level ``level`` -> ``level - 1``."""
+
+    def __init__(self, in_channels: int, out_channels: int):
+        super().__init__(8, in_channels, out_channels)
+
+    def forward(self, x: Tensor, octree: Octree, level: int) -> Tensor:
+        children = octree.children[level - 1]
+        children = torch.where(children < 0, torch.full_like(children, x.shape[0]), children)
+        return _pad(x)[children].reshape(children.shape[0], -1) @ self.weight
+
+
+class OctreeUpsample(_Linear):
+    """Transposed stride-2 convolution: level ``level`` -> ``level + 1``."""
+
+    def __init__(self, in_channels: int, out_channels: int):
+        super().__init__(1, in_channels, 8 * out_channels)
+
+    def forward(self, x: Tensor, octree: Octree, level: int) -> Tensor:
+        per_octant = (x @ self.weight).view(x.shape[0], 8, self.out_channels // 8)
+        child_keys = octree.keys[level + 1]
+        return per_octant[octree.parent[level + 1], child_keys & 7]
+
+
+class ConvBnRelu(nn.Module):
+    def __init__(self, in_channels: int, out_channels: int, conv: type[_Linear] = OctreeConv,
+                 relu: bool = True):
+        super().__init__()
+        self.conv = conv(in_channels, out_channels)
+        self.bn = nn.BatchNorm1d(out_channels)
+        self.relu = relu
+
+    def forward(self, x: Tensor, octree: Octree, level: int) -> Tensor:
+        x = self.bn(self.conv(x, octree, level))
+        return torch.relu(x) if self.relu else x
+
+
+class ResBlock(nn.Module):
+    """Two 3x3x3 conv + batch norm layers with an identity shortcut."""
+
+    def __init__(self, channels: int):
+        super().__init__()
+        self.a = ConvBnRelu(channels, channels)
+        self.b = ConvBnRelu(channels, channels, relu=False)
+
+    def forward(self, x: Tensor, octree: Octree, level: int) -> Tensor:
+        return torch.relu(x + self.b(self.a(x, octree, level), octree, level))
+
+
+def octree_interpolate(features: Tensor, octree: Octree, points: Tensor, batch: Tensor) -> Tensor:
+    """Trilinear interpolation of finest-level node features at the points.
+
+    Corners without a node get no weight; the point's own node always has some,
+    so every point receives a convex combination of existing features.
+
+    Args:
+        features: (n, C) features of the nodes at ``octree.depth``.
+        points: (N, 3) points in [-1, 1]^3.
+        batch: (N,) batch index of each point.
+
+    Returns:
+        (N, C) features.
+    """
+    res = 1 << octree.depth
+    grid = (points + 1) * (res / 2) - 0.5
+    base = grid.floor()
+    frac = grid - base
+    corners = torch.tensor([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], device=points.device)
+    xyz = base.long()[:, None, :] + corners[None]
+    idx = octree.lookup(octree.depth, xyz, batch[:, None].expand(-1, 8))
+    w = torch.where(corners[None].bool(), frac[:, None, :], 1 - frac[:, None, :]).prod(dim=-1)
+    w = torch.where(idx >= 0, w, torch.zeros_like(w))
+    w = w / w.sum(dim=1, keepdim=True)
+    gathered = _pad(features)[torch.where(idx < 0, torch.full_like(idx, features.shape[0]), idx)]
+    return (gathered * w[..., None]).sum(dim=1)

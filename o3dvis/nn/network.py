@@ -1,0 +1,132 @@
+"""The whole visibility network and its checkpoint format (safetensors, no pickle)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+
+from .conv import octree_interpolate
+from .cues import DEFAULT_SCALES, num_cues, view_cues
+from .octree import Octree
+from .predictor import VisibilityPredictor
+from .unet import OctreeUNet
+
+__all__ = ["NetworkConfig", "VisibilityNetwork"]
+
+
+@dataclass
+class NetworkConfig:
+    """Hyper-parameters that define a network; stored in every checkpoint."""
+
+    depth: int = 7
+    full_depth: int = 2
+    channels: tuple[int, ...] = (16, 32, 48, 64, 96)
+    blocks: int = 1
+    feature_channels: int = 32
+    num_frequencies: int = 4
+    hidden: tuple[int, ...] = (32, 32)
+    interpolation: str = "nearest"
+    cue_scales: tuple[int, ...] = DEFAULT_SCALES
+    use_normals: bool = False
+    extra: dict = field(default_factory=dict)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "NetworkConfig":
+        d = dict(d)
+        for key in ("channels", "hidden", "cue_scales"):
+            if key in d:
+                d[key] = tuple(d[key])
+        return cls(**d)
+
+
+class VisibilityNetwork(nn.Module):
+    """Octree U-Net features (once per cloud) + per-view predictor.
+
+    All inputs are in normalised coordinates (see
+    :func:`~o3dvis.nn.octree.normalize_points`).
+    """
+
+    def __init__(self, config: NetworkConfig | None = None):
+        super().__init__()
+        self.config = config = config or NetworkConfig()
+        in_channels = 6 + (3 if config.use_normals else 0)
+        self.unet = OctreeUNet(in_channels, config.channels, config.blocks, config.feature_channels)
+        self.predictor = VisibilityPredictor(
+            config.feature_channels + 3, config.num_frequencies,
+            num_cues(config.cue_scales) + (1 if config.use_normals else 0), config.hidden)
+
+    def _signal(self, points: Tensor, octree: Octree, normals: Tensor | None) -> Tensor:
+        res = 1 << octree.depth
+        local = ((points + 1) * (res / 2)).frac() * 2 - 1
+        per_point = [local, points] + ([normals] if normals is not None else [])
+        per_point = torch.cat(per_point, dim=1)
+        n = octree.num_nodes(octree.depth)
+        sums = per_point.new_zeros(n, per_point.shape[1]).index_add_(0, octree.point_leaf, per_point)
+        counts = per_point.new_zeros(n).index_add_(0, octree.point_leaf, torch.ones_like(points[:, 0]))
+        return sums / counts[:, None]
+
+    def encode(self, points: Tensor, batch: Tensor | None = None, normals: Tensor | None = None,
+               batch_size: int | None = None) -> Tensor:
+        """Per-point view-independent features, (N, E).
+
+        Args:
+            points: (N, 3) normalised points of one or several clouds.
+            batch: (N,) cloud index of each point (None: one cloud).
+            normals: (N, 3) unit normals, required by a normals model.
+            batch_size: number of clouds (default: ``batch.max() + 1``).
+        """
+        if self.config.use_normals != (normals is not None):
+            raise ValueError("this model needs normals" if self.config.use_normals else
+                             "this model takes no normals")
+        if batch is None:
+            batch = torch.zeros(points.shape[0], dtype=torch.long, device=points.device)
+        octree = Octree(points, batch, self.config.depth, self.config.full_depth, batch_size)
+        leaf = self.unet(self._signal(points, octree, normals), octree)
+        if self.config.interpolation == "trilinear":
+            feature = octree_interpolate(leaf, octree, points, batch)
+        else:
+            feature = leaf[octree.point_leaf]
+        return self.predictor.project(torch.cat([feature, points], dim=1))
+
+    def predict(self, features: Tensor, points: Tensor, camera: Tensor | None = None,
+                direction: Tensor | None = None, normals: Tensor | None = None) -> Tensor:
+        """(N, 2) logits of one cloud for one camera position or viewing direction."""
+        dirs, cues = view_cues(points, camera, direction, self.config.cue_scales)
+        if self.config.use_normals:
+            if normals is None:
+                raise ValueError("this model needs normals")
+            cues = torch.cat([cues, -(normals * dirs).sum(dim=1, keepdim=True)], dim=1)
+        return self.predictor(features, dirs, cues)
+
+    def num_parameters(self) -> int:
+        return sum(p.numel() for p in self.parameters())
+
+    def save(self, path: str | Path, metadata: dict | None = None) -> None:
+        """Writes a safetensors file with the config (and ``metadata``) in its header."""
+        from safetensors.torch import save_file
+
+        meta = {"config": json.dumps(asdict(self.config))}
+        meta.update({k: json.dumps(v) for k, v in (metadata or {}).items()})
+        save_file({k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()},
+                  str(path), metadata=meta)
+
+    @classmethod
+    def load(cls, path: str | Path, map_location: str | torch.device = "cpu") -> "VisibilityNetwork":
+        """Builds a network from a safetensors checkpoint written by :meth:`save`."""
+        from safetensors import safe_open
+
+        with safe_open(str(path), framework="pt", device=str(map_location)) as f:
+            meta = f.metadata() or {}
+            if "config" not in meta:
+                raise ValueError(f"{path}: not an o3dvis checkpoint (no config in its header)")
+            net = cls(NetworkConfig.from_dict(json.loads(meta["config"])))
+            state = {k: f.get_tensor(k) for k in f.keys()}
+        missing, unexpected = net.load_state_dict(state, strict=False)
+        if missing or unexpected:
+            raise ValueError(f"{path}: checkpoint does not match its config "
+                             f"(missing {missing[:3]}, unexpected {unexpected[:3]})")
+        return net

@@ -1,0 +1,168 @@
+"""Octree over a batch of normalised point clouds, built with vectorised torch ops.
+
+Nodes of every level are identified by a key ``batch << 3*level | morton`` and
+kept sorted, so parents, children and neighbours are found with
+``torch.searchsorted`` instead of Python loops. Everything runs unchanged on
+CPU and CUDA.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["Octree", "morton_encode", "morton_decode", "normalize_points"]
+
+# The 27 neighbour offsets of a 3x3x3 kernel, ordered like the (kx, ky, kz)
+# axes of a ``conv3d`` weight: index = (dx + 1) * 9 + (dy + 1) * 3 + (dz + 1).
+_DENSE_CELLS = 1 << 25
+
+_OFFSETS = torch.stack(
+    torch.meshgrid(*(torch.arange(-1, 2),) * 3, indexing="ij"), dim=-1
+).reshape(27, 3)
+
+
+def normalize_points(points: Tensor, eps: float = 1e-6) -> tuple[Tensor, Tensor, Tensor]:
+    """Maps a cloud into the cube [-1, 1]^3 by its bounding box.
+
+    Args:
+        points: (N, 3) float tensor.
+        eps: relative margin that keeps points strictly inside the cube.
+
+    Returns:
+        ``(normalised, center, scale)`` with ``normalised = (points - center) / scale``.
+    """
+    lo, hi = points.amin(dim=0), points.amax(dim=0)
+    center = (lo + hi) / 2
+    scale = ((hi - lo).amax() / 2).clamp_min(torch.finfo(points.dtype).tiny) * (1 + eps)
+    return (points - center) / scale, center, scale
+
+
+_SPREAD = ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
+           (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249))
+
+
+def _spread(v: Tensor) -> Tensor:
+    """Puts bit ``i`` of ``v`` (< 2^21) at bit ``3 i``."""
+    for shift, mask in _SPREAD:
+        v = (v | (v << shift)) & mask
+    return v
+
+
+def _compact(v: Tensor) -> Tensor:
+    """Inverse of :func:`_spread`."""
+    v = v & _SPREAD[-1][1]
+    masks = [m for _, m in _SPREAD[-2::-1]] + [(1 << 21) - 1]
+    for (shift, _), mask in zip(_SPREAD[::-1], masks):
+        v = (v | (v >> shift)) & mask
+    return v
+
+
+def morton_encode(xyz: Tensor, depth: int) -> Tensor:
+    """Interleaves the bits of integer coordinates (x highest, z lowest), ``depth`` <= 21."""
+    xyz = xyz.long()
+    return (_spread(xyz[:, 0]) << 2) | (_spread(xyz[:, 1]) << 1) | _spread(xyz[:, 2])
+
+
+def morton_decode(key: Tensor, depth: int) -> Tensor:
+    """Inverse of :func:`morton_encode` for the lowest ``3 * depth`` bits."""
+    key = key & ((1 << (3 * depth)) - 1)
+    return torch.stack([_compact(key >> 2), _compact(key >> 1), _compact(key)], dim=1)
+
+
+class Octree:
+    """A sparse octree of ``depth`` levels over a batch of clouds in [-1, 1]^3.
+
+    Levels ``0..full_depth`` hold every node; deeper levels hold the nodes that
+    contain points. Attributes per level ``l``: ``keys[l]`` (sorted),
+    ``parent[l]`` (index into level ``l - 1``), ``children[l]`` ((n, 8) index
+    into level ``l + 1``, -1 where empty). ``point_leaf`` maps each input point
+    to its node at the finest level.
+    """
+
+    def __init__(self, points: Tensor, batch: Tensor | None = None, depth: int = 7,
+                 full_depth: int = 2, batch_size: int | None = None):
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise ValueError(f"points must have shape (N, 3), got {tuple(points.shape)}")
+        if not 1 <= full_depth < depth <= 16:
+            raise ValueError(f"need 1 <= full_depth < depth <= 16, got {full_depth}, {depth}")
+        device = points.device
+        if batch is None:
+            batch = torch.zeros(points.shape[0], dtype=torch.long, device=device)
+        self.depth, self.full_depth = depth, full_depth
+        self.batch_size = int(batch.max().item()) + 1 if batch_size is None else batch_size
+        self.device = device
+
+        res = 1 << depth
+        xyz = ((points.detach() + 1) * (res / 2)).floor().long().clamp_(0, res - 1)
+        leaf_keys = (batch.long() << (3 * depth)) | morton_encode(xyz, depth)
+        keys: list[Tensor] = [torch.empty(0)] * (depth + 1)
+        keys[depth], self.point_leaf = torch.unique(leaf_keys, sorted=True, return_inverse=True)
+        for level in range(depth - 1, full_depth, -1):
+            keys[level] = torch.unique(keys[level + 1] >> 3, sorted=True)
+        for level in range(full_depth + 1):
+            nodes = torch.arange(8**level, device=device)
+            b = torch.arange(self.batch_size, device=device)
+            keys[level] = ((b[:, None] << (3 * level)) | nodes[None, :]).reshape(-1)
+        self.keys = keys
+
+        self.parent: list[Tensor] = [torch.full((self.batch_size,), -1, dtype=torch.long, device=device)]
+        self.children: list[Tensor] = []
+        for level in range(depth):
+            child_keys = keys[level + 1]
+            parent = torch.searchsorted(keys[level], child_keys >> 3)
+            self.parent.append(parent)
+            children = torch.full((keys[level].shape[0], 8), -1, dtype=torch.long, device=device)
+            children[parent, child_keys & 7] = torch.arange(child_keys.shape[0], device=device)
+            self.children.append(children)
+        self._neighbours: dict[int, Tensor] = {}
+        self._tables: dict[int, Tensor] = {}
+
+    def num_nodes(self, level: int) -> int:
+        return self.keys[level].shape[0]
+
+    def coords(self, level: int) -> Tensor:
+        """Integer (x, y, z) of the nodes of ``level``."""
+        return morton_decode(self.keys[level], level)
+
+    def batch_of(self, level: int) -> Tensor:
+        return self.keys[level] >> (3 * level)
+
+    def lookup(self, level: int, xyz: Tensor, batch: Tensor) -> Tensor:
+        """Index of the node at integer coords ``xyz`` (..., 3) of ``level``, or -1 if absent.
+
+        Uses a dense table of the level when it has at most ``2**25`` cells and
+        a binary search over the sorted keys otherwise.
+        """
+        res = 1 << level
+        inside = ((xyz >= 0) & (xyz < res)).all(dim=-1)
+        xyz = xyz.clamp(0, res - 1)
+        if self.batch_size * res**3 <= _DENSE_CELLS:
+            if level not in self._tables:
+                c = self.coords(level)
+                cell = ((self.batch_of(level) * res + c[:, 0]) * res + c[:, 1]) * res + c[:, 2]
+                table = torch.full((self.batch_size * res**3,), -1, dtype=torch.int32, device=self.device)
+                table[cell] = torch.arange(cell.shape[0], dtype=torch.int32, device=self.device)
+                self._tables[level] = table
+            cell = ((batch * res + xyz[..., 0]) * res + xyz[..., 1]) * res + xyz[..., 2]
+            idx = self._tables[level][cell].long()
+            return torch.where(inside, idx, torch.full_like(idx, -1))
+        query = (batch << (3 * level)) | morton_encode(xyz.reshape(-1, 3), level).view(xyz.shape[:-1])
+        keys = self.keys[level]
+        idx = torch.searchsorted(keys, query).clamp_(max=keys.shape[0] - 1)
+        found = inside & (keys[idx] == query)
+        return torch.where(found, idx, torch.full_like(idx, -1))
+
+    def neighbours(self, level: int) -> Tensor:
+        """(n, 27) indices of the 3x3x3 neighbours at ``level``; missing ones are ``n``.
+
+        Pointing missing neighbours at row ``n`` lets a convolution gather from
+        features padded with one row of zeros.
+        """
+        if level not in self._neighbours:
+            xyz = self.coords(level)
+            offsets = _OFFSETS.to(self.device)
+            batch = self.batch_of(level)[:, None].expand(-1, 27)
+            idx = self.lookup(level, xyz[:, None, :] + offsets[None], batch)
+            self._neighbours[level] = torch.where(idx < 0, torch.full_like(idx, xyz.shape[0]), idx)
+        return self._neighbours[level]

@@ -1,0 +1,61 @@
+"""Per-view predictor: sinusoidal view embedding x point feature (+ cues) -> 2 logits."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor, nn
+
+__all__ = ["ViewEmbedding", "VisibilityPredictor"]
+
+
+class ViewEmbedding(nn.Module):
+    """NeRF-style embedding ``[d, sin(2^k pi d), cos(2^k pi d)]`` for k < ``num_frequencies``.
+
+    The sines and cosines come from the double-angle recurrence, so one
+    ``sin``/``cos`` pair is evaluated per component instead of one per frequency.
+    """
+
+    def __init__(self, num_frequencies: int = 10):
+        super().__init__()
+        self.num_frequencies = num_frequencies
+
+    @property
+    def dim(self) -> int:
+        return 3 + 6 * self.num_frequencies
+
+    def forward(self, dirs: Tensor) -> Tensor:
+        out = [dirs]
+        s, c = torch.sin(torch.pi * dirs), torch.cos(torch.pi * dirs)
+        for _ in range(self.num_frequencies):
+            out += [s, c]
+            s, c = 2 * s * c, 1 - 2 * s * s
+        return torch.cat(out, dim=-1)
+
+
+class VisibilityPredictor(nn.Module):
+    """Maps a point feature and its view (direction + cues) to visible/hidden logits.
+
+    ``project`` runs once per cloud (view-independent); ``forward`` runs per view.
+    """
+
+    def __init__(self, feature_channels: int, num_frequencies: int = 10, num_cues: int = 8,
+                 hidden: Sequence[int] = (64, 32)):
+        super().__init__()
+        self.embedding = ViewEmbedding(num_frequencies)
+        self.project_feature = nn.Linear(feature_channels, self.embedding.dim)
+        layers: list[nn.Module] = []
+        width = self.embedding.dim + num_cues
+        for h in hidden:
+            layers += [nn.Linear(width, h), nn.ReLU(inplace=True)]
+            width = h
+        layers.append(nn.Linear(width, 2))
+        self.mlp = nn.Sequential(*layers)
+
+    def project(self, features: Tensor) -> Tensor:
+        return self.project_feature(features)
+
+    def forward(self, projected: Tensor, dirs: Tensor, cues: Tensor) -> Tensor:
+        """(..., N, E) projected features, (..., N, 3) directions, (..., N, Z) cues -> (..., N, 2)."""
+        return self.mlp(torch.cat([projected * self.embedding(dirs), cues], dim=-1))

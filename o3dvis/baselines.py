@@ -1,0 +1,236 @@
+"""Hidden Point Removal baselines with the common ``(V, N) bool`` mask interface.
+
+* :func:`hidden_point_removal_mask`: Katz et al. 2007 as implemented by Open3D
+  (spherical flip of radius ``radius`` around the camera, convex hull with the
+  camera), called per view on a checked, de-duplicated cloud so that it cannot
+  crash on degenerate input.
+* :func:`exponential_hpr_mask`: Katz & Tal 2015 with the exponential kernel
+  ``f(d) = d**gamma``, ``gamma < 0`` (scale-free), convex hull by scipy/qhull.
+
+Both return ``mask[v, i]`` = point ``i`` is visible from ``cameras[v]``. Exact
+duplicate points share one answer. Clouds that are flat or collinear together
+with the camera are solved in their own plane or line (HPR is defined there
+too), so no qhull precision error escapes.
+
+:func:`hpr_method` and :func:`exponential_method` turn one parameter into a
+visibility method ``method(points, cameras) -> (V, N) bool``; :data:`SWEEPS`
+holds the parameter grids that the evaluation tunes over.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from scipy.spatial import ConvexHull, QhullError
+
+__all__ = ["hidden_point_removal_mask", "exponential_hpr_mask", "hpr_method", "exponential_method",
+           "SWEEPS", "sweep", "Method"]
+
+Method = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+_RANK_TOL = 1e-9
+
+
+def _check(points, cameras) -> tuple[np.ndarray, np.ndarray]:
+    points = np.asarray(points, dtype=np.float64)
+    cameras = np.atleast_2d(np.asarray(cameras, dtype=np.float64))
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {points.shape}")
+    if len(points) == 0:
+        raise ValueError("points is empty")
+    if cameras.ndim != 2 or cameras.shape[1] != 3 or len(cameras) == 0:
+        raise ValueError(f"cameras must have shape (3,) or (V, 3), got {cameras.shape}")
+    if not (np.isfinite(points).all() and np.isfinite(cameras).all()):
+        raise ValueError("points and cameras must be finite (no NaN or inf)")
+    return points, cameras
+
+
+def _unique(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of one representative per distinct point and the map point -> representative slot.
+
+    Sorting a random linear key keeps this O(N log N) on one float column;
+    only runs of equal keys (exact duplicates, or astronomically rare key
+    collisions) are resolved exactly.
+    """
+    key = points[:, 0] * 0.7548776662 + points[:, 1] * 0.5698402910 + points[:, 2] * 0.3263524026
+    order = np.argsort(key, kind="stable")
+    skey = key[order]
+    run_start = np.r_[True, skey[1:] != skey[:-1]]
+    rep = order[np.maximum.accumulate(np.where(run_start, np.arange(len(order)), 0))]
+    tied = ~(run_start & np.r_[run_start[1:], True])
+    if tied.any():  # exact grouping inside runs of equal keys
+        idx = order[tied]
+        _, first, inverse = np.unique(points[idx], axis=0, return_index=True, return_inverse=True)
+        rep[tied] = idx[first[inverse.ravel()]]
+    representative = np.empty(len(points), dtype=np.int64)
+    representative[order] = rep
+    keep = np.flatnonzero(representative == np.arange(len(points)))
+    slot = np.empty(len(points), dtype=np.int64)
+    slot[keep] = np.arange(len(keep))
+    return keep, slot[representative]
+
+
+def _affine_basis(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centre and orthonormal basis (rows) of the affine hull of ``x`` (rank-revealing)."""
+    centre = x.mean(axis=0)
+    _, s, vt = np.linalg.svd(x - centre, full_matrices=False)
+    return centre, vt[:int((s > _RANK_TOL * s[0]).sum()) if s[0] > 0 else 0]
+
+
+def _hull_vertices(x: np.ndarray) -> np.ndarray:
+    """Indices of the convex-hull vertices of ``x`` in its own affine dimension (0-3)."""
+    centre, basis = _affine_basis(x)
+    y = (x - centre) @ basis.T
+    if basis.shape[0] == 0:
+        return np.arange(len(x))
+    if basis.shape[0] == 1:
+        return np.unique([np.argmin(y[:, 0]), np.argmax(y[:, 0])])
+    try:
+        return ConvexHull(y).vertices
+    except QhullError:  # nearly degenerate: joggled input still gives the hull's vertices
+        try:
+            return ConvexHull(y, qhull_options="QJ").vertices
+        except QhullError as e:
+            raise ValueError(f"convex hull failed on a degenerate cloud: {str(e).splitlines()[0]}") from e
+
+
+def _visible_from_mapped(mapped: np.ndarray) -> np.ndarray:
+    """HPR's decision: points whose image lies on the hull of the images plus the camera (origin)."""
+    x = np.vstack([mapped, np.zeros((1, 3))])
+    try:
+        vertices = ConvexHull(x).vertices
+    except QhullError:
+        vertices = _hull_vertices(x)
+    mask = np.zeros(len(x), dtype=bool)
+    mask[vertices] = True
+    return mask[:-1]
+
+
+def _offsets(points: np.ndarray, camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    offset = points - camera
+    dist = np.linalg.norm(offset, axis=1)
+    if dist.min() <= _RANK_TOL * max(dist.max(), 1e-300):
+        raise ValueError(f"a point coincides with the camera at {camera.tolist()}")
+    return offset, dist
+
+
+def _per_view(points, cameras, prepare: Callable[[np.ndarray], Callable[[np.ndarray], np.ndarray]]) -> np.ndarray:
+    """Runs ``prepare(distinct_points)(camera) -> (M,) bool`` per camera and spreads it to duplicates."""
+    points, cameras = _check(points, cameras)
+    keep, slot = _unique(points)
+    visible = prepare(points[keep])
+    out = np.empty((len(cameras), len(points)), dtype=bool)
+    for v, camera in enumerate(cameras):
+        out[v] = visible(camera)[slot]
+    return out
+
+
+def hidden_point_removal_mask(points, cameras, radius: float) -> np.ndarray:
+    """Open3D's Hidden Point Removal as a ``(V, N)`` mask.
+
+    Args:
+        points: (N, 3) points.
+        cameras: (3,) or (V, 3) camera locations.
+        radius: spherical-flip radius (absolute, as in
+            ``o3d.geometry.PointCloud.hidden_point_removal``); must be > 0.
+
+    Returns:
+        (V, N) bool array, True where the point is visible.
+
+    Raises:
+        ValueError: bad shapes, non-finite values, radius <= 0, or a point at a camera.
+    """
+    import open3d as o3d
+
+    if not np.isfinite(radius) or radius <= 0:
+        raise ValueError(f"radius must be a positive number, got {radius}")
+
+    def prepare(unique: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(unique))
+        flat = _affine_basis(unique)[1].shape[0] < 3
+
+        def visible(camera: np.ndarray) -> np.ndarray:
+            offset, dist = _offsets(unique, camera)
+            # Open3D only gets what qhull can take in 3-D: >= 4 points not coplanar with the camera.
+            if len(unique) >= 4 and (not flat or _affine_basis(np.vstack([unique, camera]))[1].shape[0] == 3):
+                try:
+                    mask = np.zeros(len(unique), dtype=bool)
+                    mask[np.asarray(pcd.hidden_point_removal(camera, radius)[1], dtype=np.int64)] = True
+                    return mask
+                except RuntimeError:  # qhull precision trouble: same flip, solved below
+                    pass
+            return _visible_from_mapped(offset + 2.0 * (radius - dist)[:, None] * offset / dist[:, None])
+
+        return visible
+
+    return _per_view(points, cameras, prepare)
+
+
+def exponential_hpr_mask(points, cameras, gamma: float) -> np.ndarray:
+    """Katz & Tal 2015 HPR with the exponential kernel ``f(d) = d**gamma`` as a ``(V, N)`` mask.
+
+    Each point ``p`` (camera at the origin) maps to ``f(|p|) p / |p|``; it is
+    visible when its image is a vertex of the convex hull of the images and
+    the camera. Distances are divided by their maximum first, which changes
+    nothing (the kernel is scale-free) but keeps the numbers tame.
+
+    Args:
+        points: (N, 3) points.
+        cameras: (3,) or (V, 3) camera locations.
+        gamma: kernel exponent, < 0; closer to 0 marks more points visible.
+
+    Returns:
+        (V, N) bool array, True where the point is visible.
+    """
+    if not np.isfinite(gamma) or gamma >= 0:
+        raise ValueError(f"gamma must be a negative number, got {gamma}")
+
+    def prepare(unique: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+        def visible(camera: np.ndarray) -> np.ndarray:
+            offset, dist = _offsets(unique, camera)
+            return _visible_from_mapped(offset * ((dist / dist.max()) ** gamma / dist)[:, None])
+        return visible
+
+    return _per_view(points, cameras, prepare)
+
+
+def hpr_method(exponent: float) -> Method:
+    """Open3D HPR with ``radius = bbox diagonal * 10**exponent`` as a visibility method."""
+    def method(points, cameras):
+        points, cameras = _check(points, cameras)
+        diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+        # a single distinct point is visible whatever the radius
+        return hidden_point_removal_mask(points, cameras, (diagonal or 1.0) * 10.0 ** exponent)
+    method.__name__ = f"hpr(k={exponent:g})"
+    return method
+
+
+def exponential_method(gamma: float) -> Method:
+    """Katz–Tal exponential-kernel HPR with exponent ``gamma`` as a visibility method."""
+    def method(points, cameras):
+        return exponential_hpr_mask(points, cameras, gamma)
+    method.__name__ = f"hpr-exp(gamma={gamma:g})"
+    return method
+
+
+SWEEPS: dict[str, tuple[str, Callable[[float], Method], tuple[float, ...]]] = {
+    "hpr": ("k", hpr_method, (1.5, 2.0, 2.5, 3.0)),
+    "hpr-exp": ("gamma", exponential_method, (-0.001, -0.003, -0.01, -0.03)),
+}
+
+
+def sweep(name: str, values=None) -> dict[str, Method]:
+    """The parameter sweep of a baseline: ``{"k=2": method, ...}``.
+
+    Args:
+        name: ``"hpr"`` (radius = diagonal * 10**k) or ``"hpr-exp"`` (gamma).
+        values: parameter values replacing the default grid of ``SWEEPS``.
+
+    Returns:
+        Ordered mapping from a parameter label to a visibility method.
+    """
+    if name not in SWEEPS:
+        raise ValueError(f"unknown baseline {name!r}; choose from {sorted(SWEEPS)}")
+    param, make, default = SWEEPS[name]
+    return {f"{param}={v:g}": make(float(v)) for v in (default if values is None else values)}

@@ -8,7 +8,7 @@ import sys
 
 __all__ = ["main", "build_parser"]
 
-_MODULES = ("data",)
+_MODULES = ("data", "eval")
 
 
 def build_parser() -> argparse.ArgumentParser:

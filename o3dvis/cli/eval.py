@@ -1,0 +1,176 @@
+"""``o3dvis eval`` (accuracy tables) and ``o3dvis bench`` (timing against Open3D HPR)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import Counter
+from pathlib import Path
+
+__all__ = ["register", "run_eval", "run_bench", "main"]
+
+_EVAL_EXAMPLE = """example:
+  o3dvis eval --data /work/data/val --points 2048,8192,32768,81920 --noise 0,0.01,0.02 \\
+      --methods hpr,hpr-exp --views 16 --out benchmarks/results/val.json --cache ~/.cache/o3dvis-eval
+
+Baselines are scored at every value of their sweep (--hpr-k, --gamma) and the best
+value per density and noise level over the whole set is reported with it.
+A method that cannot run here (no network weights) is reported absent."""
+
+_BENCH_EXAMPLE = """example:
+  o3dvis bench --points 2048,8192,32768 --views 1,26 --methods hpr,hpr-exp,neural
+
+Open3D's hidden_point_removal runs on the same cloud and cameras in the same
+run; speed-up = its time / the method's time."""
+
+
+def _ints(text: str) -> list[int]:
+    try:
+        values = [int(float(t)) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+    if not values or min(values) < 1:
+        raise argparse.ArgumentTypeError(f"expected positive integers, got {text!r}")
+    return values
+
+
+def _floats(text: str) -> list[float]:
+    try:
+        return [float(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+def _names(text: str) -> list[str]:
+    return [t.strip() for t in text.split(",") if t.strip()]
+
+
+def _grid(name: str) -> str:
+    from ..baselines import SWEEPS
+
+    return ",".join(f"{v:g}" for v in SWEEPS[name][2])
+
+
+def _add_method_args(p: argparse.ArgumentParser, default: str) -> None:
+    p.add_argument("--methods", type=_names, default=_names(default),
+                   help=f"comma-separated: hpr, hpr-exp, neural (default: {default})")
+    p.add_argument("--checkpoint", type=Path, default=None,
+                   help="network checkpoint (.safetensors) for 'neural' (default: shipped weights)")
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads (default: 2)")
+
+
+def register(subparsers) -> None:
+    """Adds the ``eval`` and ``bench`` subcommands."""
+    fmt = argparse.RawDescriptionHelpFormatter
+    p = subparsers.add_parser("eval", help="accuracy of visibility methods on labelled data",
+                              description="Accuracy, FN/FP rates and per-category accuracy of visibility "
+                                          "methods against ray-cast labels, per density and noise level.",
+                              epilog=_EVAL_EXAMPLE, formatter_class=fmt)
+    p.add_argument("--data", type=Path, required=True, help="folder of .npz samples from `o3dvis prepare`")
+    p.add_argument("--points", type=_ints, default=[2048, 8192, 32768, 81920],
+                   help="densities (default: 2048,8192,32768,81920)")
+    p.add_argument("--noise", type=_floats, default=[0.0],
+                   help="noise levels as fractions of the bounding-box diagonal (default: 0)")
+    _add_method_args(p, "hpr,hpr-exp,neural")
+    p.add_argument("--views", type=int, default=None, help="first K viewpoints of each file (default: all)")
+    p.add_argument("--limit", type=int, default=None, help="first M files only")
+    p.add_argument("--hpr-k", type=_floats, default=None,
+                   help=f"HPR sweep: radius = diagonal * 10^k (default: {_grid('hpr')})")
+    p.add_argument("--gamma", type=_floats, default=None,
+                   help=f"hpr-exp sweep of the kernel exponent, < 0 (default: {_grid('hpr-exp')})")
+    p.add_argument("--seed", type=int, default=0, help="seed of subsampling and noise (default: 0)")
+    p.add_argument("--out", type=Path, default=None, help="write JSON here and the Markdown next to it (.md)")
+    p.add_argument("--cache", type=Path, default=None,
+                   help="folder of per-file baseline results; a rerun resumes from it (empty it after changing a baseline)")
+    p.set_defaults(func=run_eval)
+
+    p = subparsers.add_parser("bench", help="timing against Open3D's hidden_point_removal",
+                              description="Times visibility methods and Open3D HPR on the same procedural "
+                                          "clouds and cameras.",
+                              epilog=_BENCH_EXAMPLE, formatter_class=fmt)
+    p.add_argument("--points", type=_ints, default=[2048, 8192, 32768, 81920, 200_000, 1_000_000],
+                   help="cloud sizes (default: 2048,8192,32768,81920,200000,1000000)")
+    p.add_argument("--views", type=_ints, default=[1, 26], help="numbers of views (default: 1,26)")
+    _add_method_args(p, "hpr,hpr-exp,neural")
+    p.add_argument("--repeats", type=int, default=1, help="best of this many runs (default: 1)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the cloud and cameras (default: 0)")
+    p.add_argument("--out", type=Path, default=None, help="write JSON here and the Markdown next to it (.md)")
+    p.set_defaults(func=run_bench)
+
+
+def _write(out: Path | None, report: dict, markdown: str) -> None:
+    print(markdown)
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(report, indent=1) + "\n")
+        out.with_suffix(".md").write_text(markdown)
+        print(f"wrote {out} and {out.with_suffix('.md')}", file=sys.stderr)
+
+
+def _methods(args, sweeps: dict):
+    import torch
+
+    from ..methods import resolve_methods
+
+    torch.set_num_threads(max(1, args.threads))
+    methods, absent = resolve_methods(args.methods, args.checkpoint, sweeps)
+    for name, reason in absent.items():
+        print(f"{name}: absent ({reason})", file=sys.stderr)
+    return methods, absent
+
+
+def run_eval(args) -> int:
+    """``o3dvis eval``: prints the Markdown tables; ``--out`` also writes JSON."""
+    from ..evaluate import category_of, evaluate, list_samples, markdown_table, summarize
+
+    if args.views is not None and args.views < 1:
+        raise ValueError("--views must be >= 1")
+    methods, absent = _methods(args, {"hpr": args.hpr_k, "hpr-exp": args.gamma})
+    if not methods:
+        print("no method can run", file=sys.stderr)
+        return 1
+    files = list_samples(args.data, args.limit)
+    per_file = evaluate(files, args.data, methods, args.points, args.noise, args.seed, args.views,
+                        args.cache, cached=[m for m in methods if m != "neural"])
+    rows = summarize(per_file, methods, args.points, args.noise)
+    categories = dict(sorted(Counter(category_of(f, args.data) for f in files).items()))
+    report = {"settings": {"data": str(args.data), "files": len(files), "points": args.points,
+                           "noise": args.noise, "views": args.views, "seed": args.seed,
+                           "sweeps": {m: list(s) for m, s in methods.items()}},
+              "categories": categories, "absent": absent, "results": rows}
+    _write(args.out, report, markdown_table(rows, absent, categories))
+    return 0
+
+
+def run_bench(args) -> int:
+    """``o3dvis bench``: prints the timing table; ``--out`` also writes JSON."""
+    from ..speed import benchmark, markdown_table
+
+    # one setting per baseline: Open3D's usual radius (k = 2) and a mid-grid kernel exponent
+    methods, absent = _methods(args, {"hpr": [2.0], "hpr-exp": [-0.01]})
+    single = {name: next(iter(sweep.values())) for name, sweep in methods.items()}
+    rows = benchmark(single, args.points, args.views, args.repeats, args.seed)
+    report = {"settings": {"points": args.points, "views": args.views, "repeats": args.repeats,
+                           "threads": args.threads, "seed": args.seed,
+                           "methods": {n: getattr(m, "__name__", n) for n, m in single.items()}},
+              "absent": absent, "results": rows}
+    markdown = markdown_table(rows) + "".join(f"\n{n}: absent ({r})" for n, r in absent.items())
+    _write(args.out, report, markdown)
+    return 0
+
+
+def main(command: str, argv: list[str] | None = None) -> int:
+    """Runs one subcommand of this module alone (for the scripts in ``benchmarks/``).
+
+    Args:
+        command: ``"eval"`` or ``"bench"``.
+        argv: its arguments (default: ``sys.argv[1:]``).
+
+    Returns:
+        The exit code.
+    """
+    parser = argparse.ArgumentParser(prog="o3dvis", add_help=False)
+    register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args([command, *(sys.argv[1:] if argv is None else argv)])
+    return int(args.func(args) or 0)

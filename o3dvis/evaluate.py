@@ -1,0 +1,300 @@
+"""Accuracy of visibility methods against ray-cast labels, the paper's protocol.
+
+For every labelled file, density and noise level, each method (and each
+parameter of a baseline's sweep) labels a subsample of the points from the
+file's viewpoints. Counts of true/false positives/negatives are pooled over
+points, views and files; a baseline's parameter is then tuned per density and
+noise level over the whole set (the best of its sweep), as the paper did.
+
+* Subsampling is seeded by (seed, file name, density): every method and noise
+  level sees the same points.
+* Noise is added after labelling: each point moves in a uniformly random
+  direction by a distance uniform in [0, level x bounding-box diagonal].
+* Category = the file's subfolder below the data folder, else the part of its
+  name before ``__``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import zlib
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .baselines import Method
+from .data.prepare import Sample, load_sample
+
+__all__ = ["Counts", "list_samples", "category_of", "subsample_indices", "add_noise", "eval_cloud",
+           "evaluate_sample", "evaluate", "summarize", "markdown_table"]
+
+
+@dataclass
+class Counts:
+    """Confusion counts, positive = visible."""
+
+    tp: int = 0
+    fp: int = 0
+    fn: int = 0
+    tn: int = 0
+
+    @classmethod
+    def of(cls, predicted: np.ndarray, truth: np.ndarray) -> "Counts":
+        """Counts of a predicted mask against the true one (same shape, bool)."""
+        predicted, truth = np.asarray(predicted, dtype=bool), np.asarray(truth, dtype=bool)
+        if predicted.shape != truth.shape:
+            raise ValueError(f"prediction shape {predicted.shape} differs from labels {truth.shape}")
+        tp = int(np.count_nonzero(predicted & truth))
+        fp = int(np.count_nonzero(predicted & ~truth))
+        fn = int(np.count_nonzero(~predicted & truth))
+        return cls(tp, fp, fn, truth.size - tp - fp - fn)
+
+    def __add__(self, other: "Counts") -> "Counts":
+        return Counts(self.tp + other.tp, self.fp + other.fp, self.fn + other.fn, self.tn + other.tn)
+
+    @property
+    def total(self) -> int:
+        return self.tp + self.fp + self.fn + self.tn
+
+    @property
+    def accuracy(self) -> float:
+        """Correct labels / all labels."""
+        return (self.tp + self.tn) / self.total if self.total else float("nan")
+
+    @property
+    def fn_rate(self) -> float:
+        """Share of visible points predicted hidden."""
+        return self.fn / (self.tp + self.fn) if self.tp + self.fn else float("nan")
+
+    @property
+    def fp_rate(self) -> float:
+        """Share of hidden points predicted visible."""
+        return self.fp / (self.fp + self.tn) if self.fp + self.tn else float("nan")
+
+
+def list_samples(data_dir: str | Path, limit: int | None = None) -> list[Path]:
+    """The ``.npz`` samples below ``data_dir``, sorted, at most ``limit``."""
+    data_dir = Path(data_dir)
+    if not data_dir.is_dir():
+        raise FileNotFoundError(f"{data_dir} is not a folder")
+    files = sorted(p for p in data_dir.rglob("*.npz") if not p.name.endswith(".tmp.npz"))
+    if not files:
+        raise ValueError(f"no .npz samples below {data_dir} (make them with `o3dvis prepare`)")
+    return files[:limit] if limit else files
+
+
+def category_of(path: Path, data_dir: Path) -> str:
+    """Subfolder below ``data_dir``, else the file-name prefix before ``__``, else ``all``."""
+    rel = Path(path).relative_to(data_dir)
+    if len(rel.parts) > 1:
+        return rel.parts[0]
+    return rel.stem.split("__")[0] if "__" in rel.stem else "all"
+
+
+def _key(x: float) -> str:
+    return f"{x:g}"
+
+
+def _rng(seed: int, name: str, *more: int) -> np.random.Generator:
+    return np.random.default_rng([seed, zlib.crc32(name.encode()), *more])
+
+
+def subsample_indices(num_total: int, num_points: int, seed: int, name: str) -> np.ndarray:
+    """Sorted indices of ``num_points`` of ``num_total`` points (all when fewer), seeded by name."""
+    if num_points >= num_total:
+        return np.arange(num_total)
+    return np.sort(_rng(seed, name, num_points).choice(num_total, num_points, replace=False))
+
+
+def add_noise(points: np.ndarray, level: float, scale: float, rng: np.random.Generator) -> np.ndarray:
+    """Moves each point in a random direction by a distance uniform in [0, level * scale]."""
+    if level < 0:
+        raise ValueError(f"noise level must be >= 0, got {level}")
+    direction = rng.normal(size=points.shape)
+    direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-300)
+    return points + direction * (level * scale * rng.random((len(points), 1)))
+
+
+def eval_cloud(sample: Sample, num_points: int, noise: float, seed: int = 0,
+               views: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The cloud a method is scored on.
+
+    Args:
+        sample: a labelled sample.
+        num_points: density (all points when the sample has fewer).
+        noise: noise level as a fraction of the bounding-box diagonal.
+        seed: seed of subsampling and noise.
+        views: use the first ``views`` viewpoints (default: all).
+
+    Returns:
+        ``(points (n, 3) float64, cameras (V, 3), labels (V, n) bool)``.
+    """
+    idx = subsample_indices(len(sample.points), num_points, seed, sample.name)
+    points = sample.points[idx].astype(np.float64)
+    if noise:
+        diagonal = float(np.linalg.norm(sample.points.max(axis=0) - sample.points.min(axis=0)))
+        points = add_noise(points, noise, diagonal, _rng(seed, sample.name, num_points, round(noise * 1e6)))
+    views = len(sample.cameras) if views is None else views
+    return points, sample.cameras[:views].astype(np.float64), sample.visibility[:views, idx]
+
+
+def evaluate_sample(sample: Sample, methods: dict[str, dict[str, Method]], densities: Iterable[int],
+                    noises: Iterable[float], seed: int = 0, views: int | None = None,
+                    done: dict | None = None) -> dict:
+    """Confusion counts of every method and parameter on one sample.
+
+    Args:
+        sample: a labelled sample.
+        methods: ``{method name: {parameter label: method}}``.
+        densities: numbers of points.
+        noises: noise levels (fractions of the bounding-box diagonal).
+        seed: seed of subsampling and noise.
+        views: number of viewpoints (default: all of the sample's).
+        done: results already known (same layout as the return value); kept, not recomputed.
+
+    Returns:
+        ``result[method][label][f"{density:g}"][f"{noise:g}"] = [tp, fp, fn, tn]``.
+    """
+    result = json.loads(json.dumps(done or {}))
+    for density in densities:
+        for noise in noises:
+            todo = [(name, label, method) for name, sweep in methods.items() for label, method in sweep.items()
+                    if _key(noise) not in result.get(name, {}).get(label, {}).get(_key(density), {})]
+            if not todo:
+                continue
+            points, cameras, labels = eval_cloud(sample, density, noise, seed, views)
+            for name, label, method in todo:
+                c = Counts.of(method(points, cameras), labels)
+                result.setdefault(name, {}).setdefault(label, {}).setdefault(_key(density), {})[_key(noise)] = \
+                    [c.tp, c.fp, c.fn, c.tn]
+    return result
+
+
+def _cache_path(cache_dir: Path, path: Path, seed: int, views: int | None) -> Path:
+    return cache_dir / f"{path.stem}.s{seed}.v{views or 'all'}.json"
+
+
+def _read_cache(cache: Path, path: Path) -> dict:
+    stat = path.stat()
+    try:
+        data = json.loads(cache.read_text())
+    except (OSError, ValueError):
+        return {}
+    return data["counts"] if data.get("file") == [stat.st_size, stat.st_mtime_ns] else {}
+
+
+def _write_cache(cache: Path, path: Path, counts: dict) -> None:
+    stat = path.stat()
+    tmp = cache.with_suffix(".tmp")
+    tmp.write_text(json.dumps({"file": [stat.st_size, stat.st_mtime_ns], "counts": counts}))
+    os.replace(tmp, cache)
+
+
+def evaluate(files: list[Path], data_dir: str | Path, methods: dict[str, dict[str, Method]],
+             densities: list[int], noises: list[float], seed: int = 0, views: int | None = None,
+             cache_dir: str | Path | None = None, cached: Iterable[str] = (), progress: bool = True) -> dict:
+    """Confusion counts of every method on every file, resuming from a cache.
+
+    Args:
+        files: sample files (see :func:`list_samples`).
+        data_dir: their root folder (for categories).
+        methods: ``{method name: {parameter label: method}}``.
+        densities: numbers of points.
+        noises: noise levels.
+        seed: seed of subsampling and noise.
+        views: number of viewpoints per file (default: all).
+        cache_dir: folder keeping per-file counts, so a rerun resumes.
+        cached: names of the methods whose results may be cached (deterministic ones).
+        progress: show a tqdm bar.
+
+    Returns:
+        ``{file name: {"category": str, "counts": counts as in :func:`evaluate_sample`}}``.
+    """
+    from tqdm import tqdm
+
+    data_dir = Path(data_dir)
+    cache_root = Path(cache_dir) if cache_dir else None
+    if cache_root:
+        cache_root.mkdir(parents=True, exist_ok=True)
+    out = {}
+    for path in tqdm(files, desc="eval", unit="file", disable=not progress):
+        cache = _cache_path(cache_root, path, seed, views) if cache_root else None
+        stored = _read_cache(cache, path) if cache else {}
+        done = {name: stored[name] for name in cached if name in stored}
+        counts = evaluate_sample(load_sample(path), methods, densities, noises, seed, views, done)
+        if cache:
+            _write_cache(cache, path, {**stored, **{n: counts[n] for n in cached if n in counts}})
+        out[path.name] = {"category": category_of(path, data_dir), "counts": counts}
+    return out
+
+
+def summarize(per_file: dict, methods: dict[str, dict[str, Method]], densities: list[int],
+              noises: list[float]) -> list[dict]:
+    """Pooled scores per method, density and noise, with the sweep's best parameter.
+
+    Returns:
+        One row per (method, density, noise): ``method, points, noise, param``
+        (best label), ``accuracy, fn_rate, fp_rate, categories`` ({category:
+        accuracy}), ``sweep`` ({label: accuracy}), ``files``.
+    """
+    rows = []
+    for name, sweep in methods.items():
+        for density in densities:
+            for noise in noises:
+                pooled: dict[str, Counts] = {}
+                by_cat: dict[str, dict[str, Counts]] = {}
+                for entry in per_file.values():
+                    for label in sweep:
+                        c = Counts(*entry["counts"][name][label][_key(density)][_key(noise)])
+                        pooled[label] = pooled.get(label, Counts()) + c
+                        cat = by_cat.setdefault(label, {})
+                        cat[entry["category"]] = cat.get(entry["category"], Counts()) + c
+                best = max(sweep, key=lambda label: pooled[label].accuracy)
+                rows.append({"method": name, "points": density, "noise": noise, "param": best,
+                             "accuracy": pooled[best].accuracy, "fn_rate": pooled[best].fn_rate,
+                             "fp_rate": pooled[best].fp_rate,
+                             "categories": {k: v.accuracy for k, v in sorted(by_cat[best].items())},
+                             "sweep": {label: pooled[label].accuracy for label in sweep},
+                             "files": len(per_file)})
+    return rows
+
+
+def _pct(x: float) -> str:
+    return f"{100 * x:.1f}"
+
+
+def markdown_table(rows: list[dict], absent: dict[str, str] | None = None,
+                   category_files: dict[str, int] | None = None) -> str:
+    """Markdown: a summary (accuracy % per density, best parameter in brackets), then details.
+
+    Args:
+        rows: from :func:`summarize`.
+        absent: methods that could not run, with the reason (listed under the tables).
+        category_files: number of files per category (shown in the column headers).
+    """
+    densities = sorted({r["points"] for r in rows})
+    keys = sorted({(r["method"], r["noise"]) for r in rows}, key=lambda k: (k[1], k[0]))
+    by = {(r["method"], r["noise"], r["points"]): r for r in rows}
+    lines = ["| method | noise | " + " | ".join(f"{d:,} pts" for d in densities) + " |",
+             "|---|---|" + "---|" * len(densities)]
+    for method, noise in keys:
+        cells = []
+        for d in densities:
+            r = by.get((method, noise, d))
+            cells.append("" if r is None else _pct(r["accuracy"]) + (f" ({r['param']})" if r["param"] else ""))
+        lines.append(f"| {method} | {100 * noise:g} % | " + " | ".join(cells) + " |")
+    categories = sorted({c for r in rows for c in r["categories"]})
+    counts = category_files or {}
+    lines += ["", "| method | param | points | noise | accuracy % | FN rate % | FP rate % | "
+              + " | ".join(f"{c} ({counts[c]})" if c in counts else c for c in categories) + " |", "|---" * (7 + len(categories)) + "|"]
+    for r in sorted(rows, key=lambda r: (r["noise"], r["method"], r["points"])):
+        lines.append(f"| {r['method']} | {r['param'] or '-'} | {r['points']:,} | {100 * r['noise']:g} % | "
+                     f"{_pct(r['accuracy'])} | {_pct(r['fn_rate'])} | {_pct(r['fp_rate'])} | "
+                     + " | ".join(_pct(r["categories"][c]) if c in r["categories"] else "" for c in categories)
+                     + " |")
+    for name, reason in (absent or {}).items():
+        lines.append(f"\n{name}: absent ({reason})")
+    return "\n".join(lines) + "\n"

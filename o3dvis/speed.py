@@ -1,0 +1,129 @@
+"""Timing of visibility methods against Open3D's Hidden Point Removal, in the same run.
+
+The reference is Open3D's own ``PointCloud.hidden_point_removal`` called once
+per view (radius = 100 x bounding-box diagonal), on a procedural shape's
+surface sample, with cameras on the sphere of radius = diagonal around the
+centre. A method exposing ``encode(points) -> field`` with
+``field.query(cameras)`` (the network) is timed in its two stages.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from .baselines import Method
+from .data.groundtruth import sample_viewpoints
+from .data.prepare import sample_surface
+from .data.shapes import random_shape
+
+__all__ = ["bench_cloud", "open3d_hpr_seconds", "time_method", "benchmark", "markdown_table"]
+
+REFERENCE = "Open3D HPR"
+
+
+def bench_cloud(num_points: int, num_views: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A procedural shape's surface sample and cameras at one diagonal from its centre.
+
+    Returns:
+        ``(points (num_points, 3), cameras (num_views, 3))``, float64.
+    """
+    rng = np.random.default_rng(seed)
+    mesh = random_shape(rng, parts=4)
+    points, _ = sample_surface(np.asarray(mesh.vertices), np.asarray(mesh.triangles), num_points, rng)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    return points, sample_viewpoints(num_views, (lo + hi) / 2, float(np.linalg.norm(hi - lo)), rng)
+
+
+def _seconds(fn: Callable[[], object], repeats: int) -> float:
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def open3d_hpr_seconds(points: np.ndarray, cameras: np.ndarray, repeats: int = 1) -> float:
+    """Seconds Open3D's HPR takes for all views (best of ``repeats``), cloud creation included."""
+    import open3d as o3d
+
+    radius = 100.0 * float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+
+    def run() -> None:
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+        for camera in cameras:
+            pcd.hidden_point_removal(camera, radius)
+
+    return _seconds(run, repeats)
+
+
+def time_method(method: Method, points: np.ndarray, cameras: np.ndarray, repeats: int = 1) -> dict:
+    """Seconds a method takes for all views; ``encode``/``query`` split when it has them.
+
+    Returns:
+        ``{"seconds": total}``, plus ``"encode_s"`` and ``"query_s"`` for two-stage methods.
+    """
+    if hasattr(method, "encode"):
+        method.encode(points[: min(len(points), 2048)]).query(cameras[:1])  # warm-up (allocations, threads)
+        encode_s, query_s = float("inf"), float("inf")
+        for _ in range(repeats):
+            start = time.perf_counter()
+            field = method.encode(points)
+            mid = time.perf_counter()
+            field.query(cameras)
+            end = time.perf_counter()
+            encode_s, query_s = min(encode_s, mid - start), min(query_s, end - mid)
+        return {"seconds": encode_s + query_s, "encode_s": encode_s, "query_s": query_s}
+    return {"seconds": _seconds(lambda: method(points, cameras), repeats)}
+
+
+def benchmark(methods: dict[str, Method], sizes: list[int], views: list[int], repeats: int = 1,
+              seed: int = 0, progress: bool = True) -> list[dict]:
+    """Times every method and Open3D's HPR on the same clouds.
+
+    Args:
+        methods: ``{name: method}``.
+        sizes: numbers of points.
+        views: numbers of views.
+        repeats: best of this many runs per measurement.
+        seed: seed of the cloud and cameras.
+        progress: show a tqdm bar.
+
+    Returns:
+        One row per (size, views, method): ``points, views, method, seconds``,
+        ``reference_s`` (Open3D HPR, same cloud and cameras), ``speedup``
+        (reference / method), and for two-stage methods ``encode_s`` and
+        ``query_per_view_s``.
+    """
+    from tqdm import tqdm
+
+    rows = []
+    steps = [(n, v) for n in sizes for v in views]
+    for n, v in tqdm(steps, desc="bench", unit="setting", disable=not progress):
+        points, cameras = bench_cloud(n, v, seed)
+        reference = open3d_hpr_seconds(points, cameras, repeats)
+        rows.append({"points": n, "views": v, "method": REFERENCE, "seconds": reference,
+                     "reference_s": reference, "speedup": 1.0})
+        for name, method in methods.items():
+            t = time_method(method, points, cameras, repeats)
+            row = {"points": n, "views": v, "method": name, "seconds": t["seconds"], "reference_s": reference,
+                   "speedup": reference / t["seconds"]}
+            if "encode_s" in t:
+                row.update(encode_s=t["encode_s"], query_per_view_s=t["query_s"] / v)
+            rows.append(row)
+    return rows
+
+
+def markdown_table(rows: list[dict]) -> str:
+    """Markdown timing table; speed-up = Open3D HPR time / method time (> 1: faster)."""
+    lines = ["| points | views | method | total (ms) | encode (ms) | query per view (ms) | speed-up vs Open3D HPR |",
+             "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        enc = f"{1e3 * r['encode_s']:.1f}" if "encode_s" in r else ""
+        per_view = f"{1e3 * r['query_per_view_s']:.2f}" if "query_per_view_s" in r else ""
+        lines.append(f"| {r['points']:,} | {r['views']} | {r['method']} | {1e3 * r['seconds']:.1f} | {enc} | "
+                     f"{per_view} | {r['speedup']:.2f}x |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,214 @@
+"""The accuracy bench (`o3dvis eval`) and the timing bench (`o3dvis bench`) on tiny data."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from o3dvis.baselines import hidden_point_removal_mask
+from o3dvis.cli.eval import main
+from o3dvis.data import load_sample, prepare, write_shapes
+from o3dvis.evaluate import (Counts, add_noise, category_of, eval_cloud, evaluate, list_samples,
+                             subsample_indices, summarize)
+from o3dvis.speed import benchmark, time_method
+
+POINTS, VIEWS = 2000, 3
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    """Two labelled procedural shapes (category ``procedural``) and one in a subfolder ``sub``."""
+    root = tmp_path_factory.mktemp("eval")
+    meshes = root / "meshes"
+    write_shapes(str(meshes), 2, seed=5)
+    write_shapes(str(meshes / "sub"), 1, seed=6)
+    report = prepare(meshes, root / "data", num_points=POINTS, num_views=VIEWS, progress=False)
+    assert report["done"] == 3 and not report["failed"]
+    return root / "data"
+
+
+def _run(args: list[str], capsys) -> tuple[int, str]:
+    code = main("eval", args)
+    return code, capsys.readouterr().out
+
+
+def _independent_hpr(data: Path, ks: list[float]) -> dict:
+    """Pooled accuracy per k and per (k, category), computed from the files directly."""
+    acc, by_cat = {}, {}
+    for path in sorted(data.rglob("*.npz")):
+        s = load_sample(path)
+        cat = path.parent.name if path.parent != data else path.name.split("__")[0]
+        points = s.points.astype(np.float64)
+        diagonal = np.linalg.norm(points.max(axis=0) - points.min(axis=0))
+        for k in ks:
+            mask = hidden_point_removal_mask(points, s.cameras.astype(np.float64), diagonal * 10 ** k)
+            right = mask == s.visibility
+            for key, table in ((k, acc), ((k, cat), by_cat)):
+                table.setdefault(key, []).append(right)
+    pool = lambda lists: float(np.mean(np.concatenate([r.ravel() for r in lists])))  # noqa: E731
+    return {"acc": {k: pool(v) for k, v in acc.items()}, "cat": {k: pool(v) for k, v in by_cat.items()}}
+
+
+def test_eval_matches_an_independent_computation(data, tmp_path, capsys):
+    out = tmp_path / "r.json"
+    code, text = _run(["--data", str(data), "--points", str(POINTS), "--noise", "0", "--methods", "hpr",
+                       "--hpr-k", "1,2,3", "--out", str(out)], capsys)
+    assert code == 0
+    report = json.loads(out.read_text())
+    assert report["categories"] == {"procedural": 2, "sub": 1}
+    (row,) = report["results"]
+    truth = _independent_hpr(data, [1.0, 2.0, 3.0])
+    best = max(truth["acc"], key=truth["acc"].get)
+    assert row["param"] == f"k={best:g}"
+    assert row["accuracy"] == pytest.approx(truth["acc"][best], abs=1e-12)
+    for k in (1.0, 2.0, 3.0):
+        assert row["sweep"][f"k={k:g}"] == pytest.approx(truth["acc"][k], abs=1e-12)
+    for cat in ("procedural", "sub"):
+        assert row["categories"][cat] == pytest.approx(truth["cat"][(best, cat)], abs=1e-12)
+    assert f"{100 * truth['acc'][best]:.1f} (k={best:g})" in text
+    assert out.with_suffix(".md").read_text() in text + "\n"
+
+
+def test_fn_fp_rates_and_subsampled_noisy_clouds(data):
+    files = list_samples(data)
+    methods = {"all": {"": lambda p, c: np.ones((len(c), len(p)), dtype=bool)},
+               "hpr": {"k=2": lambda p, c: hidden_point_removal_mask(
+                   p, c, 100 * np.linalg.norm(p.max(axis=0) - p.min(axis=0)))}}
+    per_file = evaluate(files, data, methods, [500], [0.02], seed=1, views=2, progress=False)
+    rows = {r["method"]: r for r in summarize(per_file, methods, [500], [0.02])}
+    labels = np.concatenate([eval_cloud(load_sample(f), 500, 0.02, seed=1, views=2)[2].ravel() for f in files])
+    assert labels.size == 3 * 2 * 500
+    assert rows["all"]["accuracy"] == pytest.approx(labels.mean())
+    assert rows["all"]["fn_rate"] == 0 and rows["all"]["fp_rate"] == 1
+    tp = fp = fn = tn = 0
+    for f in files:
+        points, cameras, truth = eval_cloud(load_sample(f), 500, 0.02, seed=1, views=2)
+        pred = methods["hpr"]["k=2"](points, cameras)
+        tp += (pred & truth).sum()
+        fp += (pred & ~truth).sum()
+        fn += (~pred & truth).sum()
+        tn += (~pred & ~truth).sum()
+    assert rows["hpr"]["accuracy"] == pytest.approx((tp + tn) / (tp + fp + fn + tn))
+    assert rows["hpr"]["fn_rate"] == pytest.approx(fn / (tp + fn))
+    assert rows["hpr"]["fp_rate"] == pytest.approx(fp / (fp + tn))
+
+
+def test_subsampling_and_noise_are_seeded_and_bounded(data):
+    s = load_sample(list_samples(data)[0])
+    a, _, la = eval_cloud(s, 700, 0.01, seed=3)
+    b, _, lb = eval_cloud(s, 700, 0.01, seed=3)
+    c, _, _ = eval_cloud(s, 700, 0.0, seed=3)
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(la, lb)
+    idx = subsample_indices(len(s.points), 700, 3, s.name)
+    assert len(np.unique(idx)) == 700
+    np.testing.assert_array_equal(c, s.points[idx])  # same points with and without noise
+    diagonal = np.linalg.norm(s.points.max(axis=0) - s.points.min(axis=0))
+    moved = np.linalg.norm(a - c, axis=1)
+    assert moved.max() <= 0.01 * diagonal * (1 + 1e-9) and moved.max() > 0.008 * diagonal
+    assert not np.array_equal(subsample_indices(len(s.points), 700, 4, s.name), idx)
+    np.testing.assert_array_equal(subsample_indices(10, 50, 0, "x"), np.arange(10))
+    with pytest.raises(ValueError):
+        add_noise(c, -0.1, 1.0, np.random.default_rng())
+
+
+def test_absent_method_stays_absent(data, tmp_path, capsys):
+    out = tmp_path / "r.json"
+    code, text = _run(["--data", str(data), "--points", "300", "--methods", "hpr,neural", "--hpr-k", "2",
+                       "--checkpoint", str(tmp_path / "missing.safetensors"), "--out", str(out)], capsys)
+    assert code == 0
+    report = json.loads(out.read_text())
+    assert {r["method"] for r in report["results"]} == {"hpr"}
+    assert "missing.safetensors" in report["absent"]["neural"]
+    assert "neural: absent" in text and "| neural |" not in text
+    code, _ = _run(["--data", str(data), "--methods", "neural", "--checkpoint", str(tmp_path / "no")], capsys)
+    assert code == 1
+
+
+def test_neural_checkpoint_is_scored_like_any_method(data, tmp_path, capsys):
+    pytest.importorskip("o3dvis.visibility")
+    import torch
+
+    from o3dvis.nn import VisibilityNetwork
+    from o3dvis.nn.network import NetworkConfig
+    from o3dvis.visibility import NeuralVisibility
+
+    torch.manual_seed(0)
+    ckpt = tmp_path / "tiny.safetensors"
+    VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 8, 8), feature_channels=8, hidden=(8,))).save(ckpt)
+    out = tmp_path / "r.json"
+    code, _ = _run(["--data", str(data), "--points", "800", "--methods", "neural", "--checkpoint", str(ckpt),
+                    "--out", str(out)], capsys)
+    assert code == 0
+    (row,) = json.loads(out.read_text())["results"]
+    vis = NeuralVisibility(VisibilityNetwork.load(ckpt))
+    total = Counts()
+    for f in list_samples(data):
+        points, cameras, truth = eval_cloud(load_sample(f), 800, 0.0)
+        total = total + Counts.of(vis.encode(points).query(cameras), truth)
+    assert row["accuracy"] == pytest.approx(total.accuracy)
+
+
+def test_cache_resumes(data, tmp_path, capsys):
+    cache = tmp_path / "cache"
+    args = ["--data", str(data), "--points", "400", "--methods", "hpr", "--hpr-k", "2", "--cache", str(cache),
+            "--out", str(tmp_path / "a.json")]
+    assert _run(args, capsys)[0] == 0
+    files = sorted(cache.glob("*.json"))
+    assert len(files) == 3
+    # doctor one file's cached counts: a rerun must read them instead of recomputing
+    stored = json.loads(files[0].read_text())
+    stored["counts"]["hpr"]["k=2"]["400"]["0"] = [0, 0, 0, 400 * VIEWS]
+    files[0].write_text(json.dumps(stored))
+    assert _run(args[:-1] + [str(tmp_path / "b.json")], capsys)[0] == 0
+    first = json.loads((tmp_path / "a.json").read_text())["results"][0]["accuracy"]
+    second = json.loads((tmp_path / "b.json").read_text())["results"][0]["accuracy"]
+    assert second != first
+
+
+def test_category_of(tmp_path):
+    assert category_of(tmp_path / "a" / "x.npz", tmp_path) == "a"
+    assert category_of(tmp_path / "src__x.npz", tmp_path) == "src"
+    assert category_of(tmp_path / "x.npz", tmp_path) == "all"
+    with pytest.raises(FileNotFoundError):
+        list_samples(tmp_path / "none")
+    with pytest.raises(ValueError):
+        list_samples(tmp_path)
+
+
+class _TwoStage:
+    """A method with separate encode/query stages, like the network."""
+
+    def __init__(self):
+        self.encoded = 0
+
+    def encode(self, points):
+        self.encoded += 1
+        return self
+
+    def query(self, cameras):
+        return np.ones((len(cameras), 1), dtype=bool)
+
+    def __call__(self, points, cameras):
+        return self.encode(points).query(cameras)
+
+
+def test_benchmark_times_methods_against_open3d(capsys):
+    two = _TwoStage()
+    t = time_method(two, np.zeros((10, 3)), np.zeros((4, 3)), repeats=2)
+    assert set(t) == {"seconds", "encode_s", "query_s"} and two.encoded == 3  # warm-up + 2 repeats
+    rows = benchmark({"hpr": lambda p, c: hidden_point_removal_mask(p, c, 1e3)}, [2048], [1, 3],
+                     progress=False)
+    assert [(r["method"], r["views"]) for r in rows] == [("Open3D HPR", 1), ("hpr", 1), ("Open3D HPR", 3),
+                                                         ("hpr", 3)]
+    for ref, row in zip(rows[::2], rows[1::2]):
+        assert row["reference_s"] == ref["seconds"] > 0
+        assert row["speedup"] == pytest.approx(ref["seconds"] / row["seconds"])
+    assert main("bench", ["--points", "2048", "--views", "2", "--methods", "hpr,neural",
+                          "--checkpoint", "/nonexistent.safetensors"]) == 0
+    text = capsys.readouterr().out
+    assert "| 2,048 | 2 | Open3D HPR |" in text and "| 2,048 | 2 | hpr |" in text
+    assert "neural: absent" in text

@@ -22,13 +22,15 @@ import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from .baselines import Method
 from .data.prepare import Sample, load_sample
 
-__all__ = ["Counts", "list_samples", "category_of", "subsample_indices", "add_noise", "eval_cloud",
+__all__ = ["Counts", "list_samples", "category_of", "subsample_indices", "add_noise", "EvalCloud", "eval_cloud",
+           "run_method",
            "evaluate_sample", "evaluate", "summarize", "markdown_table"]
 
 
@@ -118,19 +120,28 @@ def add_noise(points: np.ndarray, level: float, scale: float, rng: np.random.Gen
     return points + direction * (level * scale * rng.random((len(points), 1)))
 
 
+class EvalCloud(NamedTuple):
+    """What a method is scored on: points, cameras, true labels, and the points' normals."""
+
+    points: np.ndarray
+    cameras: np.ndarray
+    labels: np.ndarray
+    normals: np.ndarray
+
+
 def eval_cloud(sample: Sample, num_points: int, noise: float, seed: int = 0,
-               views: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+               views: int | None = None) -> EvalCloud:
     """The cloud a method is scored on.
 
     Args:
         sample: a labelled sample.
         num_points: density (all points when the sample has fewer).
-        noise: noise level as a fraction of the bounding-box diagonal.
+        noise: noise level as a fraction of the bounding-box diagonal (normals are not perturbed).
         seed: seed of subsampling and noise.
         views: use the first ``views`` viewpoints (default: all).
 
     Returns:
-        ``(points (n, 3) float64, cameras (V, 3), labels (V, n) bool)``.
+        ``EvalCloud(points (n, 3) float64, cameras (V, 3), labels (V, n) bool, normals (n, 3))``.
     """
     idx = subsample_indices(len(sample.points), num_points, seed, sample.name)
     points = sample.points[idx].astype(np.float64)
@@ -138,7 +149,15 @@ def eval_cloud(sample: Sample, num_points: int, noise: float, seed: int = 0,
         diagonal = float(np.linalg.norm(sample.points.max(axis=0) - sample.points.min(axis=0)))
         points = add_noise(points, noise, diagonal, _rng(seed, sample.name, num_points, round(noise * 1e6)))
     views = len(sample.cameras) if views is None else views
-    return points, sample.cameras[:views].astype(np.float64), sample.visibility[:views, idx]
+    return EvalCloud(points, sample.cameras[:views].astype(np.float64), sample.visibility[:views, idx],
+                     sample.normals[idx].astype(np.float64))
+
+
+def run_method(method: Method, cloud: EvalCloud) -> np.ndarray:
+    """``method(points, cameras)``, with ``normals=`` for methods that declare ``needs_normals``."""
+    if getattr(method, "needs_normals", False):
+        return method(cloud.points, cloud.cameras, normals=cloud.normals)
+    return method(cloud.points, cloud.cameras)
 
 
 def evaluate_sample(sample: Sample, methods: dict[str, dict[str, Method]], densities: Iterable[int],
@@ -165,9 +184,9 @@ def evaluate_sample(sample: Sample, methods: dict[str, dict[str, Method]], densi
                     if _key(noise) not in result.get(name, {}).get(label, {}).get(_key(density), {})]
             if not todo:
                 continue
-            points, cameras, labels = eval_cloud(sample, density, noise, seed, views)
+            cloud = eval_cloud(sample, density, noise, seed, views)
             for name, label, method in todo:
-                c = Counts.of(method(points, cameras), labels)
+                c = Counts.of(run_method(method, cloud), cloud.labels)
                 result.setdefault(name, {}).setdefault(label, {}).setdefault(_key(density), {})[_key(noise)] = \
                     [c.tp, c.fp, c.fn, c.tn]
     return result

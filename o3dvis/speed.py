@@ -18,23 +18,25 @@ from .baselines import Method
 from .data.groundtruth import sample_viewpoints
 from .data.prepare import sample_surface
 from .data.shapes import random_shape
+from .evaluate import EvalCloud, run_method
 
 __all__ = ["bench_cloud", "open3d_hpr_seconds", "time_method", "benchmark", "markdown_table"]
 
 REFERENCE = "Open3D HPR"
 
 
-def bench_cloud(num_points: int, num_views: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def bench_cloud(num_points: int, num_views: int, seed: int = 0) -> EvalCloud:
     """A procedural shape's surface sample and cameras at one diagonal from its centre.
 
     Returns:
-        ``(points (num_points, 3), cameras (num_views, 3))``, float64.
+        ``EvalCloud(points (num_points, 3), cameras (num_views, 3), labels=None, normals)``.
     """
     rng = np.random.default_rng(seed)
     mesh = random_shape(rng, parts=4)
-    points, _ = sample_surface(np.asarray(mesh.vertices), np.asarray(mesh.triangles), num_points, rng)
+    points, normals = sample_surface(np.asarray(mesh.vertices), np.asarray(mesh.triangles), num_points, rng)
     lo, hi = points.min(axis=0), points.max(axis=0)
-    return points, sample_viewpoints(num_views, (lo + hi) / 2, float(np.linalg.norm(hi - lo)), rng)
+    cameras = sample_viewpoints(num_views, (lo + hi) / 2, float(np.linalg.norm(hi - lo)), rng)
+    return EvalCloud(points, cameras, None, normals)
 
 
 def _seconds(fn: Callable[[], object], repeats: int) -> float:
@@ -60,24 +62,26 @@ def open3d_hpr_seconds(points: np.ndarray, cameras: np.ndarray, repeats: int = 1
     return _seconds(run, repeats)
 
 
-def time_method(method: Method, points: np.ndarray, cameras: np.ndarray, repeats: int = 1) -> dict:
-    """Seconds a method takes for all views; ``encode``/``query`` split when it has them.
+def time_method(method: Method, cloud: EvalCloud, repeats: int = 1) -> dict:
+    """Seconds a method takes for all views of ``cloud``; ``encode``/``query`` split when it has them.
 
     Returns:
         ``{"seconds": total}``, plus ``"encode_s"`` and ``"query_s"`` for two-stage methods.
     """
-    if hasattr(method, "encode"):
-        method.encode(points[: min(len(points), 2048)]).query(cameras[:1])  # warm-up (allocations, threads)
-        encode_s, query_s = float("inf"), float("inf")
-        for _ in range(repeats):
-            start = time.perf_counter()
-            field = method.encode(points)
-            mid = time.perf_counter()
-            field.query(cameras)
-            end = time.perf_counter()
-            encode_s, query_s = min(encode_s, mid - start), min(query_s, end - mid)
-        return {"seconds": encode_s + query_s, "encode_s": encode_s, "query_s": query_s}
-    return {"seconds": _seconds(lambda: method(points, cameras), repeats)}
+    if not hasattr(method, "encode"):
+        return {"seconds": _seconds(lambda: run_method(method, cloud), repeats)}
+    normals = (cloud.normals,) if getattr(method, "needs_normals", False) else ()
+    warm = min(len(cloud.points), 2048)  # first call pays allocations and thread start-up
+    method.encode(cloud.points[:warm], *(n[:warm] for n in normals)).query(cloud.cameras[:1])
+    encode_s, query_s = float("inf"), float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        field = method.encode(cloud.points, *normals)
+        mid = time.perf_counter()
+        field.query(cloud.cameras)
+        end = time.perf_counter()
+        encode_s, query_s = min(encode_s, mid - start), min(query_s, end - mid)
+    return {"seconds": encode_s + query_s, "encode_s": encode_s, "query_s": query_s}
 
 
 def benchmark(methods: dict[str, Method], sizes: list[int], views: list[int], repeats: int = 1,
@@ -103,12 +107,12 @@ def benchmark(methods: dict[str, Method], sizes: list[int], views: list[int], re
     rows = []
     steps = [(n, v) for n in sizes for v in views]
     for n, v in tqdm(steps, desc="bench", unit="setting", disable=not progress):
-        points, cameras = bench_cloud(n, v, seed)
-        reference = open3d_hpr_seconds(points, cameras, repeats)
+        cloud = bench_cloud(n, v, seed)
+        reference = open3d_hpr_seconds(cloud.points, cloud.cameras, repeats)
         rows.append({"points": n, "views": v, "method": REFERENCE, "seconds": reference,
                      "reference_s": reference, "speedup": 1.0})
         for name, method in methods.items():
-            t = time_method(method, points, cameras, repeats)
+            t = time_method(method, cloud, repeats)
             row = {"points": n, "views": v, "method": name, "seconds": t["seconds"], "reference_s": reference,
                    "speedup": reference / t["seconds"]}
             if "encode_s" in t:

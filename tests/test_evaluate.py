@@ -13,7 +13,7 @@ from o3dvis.cli.eval import main
 from o3dvis.data import load_sample, prepare, write_shapes
 from o3dvis.evaluate import (Counts, add_noise, category_of, eval_cloud, evaluate, list_samples,
                              subsample_indices, summarize)
-from o3dvis.speed import benchmark, time_method
+from o3dvis.speed import bench_cloud, benchmark, time_method
 
 POINTS, VIEWS = 2000, 3
 
@@ -79,13 +79,13 @@ def test_fn_fp_rates_and_subsampled_noisy_clouds(data):
                    p, c, 100 * np.linalg.norm(p.max(axis=0) - p.min(axis=0)))}}
     per_file = evaluate(files, data, methods, [500], [0.02], seed=1, views=2, progress=False)
     rows = {r["method"]: r for r in summarize(per_file, methods, [500], [0.02])}
-    labels = np.concatenate([eval_cloud(load_sample(f), 500, 0.02, seed=1, views=2)[2].ravel() for f in files])
+    labels = np.concatenate([eval_cloud(load_sample(f), 500, 0.02, seed=1, views=2).labels.ravel() for f in files])
     assert labels.size == 3 * 2 * 500
     assert rows["all"]["accuracy"] == pytest.approx(labels.mean())
     assert rows["all"]["fn_rate"] == 0 and rows["all"]["fp_rate"] == 1
     tp = fp = fn = tn = 0
     for f in files:
-        points, cameras, truth = eval_cloud(load_sample(f), 500, 0.02, seed=1, views=2)
+        points, cameras, truth, _ = eval_cloud(load_sample(f), 500, 0.02, seed=1, views=2)
         pred = methods["hpr"]["k=2"](points, cameras)
         tp += (pred & truth).sum()
         fp += (pred & ~truth).sum()
@@ -98,14 +98,16 @@ def test_fn_fp_rates_and_subsampled_noisy_clouds(data):
 
 def test_subsampling_and_noise_are_seeded_and_bounded(data):
     s = load_sample(list_samples(data)[0])
-    a, _, la = eval_cloud(s, 700, 0.01, seed=3)
-    b, _, lb = eval_cloud(s, 700, 0.01, seed=3)
-    c, _, _ = eval_cloud(s, 700, 0.0, seed=3)
+    a, _, la, na = eval_cloud(s, 700, 0.01, seed=3)
+    b, _, lb, _ = eval_cloud(s, 700, 0.01, seed=3)
+    c, _, _, nc = eval_cloud(s, 700, 0.0, seed=3)
     np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(la, lb)
     idx = subsample_indices(len(s.points), 700, 3, s.name)
     assert len(np.unique(idx)) == 700
     np.testing.assert_array_equal(c, s.points[idx])  # same points with and without noise
+    np.testing.assert_array_equal(na, nc)
+    np.testing.assert_array_equal(nc, s.normals[idx])
     diagonal = np.linalg.norm(s.points.max(axis=0) - s.points.min(axis=0))
     moved = np.linalg.norm(a - c, axis=1)
     assert moved.max() <= 0.01 * diagonal * (1 + 1e-9) and moved.max() > 0.008 * diagonal
@@ -137,19 +139,24 @@ def test_neural_checkpoint_is_scored_like_any_method(data, tmp_path, capsys):
     from o3dvis.visibility import NeuralVisibility
 
     torch.manual_seed(0)
-    ckpt = tmp_path / "tiny.safetensors"
-    VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 8, 8), feature_channels=8, hidden=(8,))).save(ckpt)
-    out = tmp_path / "r.json"
-    code, _ = _run(["--data", str(data), "--points", "800", "--methods", "neural", "--checkpoint", str(ckpt),
-                    "--out", str(out)], capsys)
-    assert code == 0
-    (row,) = json.loads(out.read_text())["results"]
-    vis = NeuralVisibility(VisibilityNetwork.load(ckpt))
-    total = Counts()
-    for f in list_samples(data):
-        points, cameras, truth = eval_cloud(load_sample(f), 800, 0.0)
-        total = total + Counts.of(vis.encode(points).query(cameras), truth)
-    assert row["accuracy"] == pytest.approx(total.accuracy)
+    for use_normals, name, other in ((False, "neural", "neural-normals"), (True, "neural-normals", "neural")):
+        ckpt = tmp_path / f"tiny{use_normals}.safetensors"
+        VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 8, 8), feature_channels=8, hidden=(8,),
+                                        use_normals=use_normals)).save(ckpt)
+        out = tmp_path / "r.json"
+        code, _ = _run(["--data", str(data), "--points", "800", "--methods", f"{name},{other}",
+                        "--checkpoint", str(ckpt), "--out", str(out)], capsys)
+        assert code == 0
+        report = json.loads(out.read_text())
+        (row,) = report["results"]
+        assert row["method"] == name and other in report["absent"]
+        vis = NeuralVisibility(VisibilityNetwork.load(ckpt))
+        total = Counts()
+        for f in list_samples(data):
+            points, cameras, truth, normals = eval_cloud(load_sample(f), 800, 0.0)
+            field = vis.encode(points, normals=normals if use_normals else False)
+            total = total + Counts.of(field.query(cameras), truth)
+        assert row["accuracy"] == pytest.approx(total.accuracy)
 
 
 def test_cache_resumes(data, tmp_path, capsys):
@@ -198,7 +205,7 @@ class _TwoStage:
 
 def test_benchmark_times_methods_against_open3d(capsys):
     two = _TwoStage()
-    t = time_method(two, np.zeros((10, 3)), np.zeros((4, 3)), repeats=2)
+    t = time_method(two, bench_cloud(10, 4), repeats=2)
     assert set(t) == {"seconds", "encode_s", "query_s"} and two.encoded == 3  # warm-up + 2 repeats
     rows = benchmark({"hpr": lambda p, c: hidden_point_removal_mask(p, c, 1e3)}, [2048], [1, 3],
                      progress=False)

@@ -54,7 +54,7 @@ def _grid(name: str) -> str:
 
 def _add_method_args(p: argparse.ArgumentParser, default: str) -> None:
     p.add_argument("--methods", type=_names, default=_names(default),
-                   help=f"comma-separated: hpr, hpr-exp, neural (default: {default})")
+                   help=f"comma-separated: hpr, hpr-exp, neural, neural-normals (default: {default})")
     p.add_argument("--checkpoint", type=Path, default=None,
                    help="network checkpoint (.safetensors) for 'neural' (default: shipped weights)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads (default: 2)")
@@ -82,7 +82,8 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of subsampling and noise (default: 0)")
     p.add_argument("--out", type=Path, default=None, help="write JSON here and the Markdown next to it (.md)")
     p.add_argument("--cache", type=Path, default=None,
-                   help="folder of per-file baseline results; a rerun resumes from it (empty it after changing a baseline)")
+                   help="folder of per-file baseline results; a rerun resumes from it "
+                        "(empty it after changing a baseline)")
     p.set_defaults(func=run_eval)
 
     p = subparsers.add_parser("bench", help="timing against Open3D's hidden_point_removal",
@@ -132,7 +133,7 @@ def run_eval(args) -> int:
         return 1
     files = list_samples(args.data, args.limit)
     per_file = evaluate(files, args.data, methods, args.points, args.noise, args.seed, args.views,
-                        args.cache, cached=[m for m in methods if m != "neural"])
+                        args.cache, cached=[m for m in methods if not m.startswith("neural")])
     rows = summarize(per_file, methods, args.points, args.noise)
     categories = dict(sorted(Counter(category_of(f, args.data) for f in files).items()))
     report = {"settings": {"data": str(args.data), "files": len(files), "points": args.points,

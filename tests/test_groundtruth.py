@@ -62,6 +62,21 @@ def test_sphere_matches_analytic_away_from_silhouette():
     assert 0.35 < vis.mean() < 0.5  # a bit less than half of a sphere from a finite distance
 
 
+@pytest.mark.parametrize("offset, camera_distance", [(1e4, 3.0), (0.0, 3e3), (1e5, 3e3)])
+def test_far_from_the_origin_keeps_precision(offset, camera_distance):
+    """Embree casts in float32: a unit sphere at 1e5 or a camera 3 km away must still be labelled right."""
+    center = np.array([offset, -offset / 2, 0.3 * offset])
+    mesh = _sphere(center, 1.0)
+    points = _surface(mesh, 4000)
+    cameras = _cameras(4, camera_distance, center)
+    vis = visibility_from_mesh(mesh, points, cameras)
+    normal = (points - center) / np.linalg.norm(points - center, axis=1, keepdims=True)
+    to_cam = cameras[:, None] - points[None]
+    cos = np.einsum("nk,vnk->vn", normal, to_cam) / np.linalg.norm(to_cam, axis=2)
+    away = np.abs(cos) > 0.05
+    assert (vis[away] == (cos > 0)[away]).mean() >= 0.999
+
+
 def test_box_matches_face_orientation():
     mesh = o3d.geometry.TriangleMesh.create_box(1.0, 2.0, 0.5).translate((-0.5, -1.0, -0.25))
     points = _surface(mesh, 10_000, seed=2)

@@ -53,17 +53,25 @@ def visibility_from_mesh(mesh, points, cameras, tolerance: float = 1e-4) -> np.n
         raise ValueError(f"cameras must have shape (3,) or (V, 3), got {cameras.shape}")
     if not (np.isfinite(points).all() and np.isfinite(cameras).all()):
         raise ValueError("points and cameras must be finite")
+    # Embree works in float32: cast in a frame centred on the mesh, and start each ray where it
+    # enters the mesh's bounding sphere, so that meshes and cameras far from the origin keep precision.
+    lo, hi = legacy.get_min_bound(), legacy.get_max_bound()
+    centre, reach = (lo + hi) / 2, np.linalg.norm(hi - lo) / 2
+    vertices = np.asarray(legacy.vertices) - centre
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(legacy))
-    eps = tolerance * np.linalg.norm(legacy.get_max_bound() - legacy.get_min_bound())
+    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)),
+                        o3d.core.Tensor(np.asarray(legacy.triangles).astype(np.uint32)))
+    eps = tolerance * 2 * reach
+    points = points - centre
     out = np.empty((len(cameras), len(points)), dtype=bool)
-    for v, cam in enumerate(cameras):
+    for v, cam in enumerate(cameras - centre):
         offset = points - cam
         dist = np.linalg.norm(offset, axis=1)
         dirs = offset / np.maximum(dist, 1e-300)[:, None]
-        rays = np.concatenate([np.broadcast_to(cam, points.shape), dirs], axis=1).astype(np.float32)
+        start = max(0.0, float(np.linalg.norm(cam)) - 1.01 * reach - eps)
+        rays = np.concatenate([cam + start * dirs, dirs], axis=1).astype(np.float32)
         t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-        out[v] = t_hit >= dist - eps
+        out[v] = start + t_hit >= dist - eps
     return out
 
 

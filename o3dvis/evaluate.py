@@ -149,6 +149,8 @@ def eval_cloud(sample: Sample, num_points: int, noise: float, seed: int = 0,
         diagonal = float(np.linalg.norm(sample.points.max(axis=0) - sample.points.min(axis=0)))
         points = add_noise(points, noise, diagonal, _rng(seed, sample.name, num_points, round(noise * 1e6)))
     views = len(sample.cameras) if views is None else views
+    if not 1 <= views <= len(sample.cameras):
+        raise ValueError(f"{sample.name} has {len(sample.cameras)} viewpoints, {views} were asked for")
     return EvalCloud(points, sample.cameras[:views].astype(np.float64), sample.visibility[:views, idx],
                      sample.normals[idx].astype(np.float64))
 
@@ -297,7 +299,9 @@ def markdown_table(rows: list[dict], absent: dict[str, str] | None = None,
     densities = sorted({r["points"] for r in rows})
     keys = sorted({(r["method"], r["noise"]) for r in rows}, key=lambda k: (k[1], k[0]))
     by = {(r["method"], r["noise"], r["points"]): r for r in rows}
-    lines = ["| method | noise | " + " | ".join(f"{d:,} pts" for d in densities) + " |",
+    lines = ["Accuracy % = correct labels / all labels, pooled over points, views and files; "
+             "(best parameter of the sweep, tuned over the whole set per column).", "",
+             "| method | noise | " + " | ".join(f"{d:,} pts" for d in densities) + " |",
              "|---|---|" + "---|" * len(densities)]
     for method, noise in keys:
         cells = []

@@ -115,6 +115,8 @@ def test_subsampling_and_noise_are_seeded_and_bounded(data):
     np.testing.assert_array_equal(subsample_indices(10, 50, 0, "x"), np.arange(10))
     with pytest.raises(ValueError):
         add_noise(c, -0.1, 1.0, np.random.default_rng())
+    with pytest.raises(ValueError):
+        eval_cloud(s, 700, 0.0, views=VIEWS + 1)
 
 
 def test_absent_method_stays_absent(data, tmp_path, capsys):

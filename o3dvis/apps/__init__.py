@@ -1,0 +1,17 @@
+"""Applications of point visibility on Open3D geometry: oriented normals, reconstruction,
+shadows, best views and headless renders. Each takes the visibility method as ``method=``
+(default: the pretrained neural network; see :mod:`o3dvis.apps.methods`).
+"""
+
+from .camera import View, fibonacci_sphere, make_view
+from .methods import ground_truth_method, resolve_method
+from .normals import estimate_normals_neural, orient_normals_neural
+from .reconstruction import reconstruct_poisson, reconstruct_view_dependent
+from .render import depth_image, render_points
+from .shadows import points_in_shadow, render_with_shadows, shadow_map
+from .views import best_view
+
+__all__ = ["estimate_normals_neural", "orient_normals_neural", "reconstruct_view_dependent",
+           "reconstruct_poisson", "shadow_map", "points_in_shadow", "render_with_shadows",
+           "best_view", "render_points", "depth_image", "ground_truth_method", "resolve_method",
+           "View", "make_view", "fibonacci_sphere"]

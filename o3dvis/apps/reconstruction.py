@@ -1,0 +1,74 @@
+"""Surfaces from point clouds: the mesh one camera sees, and Poisson with visibility-oriented normals."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+
+from .camera import camera_location_of, cloud_points, legacy_cloud
+from .methods import resolve_method
+from .normals import estimate_normals_neural
+from .triangulation import DEFAULT_EDGE_FACTOR, local_spacing, visible_triangles
+
+__all__ = ["reconstruct_view_dependent", "reconstruct_poisson"]
+
+
+def reconstruct_view_dependent(pcd, camera, method=None, *,
+                               edge_factor: float = DEFAULT_EDGE_FACTOR) -> o3d.geometry.TriangleMesh:
+    """The surface a camera sees, as a mesh over the visible points.
+
+    The visible points are projected to the camera's image plane and Delaunay
+    triangulated; triangles with an edge longer than ``edge_factor`` local
+    point spacings (bridges over gaps and depth jumps) are dropped.
+
+    Args:
+        pcd: ``o3d.geometry.PointCloud`` (legacy or tensor); colours carry over.
+        camera: a (3,) camera location, a 4x4 extrinsic or
+            ``o3d.camera.PinholeCameraParameters``.
+        method: the visibility method (default: the pretrained neural network).
+        edge_factor: longest edge allowed, in local point spacings.
+
+    Returns:
+        ``o3d.geometry.TriangleMesh`` whose vertices are the visible points that
+        belong to a triangle, with triangles facing the camera and vertex normals.
+    """
+    pcd = legacy_cloud(pcd)
+    points = cloud_points(pcd)
+    location = camera_location_of(camera)
+    visible = np.flatnonzero(resolve_method(method)(points, location[None])[0])
+    triangles = visible_triangles(points, location, visible, edge_factor * local_spacing(points))
+    used, triangles = np.unique(triangles, return_inverse=True)
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(points[used]),
+                                     o3d.utility.Vector3iVector(triangles.reshape(-1, 3)))
+    if pcd.has_colors():
+        mesh.vertex_colors = o3d.utility.Vector3dVector(np.asarray(pcd.colors)[used])
+    mesh.compute_vertex_normals()
+    return mesh
+
+
+def reconstruct_poisson(pcd, depth: int = 8, method=None, *, num_views: int = 26, width: float = 0,
+                        scale: float = 1.1, linear_fit: bool = False, n_threads: int = -1,
+                        progress: bool = False
+                        ) -> tuple[o3d.geometry.TriangleMesh, o3d.utility.DoubleVector]:
+    """Screened Poisson reconstruction on normals oriented by visibility.
+
+    Normals come from :func:`~o3dvis.apps.normals.estimate_normals_neural` on a
+    copy of the cloud (``pcd`` is left unchanged), then Open3D's
+    ``TriangleMesh.create_from_point_cloud_poisson`` runs with the given
+    arguments.
+
+    Args:
+        pcd: ``o3d.geometry.PointCloud`` (legacy or tensor).
+        depth, width, scale, linear_fit, n_threads: as in Open3D's
+            ``create_from_point_cloud_poisson``.
+        method: the visibility method (default: the pretrained neural network).
+        num_views: cameras used to estimate the normals.
+        progress: show a progress bar while estimating the normals.
+
+    Returns:
+        The mesh and the per-vertex densities, as Open3D returns them.
+    """
+    cloud = o3d.geometry.PointCloud(legacy_cloud(pcd))
+    estimate_normals_neural(cloud, num_views, method, progress=progress)
+    return o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
+        cloud, depth=depth, width=width, scale=scale, linear_fit=linear_fit, n_threads=n_threads)

@@ -1,0 +1,101 @@
+"""The surface seen from one camera: visible points projected to the image plane, Delaunay
+triangulated, triangles with edges longer than the local point spacing allows dropped.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import Delaunay, QhullError, cKDTree
+
+from .camera import look_at
+
+__all__ = ["local_spacing", "delaunay_surface", "visible_triangles", "triangle_normals"]
+
+DEFAULT_EDGE_FACTOR = 3.0
+
+
+def local_spacing(points: np.ndarray, k: int = 6) -> np.ndarray:
+    """Per-point sampling scale: the distance to the ``k``-th nearest other point, (N,).
+
+    Duplicated points are ignored so that they do not shrink the scale to zero.
+    """
+    if len(points) < 2:
+        return np.zeros(len(points))
+    k = min(k, len(points) - 1)
+    dist, _ = cKDTree(points).query(points, k=k + 1)
+    dist = dist[:, 1:]
+    positive = np.where(dist > 0, dist, np.inf).min(axis=1)
+    spacing = np.maximum(dist[:, -1], np.where(np.isfinite(positive), positive, 0))
+    return spacing
+
+
+def delaunay_surface(points: np.ndarray, coords: np.ndarray, max_edge: np.ndarray
+                     ) -> tuple[Delaunay | None, np.ndarray]:
+    """Delaunay triangulation of 2D ``coords`` with a mask of the triangles kept in 3D.
+
+    A triangle is kept when each of its edges is no longer, in 3D, than the
+    larger ``max_edge`` of the edge's two end points.
+
+    Args:
+        points: (M, 3) positions of the triangulated points.
+        coords: (M, 2) their image-plane coordinates.
+        max_edge: (M,) longest edge allowed at each point.
+
+    Returns:
+        The ``scipy.spatial.Delaunay`` object (None when the coordinates are too
+        few or all collinear) and the (T,) bool mask of kept simplices.
+    """
+    if len(coords) < 3:
+        return None, np.zeros(0, dtype=bool)
+    try:
+        tri = Delaunay(coords)
+    except (QhullError, ValueError):
+        return None, np.zeros(0, dtype=bool)
+    s = tri.simplices
+    keep = np.ones(len(s), dtype=bool)
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        length = np.linalg.norm(points[s[:, a]] - points[s[:, b]], axis=1)
+        keep &= length <= np.maximum(max_edge[s[:, a]], max_edge[s[:, b]])
+    return tri, keep
+
+
+def triangle_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Unnormalised triangle normals (length = twice the area), (T, 3)."""
+    a, b, c = (points[triangles[:, i]] for i in range(3))
+    return np.cross(b - a, c - a)
+
+
+def visible_triangles(points: np.ndarray, camera_location: np.ndarray, indices: np.ndarray,
+                      max_edge: np.ndarray) -> np.ndarray:
+    """Triangles over the points seen from one camera, facing that camera.
+
+    The points ``points[indices]`` are projected through a pinhole looking at
+    their centroid, triangulated (Delaunay) in the image plane, and triangles
+    longer than ``max_edge`` allows are dropped.
+
+    Args:
+        points: (N, 3) all points.
+        camera_location: (3,) camera position.
+        indices: (M,) indices of the points visible from the camera.
+        max_edge: (N,) longest edge allowed at each point.
+
+    Returns:
+        (T, 3) int64 indices into ``points``, ordered counter-clockwise as seen
+        from the camera (their normals point towards it).
+    """
+    indices = np.asarray(indices, dtype=np.int64)
+    sub = points[indices]
+    if len(sub) < 3:
+        return np.zeros((0, 3), dtype=np.int64)
+    extrinsic = look_at(camera_location, sub.mean(axis=0))
+    cam = sub @ extrinsic[:3, :3].T + extrinsic[:3, 3]
+    front = cam[:, 2] > 1e-12 * max(1.0, float(np.abs(cam).max()))
+    indices, sub, cam = indices[front], sub[front], cam[front]
+    tri, keep = delaunay_surface(sub, cam[:, :2] / cam[:, 2:3], max_edge[indices])
+    if tri is None:
+        return np.zeros((0, 3), dtype=np.int64)
+    triangles = indices[tri.simplices[keep]]
+    normals = triangle_normals(points, triangles)
+    away = np.einsum("ij,ij->i", normals, camera_location - points[triangles[:, 0]]) < 0
+    triangles[away] = triangles[away][:, [0, 2, 1]]
+    return triangles

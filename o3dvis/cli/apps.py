@@ -1,0 +1,256 @@
+"""``o3dvis normals | reconstruct | shadow | best-view | render``: the applications on files."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from .visible import _vector
+
+__all__ = ["register"]
+
+_EPILOG = "Write negative coordinates with '=', e.g. --camera=-2,0,5.\n\nExample:\n  "
+
+
+def _add_method_flags(parser: argparse.ArgumentParser, choices=("neural", "hpr", "gt")) -> None:
+    parser.add_argument("--method", choices=choices, default="neural",
+                        help="visibility method: the neural network (default), Open3D's HPR, or "
+                             "ground truth ray-cast against --mesh")
+    parser.add_argument("--model", default=None,
+                        help="shipped model name or .safetensors checkpoint (default: the shipped default)")
+    parser.add_argument("--device", default=None, help="torch device, e.g. cuda (default: cpu)")
+    if "hpr" in choices:
+        parser.add_argument("--hpr-k", type=float, default=2.0,
+                            help="HPR radius = bbox diagonal * 10**K (default 2)")
+    if "gt" in choices:
+        parser.add_argument("--mesh", default=None,
+                            help="mesh the points were sampled from (for --method gt)")
+
+
+def _method(args: argparse.Namespace):
+    """The visibility method the flags name."""
+    if args.method == "neural":
+        from ..visibility import NeuralVisibility
+
+        return NeuralVisibility.pretrained(args.model or "default", device=args.device)
+    if args.method == "hpr":
+        from ..baselines import hpr_method
+
+        return hpr_method(args.hpr_k)
+    import open3d as o3d
+
+    from ..apps.methods import ground_truth_method
+
+    if args.mesh is None:
+        raise ValueError("--method gt needs --mesh, the mesh the points lie on")
+    mesh = o3d.io.read_triangle_mesh(args.mesh)
+    if len(mesh.triangles) == 0:
+        raise ValueError(f"no triangles could be read from {args.mesh}")
+    return ground_truth_method(mesh)
+
+
+def _read_cloud(path: str):
+    import open3d as o3d
+
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{path} not found")
+    pcd = o3d.io.read_point_cloud(path)
+    if pcd.is_empty():
+        raise ValueError(f"no points could be read from {path}")
+    return pcd
+
+
+def _write_image(path: str, image) -> None:
+    import open3d as o3d
+
+    if not o3d.io.write_image(path, image):
+        raise RuntimeError(f"could not write {path} (use .png or .jpg)")
+
+
+def _stages(total: int, desc: str):
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="step")
+
+
+def _parser(subparsers, name: str, help: str, description: str, example: str) -> argparse.ArgumentParser:
+    return subparsers.add_parser(name, help=help, description=description, epilog=_EPILOG + example,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+
+
+def register(subparsers) -> None:
+    """Adds the application subcommands."""
+    p = _parser(subparsers, "normals", "estimate oriented normals from visibility",
+                "Estimates oriented normals of IN from the surface seen by --views cameras around it "
+                "(or, with --orient-only, orients the normals IN already has) and writes the cloud.",
+                "o3dvis normals scan.ply -o scan_normals.ply --views 26")
+    p.add_argument("input", help="point cloud file readable by Open3D (.ply, .pcd, .xyz, ...)")
+    p.add_argument("-o", "--output", required=True, help="output point cloud file")
+    p.add_argument("--views", type=int, default=26, help="number of cameras (default 26)")
+    p.add_argument("--orient-only", action="store_true", help="keep the normals of IN, only orient them")
+    _add_method_flags(p)
+    p.set_defaults(func=_normals)
+
+    p = _parser(subparsers, "reconstruct", "mesh a cloud: Poisson, or the surface one camera sees",
+                "Without --camera: screened Poisson reconstruction on visibility-oriented normals. "
+                "With --camera: the mesh of the surface that camera sees (projected Delaunay).",
+                "o3dvis reconstruct scan.ply -o mesh.ply --depth 8 --trim 0.02")
+    p.add_argument("input", help="point cloud file readable by Open3D")
+    p.add_argument("-o", "--output", required=True, help="output mesh file (.ply, .obj, ...)")
+    p.add_argument("--camera", type=_vector, metavar="X,Y,Z", help="view-dependent mesh from this position")
+    p.add_argument("--depth", type=int, default=8, help="Poisson octree depth (default 8)")
+    p.add_argument("--trim", type=float, default=0.0,
+                   help="drop Poisson vertices below this density quantile, e.g. 0.02 (default 0)")
+    p.add_argument("--views", type=int, default=26, help="cameras for the normals (default 26)")
+    _add_method_flags(p)
+    p.set_defaults(func=_reconstruct)
+
+    p = _parser(subparsers, "shadow", "render a cloud with the shadows a point light casts",
+                "Renders IN from --camera lit by a point light at --light, shadowed points dark, "
+                "and optionally saves the light's shadow map (float depth, .npy).",
+                "o3dvis shadow scan.ply --light 0,0,3 --camera 2,-2,1 -o shadows.png")
+    p.add_argument("input", help="point cloud file readable by Open3D")
+    p.add_argument("--light", type=_vector, metavar="X,Y,Z", required=True, help="light position")
+    p.add_argument("--camera", type=_vector, metavar="X,Y,Z", required=True, help="camera position")
+    p.add_argument("-o", "--output", required=True, help="output image (.png, .jpg)")
+    p.add_argument("--width", type=int, default=640, help="image width (default 640)")
+    p.add_argument("--height", type=int, default=480, help="image height (default 480)")
+    p.add_argument("--shadow-map", default=None, metavar="FILE.npy", help="also save the light's depth map")
+    p.add_argument("--resolution", type=int, default=512, help="shadow map size (default 512)")
+    _add_method_flags(p)
+    p.set_defaults(func=_shadow)
+
+    p = _parser(subparsers, "best-view", "find the camera position that sees the most points",
+                "Gradient descent on the network's soft visibility over camera positions on the "
+                "sphere of radius = bbox diagonal; prints the position (x,y,z).",
+                "o3dvis best-view scan.ply --steps 300 -o best.png")
+    p.add_argument("input", help="point cloud file readable by Open3D")
+    p.add_argument("--worst", action="store_true", help="find the view that sees the fewest points")
+    p.add_argument("--steps", type=int, default=300, help="optimisation steps (default 300)")
+    p.add_argument("--starts", type=int, default=8, help="starting directions (default 8)")
+    p.add_argument("-o", "--output", default=None, help="also render the view to this image")
+    p.add_argument("--plot", default=None, help="save the loss curve to this image (matplotlib)")
+    _add_method_flags(p, choices=("neural",))
+    p.set_defaults(func=_best_view)
+
+    p = _parser(subparsers, "render", "render a cloud to an image, hidden points removed",
+                "Renders the points of IN that --camera sees (z-buffered splats, no display needed), "
+                "coloured by their colours or shaded by their normals.",
+                "o3dvis render scan.ply --camera 2,-2,1 -o scan.png --depth-output depth.npy")
+    p.add_argument("input", help="point cloud file readable by Open3D")
+    p.add_argument("--camera", type=_vector, metavar="X,Y,Z", required=True, help="camera position")
+    p.add_argument("-o", "--output", required=True, help="output image (.png, .jpg)")
+    p.add_argument("--width", type=int, default=640, help="image width (default 640)")
+    p.add_argument("--height", type=int, default=480, help="image height (default 480)")
+    p.add_argument("--all", action="store_true", help="splat every point (no visibility)")
+    p.add_argument("--depth-output", default=None, metavar="FILE.npy",
+                   help="also save the float depth image")
+    _add_method_flags(p)
+    p.set_defaults(func=_render)
+
+
+def _normals(args: argparse.Namespace) -> int:
+    import open3d as o3d
+
+    from ..apps.normals import estimate_normals_neural, orient_normals_neural
+
+    pcd = _read_cloud(args.input)
+    method = _method(args)
+    if args.orient_only:
+        orient_normals_neural(pcd, args.views, method)
+    else:
+        estimate_normals_neural(pcd, args.views, method, progress=True)
+    if not o3d.io.write_point_cloud(args.output, pcd):
+        raise RuntimeError(f"could not write {args.output}")
+    print(f"{len(pcd.points)} oriented normals -> {args.output}")
+    return 0
+
+
+def _reconstruct(args: argparse.Namespace) -> int:
+    import numpy as np
+    import open3d as o3d
+
+    from ..apps.reconstruction import reconstruct_poisson, reconstruct_view_dependent
+
+    pcd = _read_cloud(args.input)
+    method = _method(args)
+    if args.camera is not None:
+        mesh = reconstruct_view_dependent(pcd, args.camera, method)
+    else:
+        if not 0 <= args.trim < 1:
+            raise ValueError(f"--trim must be a quantile in [0, 1), got {args.trim}")
+        mesh, densities = reconstruct_poisson(pcd, args.depth, method, num_views=args.views,
+                                              progress=True)
+        if args.trim > 0:
+            densities = np.asarray(densities)
+            mesh.remove_vertices_by_mask(densities < np.quantile(densities, args.trim))
+    if not o3d.io.write_triangle_mesh(args.output, mesh):
+        raise RuntimeError(f"could not write {args.output}")
+    print(f"{len(mesh.vertices)} vertices, {len(mesh.triangles)} triangles -> {args.output}")
+    return 0
+
+
+def _shadow(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from ..apps.shadows import points_in_shadow, render_with_shadows, shadow_map
+
+    pcd = _read_cloud(args.input)
+    method = _method(args)
+    with _stages(3 if args.shadow_map else 2, "shadow") as bar:
+        shadowed = points_in_shadow(pcd, args.light, method)
+        bar.update()
+        _write_image(args.output, render_with_shadows(pcd, args.light, args.camera, args.width,
+                                                      args.height, method))
+        bar.update()
+        if args.shadow_map:
+            np.save(args.shadow_map, np.asarray(shadow_map(pcd, args.light, args.resolution, method)))
+            bar.update()
+    print(f"{int(shadowed.sum())} of {len(shadowed)} points in shadow -> {args.output}")
+    return 0
+
+
+def _best_view(args: argparse.Namespace) -> int:
+    from ..apps.render import render_points
+    from ..apps.views import best_view
+
+    pcd = _read_cloud(args.input)
+    method = _method(args)
+    camera, losses = best_view(pcd, maximize=not args.worst, steps=args.steps, method=method,
+                               starts=args.starts, progress=True)
+    fraction = -losses.min() if not args.worst else losses.min()
+    print(f"{'worst' if args.worst else 'best'} view: {camera[0]:.6g},{camera[1]:.6g},{camera[2]:.6g} "
+          f"(sees {100 * fraction:.1f}% of the points, soft count)")
+    if args.output:
+        _write_image(args.output, render_points(pcd, camera, method=method))
+    if args.plot:
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(5, 3))
+        ax.plot(losses)
+        ax.set_xlabel("step")
+        ax.set_ylabel("loss (- visible fraction)" if not args.worst else "loss (visible fraction)")
+        fig.tight_layout()
+        fig.savefig(args.plot)
+        plt.close(fig)
+    return 0
+
+
+def _render(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from ..apps.render import depth_image, render_points
+
+    pcd = _read_cloud(args.input)
+    method = None if args.all else _method(args)
+    with _stages(2 if args.depth_output else 1, "render") as bar:
+        _write_image(args.output, render_points(pcd, args.camera, not args.all, args.width,
+                                                args.height, method))
+        bar.update()
+        if args.depth_output:
+            depth = depth_image(pcd, args.camera, width=args.width, height=args.height,
+                                visible_only=not args.all, method=method)
+            np.save(args.depth_output, np.asarray(depth))
+            bar.update()
+    print(f"{args.width}x{args.height} render -> {args.output}")
+    return 0

@@ -1,0 +1,345 @@
+"""Applications on procedural shapes with known answers, run on ray-cast ground-truth visibility."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import open3d as o3d
+import pytest
+import torch
+
+from o3dvis.apps import (best_view, depth_image, estimate_normals_neural, fibonacci_sphere,
+                         ground_truth_method, make_view, orient_normals_neural, points_in_shadow,
+                         reconstruct_poisson, reconstruct_view_dependent, render_points,
+                         render_with_shadows, shadow_map)
+from o3dvis.apps.normals import multiview_normals
+from o3dvis.cli import apps as apps_cli
+from o3dvis.data.prepare import sample_surface
+
+
+def _sample(mesh: o3d.geometry.TriangleMesh, count: int, seed: int = 0):
+    """Points uniform on a mesh, their face normals, and the ground-truth method of the mesh."""
+    points, normals = sample_surface(np.asarray(mesh.vertices), np.asarray(mesh.triangles), count,
+                                     np.random.default_rng(seed))
+    return points, normals, ground_truth_method(mesh)
+
+
+def _cloud(points, colors=None) -> o3d.geometry.PointCloud:
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    if colors is not None:
+        pcd.colors = o3d.utility.Vector3dVector(colors)
+    return pcd
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    mesh = o3d.geometry.TriangleMesh.create_sphere(1.0, resolution=60)
+    return _sample(mesh, 4000)
+
+
+def _box(size, center) -> o3d.geometry.TriangleMesh:
+    box = o3d.geometry.TriangleMesh.create_box(*size)
+    return box.translate(np.asarray(center, float) - np.asarray(size, float) / 2)
+
+
+@pytest.fixture(scope="module")
+def box_on_floor():
+    """A unit cube standing on a thin 4 x 4 floor plate, both centred on the z axis."""
+    mesh = _box((1, 1, 1), (0, 0, 0.5)) + _box((4, 4, 0.02), (0, 0, -0.01))
+    return _sample(mesh, 12000, seed=1)
+
+
+def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    cos = np.einsum("ij,ij->i", a, b) / np.linalg.norm(a, axis=1) / np.linalg.norm(b, axis=1)
+    return np.degrees(np.arccos(np.clip(cos, -1, 1)))
+
+
+# ---------------------------------------------------------------- normals
+
+def test_sphere_normals_point_outward(sphere):
+    points, _, method = sphere
+    pcd = estimate_normals_neural(_cloud(points), method=method)
+    outward = points / np.linalg.norm(points, axis=1, keepdims=True)
+    angles = _angles(np.asarray(pcd.normals), outward)
+    assert angles.max() < 90  # every normal oriented
+    assert angles.mean() < 3
+    assert np.allclose(np.linalg.norm(np.asarray(pcd.normals), axis=1), 1)
+
+
+def test_box_normals_are_face_normals_and_outward():
+    mesh = _box((2.0, 1.0, 0.5), (0.3, -0.2, 0.1))
+    points, face_normals, method = _sample(mesh, 5000)
+    mesh.compute_triangle_normals()
+    assert mesh.is_watertight() and mesh.get_volume() > 0  # face normals point out
+    normals = np.asarray(estimate_normals_neural(_cloud(points), 26, method).normals)
+    angles = _angles(normals, face_normals)
+    assert (angles < 90).all()
+    assert np.median(angles) < 0.5  # flat faces: triangles in a face are coplanar
+
+
+def test_tensor_cloud_gets_normals(sphere):
+    points, _, method = sphere
+    tcloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(points.astype(np.float32)))
+    out = estimate_normals_neural(tcloud, 12, method)
+    assert out is tcloud
+    normals = tcloud.point.normals.numpy()
+    assert normals.dtype == np.float32 and normals.shape == points.shape
+    assert (np.einsum("ij,ij->i", normals, points) > 0).mean() > 0.99
+
+
+def test_points_no_view_sees_take_the_nearest_normal():
+    rng = np.random.default_rng(0)
+    points = np.column_stack([rng.random((500, 2)), np.zeros(500)])
+    cameras = np.array([[0.5, 0.5, 3.0]])
+    visibility = (points[:, 0] < 0.7)[None]
+    normals = multiview_normals(points, cameras, visibility)
+    assert np.allclose(normals, [0, 0, 1])
+
+
+def test_orient_flips_existing_normals_outward(sphere):
+    points, _, method = sphere
+    outward = points / np.linalg.norm(points, axis=1, keepdims=True)
+    signs = np.where(np.random.default_rng(1).random(len(points)) < 0.5, -1.0, 1.0)
+    pcd = _cloud(points)
+    pcd.normals = o3d.utility.Vector3dVector(outward * signs[:, None])
+    orient_normals_neural(pcd, 26, method)
+    assert np.allclose(np.asarray(pcd.normals), outward)
+
+
+def test_orient_open3d_normals_on_a_box():
+    mesh = _box((1.5, 1.0, 0.6), (0, 0, 0))
+    points, face_normals, method = _sample(mesh, 4000, seed=2)
+    pcd = _cloud(points)
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(10))
+    orient_normals_neural(pcd, 26, method)
+    cos = np.einsum("ij,ij->i", np.asarray(pcd.normals), face_normals)
+    assert (cos[np.abs(cos) > 0.87] > 0).all()  # every normal within 30 degrees of its face's
+    assert (cos > 0).mean() > 0.98  # PCA normals across an edge may lean to the other face
+
+
+def test_normals_bad_input(sphere):
+    points, _, method = sphere
+    with pytest.raises(ValueError, match="no normals"):
+        orient_normals_neural(_cloud(points), 4, method)
+    with pytest.raises(ValueError, match="empty"):
+        estimate_normals_neural(o3d.geometry.PointCloud(), 4, method)
+    with pytest.raises(ValueError, match="shape"):
+        estimate_normals_neural(_cloud(points), 4, lambda p, c: np.ones(len(p), bool))
+    with pytest.raises(TypeError, match="method"):
+        estimate_normals_neural(_cloud(points), 4, "neural")
+    with pytest.raises(ValueError, match="one line"):
+        line = np.column_stack([np.linspace(0, 1, 50), np.zeros(50), np.zeros(50)])
+        estimate_normals_neural(_cloud(line), 6, lambda p, c: np.ones((len(c), len(p)), bool))
+
+
+# ---------------------------------------------------------------- reconstruction
+
+def test_view_dependent_mesh_is_the_visible_cap(sphere):
+    points, _, method = sphere
+    camera = np.array([0.0, 0.0, 5.0])
+    mesh = reconstruct_view_dependent(_cloud(points), camera, method)
+    vertices, triangles = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    assert (vertices[:, 2] > 0.2 - 0.02).all()  # the cap z > r^2 / d seen from distance d = 5
+    centroids = vertices[triangles].mean(axis=1)
+    mesh.compute_triangle_normals()
+    facing = np.einsum("ij,ij->i", np.asarray(mesh.triangle_normals), camera - centroids)
+    assert (facing > 0).all()
+    cap_area = 2 * np.pi * (1 - 1 / 5)  # 2 pi r h with h = r - r^2 / d
+    assert 0.9 * cap_area < mesh.get_surface_area() < 1.02 * cap_area
+
+
+def test_view_dependent_mesh_does_not_bridge_depth_jumps():
+    near = _box((1.0, 1.0, 0.01), (0, 0, 1.0))
+    far = _box((3.0, 3.0, 0.01), (0, 0, 0.0))
+    points, _, method = _sample(near + far, 6000)
+    mesh = reconstruct_view_dependent(_cloud(points), [0.2, 0.1, 6.0], method)
+    z = np.asarray(mesh.vertices)[np.asarray(mesh.triangles)][:, :, 2]
+    assert len(z) > 1000
+    assert ((z > 0.5).all(axis=1) | (z < 0.5).all(axis=1)).all()
+
+
+def test_poisson_on_neural_normals_recovers_the_sphere(sphere):
+    points, _, method = sphere
+    pcd = _cloud(points)
+    mesh, densities = reconstruct_poisson(pcd, depth=6, method=method)
+    radii = np.linalg.norm(np.asarray(mesh.vertices), axis=1)
+    assert len(densities) == len(radii)
+    assert np.abs(radii - 1).mean() < 0.02
+    assert abs(mesh.get_surface_area() - 4 * np.pi) < 0.05 * 4 * np.pi
+    assert not pcd.has_normals()  # the input is left alone
+
+
+# ---------------------------------------------------------------- shadows
+
+LIGHT = np.array([0.0, 0.0, 5.0])
+
+
+def _floor_in_shadow(points: np.ndarray) -> np.ndarray:
+    """Floor points a light at (0, 0, 5) cannot see past the cube top (z = 1, |x|, |y| <= 0.5)."""
+    return np.abs(points[:, :2]).max(axis=1) * 4 / 5 < 0.5
+
+
+def test_points_in_shadow_under_a_light_above_a_box(box_on_floor):
+    points, _, method = box_on_floor
+    shadow = points_in_shadow(_cloud(points), LIGHT, method)
+    floor_top = np.abs(points[:, 2]) < 1e-6
+    cube_bottom = (np.abs(points[:, 2]) < 1e-6) & (np.abs(points[:, :2]).max(axis=1) < 0.5)
+    cube_top = np.abs(points[:, 2] - 1) < 1e-6
+    floor_bottom = np.abs(points[:, 2] + 0.02) < 1e-6
+    assert shadow[cube_bottom].all() and shadow[floor_bottom].all()
+    assert not shadow[cube_top].any()
+    expected = _floor_in_shadow(points[floor_top])
+    assert expected.sum() > 50 and (~expected).sum() > 1000
+    assert (shadow[floor_top] == expected).mean() > 0.995  # points on the shadow's rim may differ
+
+
+def test_shadow_map_holds_the_depths_of_the_cube_top_and_the_floor(box_on_floor):
+    points, _, method = box_on_floor
+    image = np.asarray(shadow_map(_cloud(points), LIGHT, 128, method))
+    assert image.shape == (128, 128) and image.dtype == np.float32
+    assert abs(image[64, 64] - 4.0) < 1e-3  # the light looks straight down at the cube top
+    values = image[image > 0]
+    near_expected = np.minimum(np.abs(values - 4.0), np.abs(values - 5.0)) < 1e-3
+    assert near_expected.mean() > 0.99
+    assert (np.abs(values - 5.0) < 1e-3).sum() > (np.abs(values - 4.0) < 1e-3).sum()
+
+
+def test_render_with_shadows_darkens_the_shadow(box_on_floor):
+    points, _, method = box_on_floor
+    camera = np.array([3.0, 0.5, 2.5])
+    image = np.asarray(render_with_shadows(_cloud(points), LIGHT, camera, 200, 150, method,
+                                           ambient=0.25))
+    view = make_view(points, camera, 200, 150)
+    uv, _ = view.project(np.array([[0.56, 0.0, 0.0], [1.6, 0.0, 0.0]]))
+    (c1, r1), (c2, r2) = np.rint(uv).astype(int)
+    assert image[r1, c1].mean() == pytest.approx(0.25 * 0.8 * 255, abs=2)  # shadowed floor
+    assert image[r2, c2].mean() == pytest.approx(0.8 * 255, abs=2)  # lit floor
+
+
+# ---------------------------------------------------------------- renders
+
+def test_depth_image_of_a_sphere(sphere):
+    points, _, method = sphere
+    intrinsic = o3d.camera.PinholeCameraIntrinsic(100, 100, 100.0, 100.0, 49.5, 49.5)
+    depth = np.asarray(depth_image(_cloud(points), [0, 0, 5], intrinsic, method=method))
+    assert depth.shape == (100, 100) and depth.dtype == np.float32
+    assert 4.0 <= depth[49:51, 49:51].min() and depth[49:51, 49:51].max() < 4.02
+    radius = 100 * np.tan(np.arcsin(1 / 5))  # of the silhouette, in pixels
+    offset = np.hypot(*(np.mgrid[0:100, 0:100] - 49.5))
+    assert (depth[offset < radius] > 0).all()
+    assert offset[depth > 0].max() < radius + 4  # splats reach past the rim by their radius
+    covered = depth[depth > 0]
+    assert covered.max() < np.sqrt(5 ** 2 - 1) + 0.05  # no back-side point
+
+
+def test_render_points_hides_the_far_plane():
+    near = _box((1.0, 1.0, 0.01), (0, 0, 1.0))
+    far = _box((3.0, 3.0, 0.01), (0, 0, 0.0))
+    points, _, method = _sample(near + far, 8000)
+    colors = np.where((points[:, 2] > 0.5)[:, None], [1.0, 0, 0], [0, 0, 1.0])
+    pcd = _cloud(points, colors)
+    camera = [0.0, 0.0, 6.0]
+    view = make_view(points, camera, 160, 160)
+    corners, _ = view.project(np.array([[-0.4, -0.4, 1.01], [0.4, 0.4, 1.01]]))
+    (c0, r0), (c1, r1) = np.rint(corners).astype(int)
+    rows, cols = slice(min(r0, r1), max(r0, r1)), slice(min(c0, c1), max(c0, c1))
+    small = dict(point_size=0.005)  # small splats leave gaps to see through
+    with_vis = np.asarray(render_points(pcd, camera, True, 160, 160, method, **small))[rows, cols]
+    without = np.asarray(render_points(pcd, camera, False, 160, 160, **small))[rows, cols]
+    blue = lambda img: ((img[..., 2] == 255) & (img[..., 0] == 0)).sum()  # noqa: E731
+    assert blue(without) > 20 and blue(with_vis) == 0
+    full = np.asarray(render_points(pcd, camera, True, 160, 160, method))[rows, cols]
+    assert (full[..., 0] == 255).all()  # default splats close the front square
+
+
+# ---------------------------------------------------------------- best view
+
+def _backface_field(points: np.ndarray, normals: np.ndarray, sharpness: float = 8.0):
+    """Differentiable stand-in: sigmoid(k cos(normal, direction to the camera))."""
+    p, n = torch.tensor(points), torch.tensor(normals)
+
+    def probabilities(cameras: torch.Tensor) -> torch.Tensor:
+        to_cam = cameras.double()[:, None, :] - p[None]
+        cos = (to_cam * n).sum(-1) / to_cam.norm(dim=-1)
+        return torch.sigmoid(sharpness * cos)
+
+    return probabilities
+
+
+@pytest.fixture(scope="module")
+def box_field():
+    mesh = _box((3.0, 2.0, 1.0), (0.0, 0.0, 0.0))
+    points, normals, _ = _sample(mesh, 1500, seed=4)
+    return points, _backface_field(points, normals)
+
+
+def _brute_force(points: np.ndarray, field, count: int = 500) -> np.ndarray:
+    lo, hi = points.min(0), points.max(0)
+    cams = (lo + hi) / 2 + np.linalg.norm(hi - lo) * fibonacci_sphere(count)
+    with torch.no_grad():
+        return field(torch.tensor(cams)).mean(dim=1).numpy()
+
+
+@pytest.mark.parametrize("maximize", [True, False])
+def test_best_and_worst_view_beat_brute_force(box_field, maximize):
+    points, field = box_field
+    camera, losses = best_view(points, maximize, steps=120, method=field, starts=6)
+    assert losses.shape == (120,) and losses[-1] < losses[0]
+    diag = np.linalg.norm(points.max(0) - points.min(0))
+    assert np.linalg.norm(camera - (points.max(0) + points.min(0)) / 2) == pytest.approx(diag, rel=1e-5)
+    with torch.no_grad():
+        found = float(field(torch.tensor(camera[None])).mean())
+    scores = _brute_force(points, field)
+    if maximize:
+        assert found >= np.quantile(scores, 0.95)
+    else:
+        assert found <= np.quantile(scores, 0.05)
+
+
+def test_best_view_with_the_network_field(sphere):
+    from o3dvis.nn import NetworkConfig, VisibilityNetwork
+    from o3dvis.visibility import NeuralVisibility
+
+    torch.manual_seed(0)
+    network = VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 16), feature_channels=8,
+                                              num_frequencies=2, hidden=(16,))).eval()
+    vis = NeuralVisibility(network)
+    points = sphere[0][:1500]
+    camera = torch.tensor([[0.3, 0.2, 4.0]], requires_grad=True)
+    vis.encode(points).probabilities(camera).mean().backward()
+    assert camera.grad is not None and camera.grad.abs().sum() > 0
+    found, losses = best_view(points, steps=5, method=vis, starts=2)
+    assert np.isfinite(losses).all() and found.shape == (3,)
+
+
+# ---------------------------------------------------------------- command line
+
+def _cli(*argv: str) -> int:
+    parser = argparse.ArgumentParser(prog="o3dvis")
+    apps_cli.register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(list(argv))
+    return args.func(args)
+
+
+def test_cli_normals_render_shadow_reconstruct(tmp_path, sphere):
+    points, _, _ = sphere
+    mesh_path, cloud_path = str(tmp_path / "sphere_mesh.ply"), str(tmp_path / "sphere.ply")
+    o3d.io.write_triangle_mesh(mesh_path, o3d.geometry.TriangleMesh.create_sphere(1.0, resolution=60))
+    o3d.io.write_point_cloud(cloud_path, _cloud(points))
+    gt = ["--method", "gt", "--mesh", mesh_path]
+    out = str(tmp_path / "normals.ply")
+    assert _cli("normals", cloud_path, "-o", out, "--views", "12", *gt) == 0
+    normals = np.asarray(o3d.io.read_point_cloud(out).normals)
+    assert (np.einsum("ij,ij->i", normals, points) > 0).all()
+    assert _cli("render", out, "--camera", "0,0,4", "-o", str(tmp_path / "r.png"), "--width", "80",
+                "--height", "60", "--depth-output", str(tmp_path / "d.npy"), *gt) == 0
+    assert np.asarray(o3d.io.read_image(str(tmp_path / "r.png"))).shape == (60, 80, 3)
+    assert np.load(tmp_path / "d.npy").max() < 4.0
+    assert _cli("shadow", cloud_path, "--light", "0,0,4", "--camera=4,0,0", "-o",
+                str(tmp_path / "s.png"), "--width", "80", "--height", "60", *gt) == 0
+    assert _cli("reconstruct", cloud_path, "-o", str(tmp_path / "m.ply"), "--camera", "0,0,4",
+                *gt) == 0
+    assert len(o3d.io.read_triangle_mesh(str(tmp_path / "m.ply")).triangles) > 1000
+    with pytest.raises(ValueError, match="--mesh"):
+        _cli("normals", cloud_path, "-o", out, "--method", "gt")

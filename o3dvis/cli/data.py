@@ -1,0 +1,103 @@
+"""``o3dvis shapes``, ``o3dvis prepare`` and ``o3dvis train``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+
+def _ints(text: str) -> tuple[int, ...]:
+    return tuple(int(v) for v in text.split(",") if v)
+
+
+def _shapes(args) -> int:
+    from ..data.shapes import write_shapes
+
+    paths = write_shapes(args.out_dir, args.count, args.seed)
+    print(f"wrote {len(paths)} meshes to {args.out_dir}")
+    return 0
+
+
+def _prepare(args) -> int:
+    from ..data.prepare import prepare
+
+    t = time.time()
+    result = prepare(args.mesh_dir, args.out_dir, args.points, args.views, args.workers, args.seed)
+    print(f"labelled {result['done']} meshes, skipped {result['skipped']} finished, "
+          f"{len(result['failed'])} failed, in {time.time() - t:.1f} s")
+    return 1 if result["failed"] and not result["done"] else 0
+
+
+def _train(args) -> int:
+    import torch
+
+    from ..train import TrainConfig, train
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    network = {"use_normals": args.normals}
+    if args.depth:
+        network["depth"] = args.depth
+    if args.channels:
+        network["channels"] = _ints(args.channels)
+    if args.frequencies is not None:
+        network["num_frequencies"] = args.frequencies
+    cfg = TrainConfig(
+        data=args.data, out=args.out, val=args.val, steps=args.steps, batch_size=args.batch_size,
+        lr=args.lr, val_every=args.val_every, workers=args.workers, seed=args.seed, device=args.device,
+        network=network,
+        augmentation={"min_points": args.min_points, "max_points": args.max_points,
+                      "views": args.views, "noise": args.noise, "noise_prob": args.noise_prob})
+    best = train(cfg)
+    print(json.dumps({"checkpoint": str(best)}))
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    fmt = argparse.RawDescriptionHelpFormatter
+    p = sub.add_parser("shapes", help="write random procedural training meshes", formatter_class=fmt,
+                       description="Write random unions of primitives as PLY meshes.\n\n"
+                                   "example:\n  o3dvis shapes data/proc_meshes --count 600")
+    p.add_argument("out_dir")
+    p.add_argument("--count", type=int, default=100)
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_shapes)
+
+    p = sub.add_parser("prepare", help="label meshes with ray-cast visibility", formatter_class=fmt,
+                       description="Sample points on every mesh (ply/obj/off/stl) below MESH_DIR and label\n"
+                                   "them from random viewpoints; resumable, parallel.\n\n"
+                                   "example:\n  o3dvis prepare ../shared/meshes/train data/train --workers 2")
+    p.add_argument("mesh_dir")
+    p.add_argument("out_dir")
+    p.add_argument("--points", type=int, default=100_000)
+    p.add_argument("--views", type=int, default=16)
+    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_prepare)
+
+    p = sub.add_parser("train", help="train a visibility network", formatter_class=fmt,
+                       description="Train on prepared folders; resumes when OUT holds a run.\n"
+                                   "Several GPUs: torchrun --nproc_per_node=N -m o3dvis train ... --device cuda\n\n"
+                                   "example:\n  o3dvis train data/train data/proc --val data/val --out runs/default")
+    p.add_argument("data", nargs="+", help="folders of prepared .npz files")
+    p.add_argument("--out", required=True, help="run folder (checkpoints, log)")
+    p.add_argument("--val", help="folder of prepared validation files")
+    p.add_argument("--steps", type=int, default=10_000)
+    p.add_argument("--batch-size", type=int, default=4)
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--val-every", type=int, default=500)
+    p.add_argument("--min-points", type=int, default=2048)
+    p.add_argument("--max-points", type=int, default=16384)
+    p.add_argument("--views", type=int, default=4, help="viewpoints per cloud and step")
+    p.add_argument("--noise", type=float, default=0.02, help="largest noise, share of bbox size")
+    p.add_argument("--noise-prob", type=float, default=0.5)
+    p.add_argument("--normals", action="store_true", help="train a model that takes normals")
+    p.add_argument("--depth", type=int)
+    p.add_argument("--channels", help="comma-separated stage widths")
+    p.add_argument("--frequencies", type=int)
+    p.add_argument("--workers", type=int, default=0, help="DataLoader worker processes")
+    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_train)

@@ -1,0 +1,130 @@
+"""Training samples: random subsets of labelled clouds with random views, rotation and noise."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..nn.octree import normalize_points
+from .prepare import Sample, load_sample
+
+__all__ = ["Augmentation", "VisibilityDataset", "random_rotation", "add_noise", "Batch", "collate"]
+
+
+@dataclass
+class Augmentation:
+    """How a training cloud is drawn from a labelled sample.
+
+    Args:
+        min_points, max_points: range of the subsample size (log-uniform).
+        views: viewpoints drawn per cloud.
+        noise: largest noise magnitude, relative to the bounding-box size.
+        noise_prob: share of clouds that get noise.
+        rotate: apply a uniform random rotation.
+    """
+
+    min_points: int = 2048
+    max_points: int = 16384
+    views: int = 4
+    noise: float = 0.02
+    noise_prob: float = 0.5
+    rotate: bool = True
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """A uniformly distributed 3x3 rotation matrix."""
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q *= np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] *= -1
+    return q
+
+
+def add_noise(points: np.ndarray, magnitude: float, rng: np.random.Generator) -> np.ndarray:
+    """Uniform noise in [-m, m]^3 with m = ``magnitude`` x the largest bounding-box side."""
+    size = float((points.max(axis=0) - points.min(axis=0)).max())
+    return points + rng.uniform(-1, 1, size=points.shape) * magnitude * size
+
+
+@dataclass
+class Batch:
+    """Clouds concatenated for the U-Net, and per-cloud views (all normalised)."""
+
+    points: Tensor
+    normals: Tensor
+    batch: Tensor
+    cameras: list[Tensor]
+    labels: list[Tensor]
+    sizes: list[int]
+
+    def to(self, device: torch.device | str) -> "Batch":
+        return Batch(self.points.to(device), self.normals.to(device), self.batch.to(device),
+                     [c.to(device) for c in self.cameras], [v.to(device) for v in self.labels],
+                     self.sizes)
+
+
+class VisibilityDataset(torch.utils.data.Dataset):
+    """Prepared ``.npz`` samples drawn as augmented training clouds.
+
+    Each item is a tuple ``(points, normals, cameras, labels)`` in normalised
+    coordinates: (n, 3), (n, 3), (views, 3), (views, n) bool. Item ``k`` draws
+    its file and augmentation from the seed ``(seed, k)``, so a run is
+    reproducible and resumes exactly by starting from the next item.
+
+    Args:
+        files: prepared ``.npz`` files.
+        augmentation: how clouds are drawn.
+        seed: base seed.
+        length: number of items (e.g. steps x batch size); default one per file.
+        cache: keep loaded samples in memory.
+    """
+
+    def __init__(self, files: list[str | Path], augmentation: Augmentation | None = None,
+                 seed: int = 0, length: int | None = None, cache: bool = True):
+        if not files:
+            raise ValueError("no training files")
+        self.files = [Path(f) for f in files]
+        self.aug = augmentation or Augmentation()
+        self.seed = seed
+        self.length = len(self.files) if length is None else length
+        self._cache: dict[int, Sample] | None = {} if cache else None
+
+    def __len__(self) -> int:
+        return self.length
+
+    def sample(self, index: int) -> Sample:
+        if self._cache is None:
+            return load_sample(self.files[index])
+        if index not in self._cache:
+            self._cache[index] = load_sample(self.files[index])
+        return self._cache[index]
+
+    def __getitem__(self, item: int):
+        rng = np.random.default_rng([self.seed, item])
+        s, a = self.sample(int(rng.integers(len(self.files)))), self.aug
+        n = int(np.exp(rng.uniform(np.log(a.min_points), np.log(a.max_points + 1))))
+        n = min(n, len(s.points))
+        idx = rng.choice(len(s.points), size=n, replace=False)
+        views = rng.choice(len(s.cameras), size=min(a.views, len(s.cameras)), replace=False)
+        points, normals, cameras = s.points[idx].astype(np.float64), s.normals[idx], s.cameras[views]
+        labels = s.visibility[views][:, idx]
+        if a.rotate:
+            rot = random_rotation(rng)
+            points, normals, cameras = points @ rot.T, normals @ rot.T, cameras @ rot.T
+        if a.noise > 0 and rng.random() < a.noise_prob:
+            points = add_noise(points, rng.uniform(0, a.noise), rng)
+        pts, center, scale = normalize_points(torch.from_numpy(points))
+        cams = (torch.from_numpy(cameras.astype(np.float64)) - center) / scale
+        return (pts.float(), torch.from_numpy(np.ascontiguousarray(normals)).float(), cams.float(),
+                torch.from_numpy(labels))
+
+
+def collate(items) -> Batch:
+    points, normals, cameras, labels = zip(*items)
+    sizes = [len(p) for p in points]
+    batch = torch.cat([torch.full((n,), i, dtype=torch.long) for i, n in enumerate(sizes)])
+    return Batch(torch.cat(points), torch.cat(normals), batch, list(cameras), list(labels), sizes)

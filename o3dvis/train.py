@@ -1,0 +1,195 @@
+"""Training loop: CPU or CUDA, several GPUs with DDP under ``torchrun``, resumable.
+
+A run directory holds ``last.safetensors`` + ``last_state.pt`` (optimizer,
+schedule, step; loaded with ``weights_only=True``), ``best.safetensors`` (best
+validation accuracy so far) and ``log.jsonl``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .data.dataset import Augmentation, Batch, VisibilityDataset, collate
+from .data.prepare import load_sample
+from .nn.network import NetworkConfig, VisibilityNetwork
+from .nn.octree import normalize_points
+
+__all__ = ["TrainConfig", "train", "batch_loss", "validate"]
+
+
+@dataclass
+class TrainConfig:
+    """Everything a training run depends on (saved in the run directory)."""
+
+    data: list[str]
+    out: str
+    val: str | None = None
+    steps: int = 10_000
+    batch_size: int = 4
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    warmup: int = 200
+    val_every: int = 500
+    val_points: int = 8192
+    val_views: int = 4
+    workers: int = 0
+    seed: int = 0
+    device: str = "cpu"
+    network: dict = field(default_factory=dict)
+    augmentation: dict = field(default_factory=dict)
+
+
+def batch_loss(net: torch.nn.Module, batch: Batch, use_normals: bool) -> tuple[torch.Tensor, float]:
+    """Mean cross-entropy over every point of every view of every cloud, and the accuracy."""
+    module = net.module if hasattr(net, "module") else net
+    normals = batch.normals if use_normals else None
+    features = net(batch.points, batch.batch, normals, len(batch.sizes))
+    losses, correct, total = [], 0, 0
+    for i, (start, size) in enumerate(zip(np.cumsum([0] + batch.sizes[:-1]), batch.sizes)):
+        sl = slice(int(start), int(start) + size)
+        for cam, label in zip(batch.cameras[i], batch.labels[i]):
+            logits = module.predict(features[sl], batch.points[sl], cam,
+                                    normals=normals[sl] if use_normals else None)
+            target = label.long()
+            losses.append(F.cross_entropy(logits, target, reduction="sum"))
+            correct += int((logits.argmax(dim=1) == target).sum())
+            total += size
+    return torch.stack(losses).sum() / total, correct / total
+
+
+@torch.no_grad()
+def validate(net: VisibilityNetwork, files: list[Path], num_points: int = 8192, views: int = 4,
+             seed: int = 0) -> float:
+    """Accuracy pooled over ``views`` views of each file at ``num_points`` points (fixed subsets)."""
+    was_training = net.training
+    net.eval()
+    device = next(net.parameters()).device
+    correct = total = 0
+    for f in files:
+        s = load_sample(f)
+        rng = np.random.default_rng([seed, len(s.points)])
+        idx = rng.choice(len(s.points), size=min(num_points, len(s.points)), replace=False)
+        pts, center, scale = normalize_points(torch.from_numpy(s.points[idx]).double())
+        pts = pts.float().to(device)
+        normals = torch.from_numpy(s.normals[idx]).to(device) if net.config.use_normals else None
+        features = net.encode(pts, normals=normals)
+        for v in range(min(views, len(s.cameras))):
+            cam = ((torch.from_numpy(s.cameras[v]).double() - center) / scale).float().to(device)
+            pred = net.predict(features, pts, cam, normals=normals).argmax(dim=1).cpu().numpy()
+            correct += int((pred == s.visibility[v, idx]).sum())
+            total += len(idx)
+    net.train(was_training)
+    return correct / max(total, 1)
+
+
+class _Encoder(torch.nn.Module):
+    """Wraps ``encode`` as ``forward`` so DDP sees the U-Net's parameters used."""
+
+    def __init__(self, net: VisibilityNetwork):
+        super().__init__()
+        self.net = net
+
+    def forward(self, points, batch, normals, batch_size):
+        return self.net.encode(points, batch, normals, batch_size)
+
+    def predict(self, *args, **kwargs):
+        return self.net.predict(*args, **kwargs)
+
+
+def _files(dirs: list[str]) -> list[Path]:
+    files = sorted(p for d in dirs for p in Path(d).glob("*.npz") if not p.name.endswith(".tmp.npz"))
+    if not files:
+        raise ValueError(f"no prepared .npz files in {dirs}")
+    return files
+
+
+def train(cfg: TrainConfig, progress: bool = True) -> Path:
+    """Runs (or resumes) a training run; returns the path of the best checkpoint."""
+    from tqdm import tqdm
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    device = torch.device(cfg.device)
+    if world > 1:
+        import torch.distributed as dist
+
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+        if device.type == "cuda":
+            device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+            torch.cuda.set_device(device)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(cfg.seed)
+    net = VisibilityNetwork(NetworkConfig.from_dict(cfg.network)).to(device)
+    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+
+    def lr_at(step: int) -> float:
+        if step < cfg.warmup:
+            return (step + 1) / cfg.warmup
+        return 0.5 * (1 + np.cos(np.pi * (step - cfg.warmup) / max(1, cfg.steps - cfg.warmup)))
+
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_at)
+    start, best = 0, -1.0
+    if (out / "last_state.pt").exists():
+        state = torch.load(out / "last_state.pt", map_location=device, weights_only=True)
+        net.load_state_dict(VisibilityNetwork.load(out / "last.safetensors", device).state_dict())
+        opt.load_state_dict(state["optimizer"])
+        sched.load_state_dict(state["scheduler"])
+        start, best = int(state["step"]), float(state["best"])
+    if rank == 0:
+        (out / "config.json").write_text(json.dumps(asdict(cfg), indent=2))
+    model = _Encoder(net)
+    if world > 1:
+        model = torch.nn.parallel.DistributedDataParallel(model, find_unused_parameters=False)
+
+    data = VisibilityDataset(_files(cfg.data), Augmentation(**cfg.augmentation),
+                             seed=cfg.seed * 1000 + rank, length=cfg.steps * cfg.batch_size)
+    items = torch.utils.data.Subset(data, range(start * cfg.batch_size, len(data)))
+    loader = torch.utils.data.DataLoader(items, batch_size=cfg.batch_size, collate_fn=collate,
+                                         num_workers=cfg.workers)
+    val_files = _files([cfg.val]) if cfg.val else []
+    log = open(out / "log.jsonl", "a") if rank == 0 else None
+    bar = tqdm(total=cfg.steps, initial=start, disable=not progress or rank != 0, desc="train")
+    net.train()
+    t0, run_loss, run_acc = time.time(), 0.0, 0.0
+    for step, batch in enumerate(loader, start=start + 1):
+        loss, acc = batch_loss(model, batch.to(device), net.config.use_normals)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+        opt.step()
+        sched.step()
+        run_loss, run_acc = 0.98 * run_loss + 0.02 * loss.item(), 0.98 * run_acc + 0.02 * acc
+        bar.update(1)
+        bar.set_postfix(loss=f"{run_loss:.3f}", acc=f"{run_acc:.3f}")
+        if rank != 0:
+            continue
+        if step % 50 == 0:
+            log.write(json.dumps({"step": step, "loss": loss.item(), "acc": acc,
+                                  "lr": sched.get_last_lr()[0], "time": time.time() - t0}) + "\n")
+            log.flush()
+        if step % cfg.val_every == 0 or step == cfg.steps:
+            record = {"step": step, "time": time.time() - t0}
+            if val_files:
+                record["val_acc"] = validate(net, val_files, cfg.val_points, cfg.val_views)
+                if record["val_acc"] > best:
+                    best = record["val_acc"]
+                    net.save(out / "best.safetensors", {"step": step, "val_acc": best})
+            net.save(out / "last.safetensors", {"step": step})
+            torch.save({"optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+                        "step": step, "best": best}, out / "last_state.pt")
+            log.write(json.dumps(record) + "\n")
+            log.flush()
+            bar.write(json.dumps(record))
+    bar.close()
+    if world > 1:
+        torch.distributed.destroy_process_group()
+    return out / ("best.safetensors" if val_files else "last.safetensors")

@@ -1,0 +1,185 @@
+"""Checkpoint loading: model card, sha256, tampered/truncated files, no pickle execution."""
+
+from __future__ import annotations
+
+import json
+import pickle
+import struct
+
+import numpy as np
+import pytest
+import torch
+
+import o3dvis
+from o3dvis import models
+from o3dvis.models import check_safetensors, file_sha256, load_model, read_model_card
+from o3dvis.nn import NetworkConfig, VisibilityNetwork
+
+SMALL = dict(depth=5, full_depth=2, channels=(8, 16), feature_channels=8, num_frequencies=2, hidden=(16,))
+
+
+def _network(seed: int, use_normals: bool = False) -> VisibilityNetwork:
+    torch.manual_seed(seed)
+    return VisibilityNetwork(NetworkConfig(**SMALL, use_normals=use_normals))
+
+
+@pytest.fixture
+def weights(tmp_path):
+    """A weights folder with a default and a normals model and their card."""
+    entries = {}
+    for name, normals in (("default", False), ("normals", True)):
+        path = tmp_path / f"{name}.safetensors"
+        _network(len(entries), normals).save(path)
+        entries[name] = {"file": path.name, "sha256": file_sha256(path), "use_normals": normals}
+    (tmp_path / "model_card.json").write_text(json.dumps({"models": entries}))
+    return tmp_path
+
+
+def _same_weights(a: VisibilityNetwork, b: VisibilityNetwork) -> bool:
+    sa, sb = a.state_dict(), b.state_dict()
+    return sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
+
+
+def test_load_by_name_restores_the_saved_weights(weights):
+    net = load_model("default", weights_dir=weights)
+    assert _same_weights(net, _network(0))
+    assert not net.training and next(net.parameters()).device.type == "cpu"
+    normals = load_model("normals", weights_dir=weights)
+    assert normals.config.use_normals and _same_weights(normals, _network(1, True))
+    assert o3dvis.available_models(weights) == ["default", "normals"]
+
+
+def test_user_path_loads_and_checks_an_explicit_sha256(weights, tmp_path):
+    path = tmp_path / "elsewhere.safetensors"
+    _network(7).save(path)
+    assert _same_weights(load_model(path), _network(7))
+    assert _same_weights(load_model(str(path), sha256=file_sha256(path)), _network(7))
+    with pytest.raises(ValueError, match="sha256 mismatch"):
+        load_model(path, sha256="0" * 64)
+
+
+def _flip_byte(path, offset_from_end: int = 10) -> None:
+    data = bytearray(path.read_bytes())
+    data[-offset_from_end] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+def test_tampered_file_is_refused_by_name_and_by_path(weights):
+    path = weights / "default.safetensors"
+    _flip_byte(path)
+    with pytest.raises(ValueError, match="sha256 mismatch.*modified"):
+        load_model("default", weights_dir=weights)
+    # A path listed by the card next to it is checked against that card too.
+    with pytest.raises(ValueError, match="sha256 mismatch"):
+        load_model(path)
+
+
+def test_truncated_file_gives_a_clear_error(weights):
+    path = weights / "default.safetensors"
+    path.write_bytes(path.read_bytes()[:-100])
+    with pytest.raises(ValueError, match="truncated"):
+        load_model("default", weights_dir=weights)
+    path.write_bytes(path.read_bytes()[:5])
+    with pytest.raises(ValueError, match="truncated"):
+        check_safetensors(path)
+
+
+def test_trailing_bytes_and_bad_headers_are_refused(tmp_path):
+    path = tmp_path / "m.safetensors"
+    _network(0).save(path)
+    path.write_bytes(path.read_bytes() + b"\0" * 16)
+    with pytest.raises(ValueError, match="trailing bytes"):
+        load_model(path)
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes(struct.pack("<Q", 4) + b"nope")
+    with pytest.raises(ValueError, match="not JSON"):
+        load_model(bad)
+    huge = tmp_path / "huge.safetensors"
+    huge.write_bytes(struct.pack("<Q", 10**12) + b"{}")
+    with pytest.raises(ValueError, match="truncated"):
+        load_model(huge)
+
+
+class _Payload:
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def test_pickle_checkpoints_are_never_unpickled(tmp_path):
+    marker = tmp_path / "executed"
+    for name, writer in (("zip.pt", lambda p: torch.save({"x": _Payload(marker)}, p)),
+                         ("raw.pkl", lambda p: p.write_bytes(pickle.dumps(_Payload(marker))))):
+        path = tmp_path / name
+        writer(path)
+        with pytest.raises(ValueError, match="pickle"):
+            load_model(path)
+        assert not marker.exists(), "loading executed the pickle payload"
+
+
+def test_unknown_name_lists_the_available_models(weights):
+    with pytest.raises(ValueError, match="unknown model 'nope'.*default, normals"):
+        load_model("nope", weights_dir=weights)
+
+
+def test_missing_card_or_file_names_the_missing_file(weights, tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(FileNotFoundError, match="model_card.json"):
+        load_model("default", weights_dir=empty)
+    (weights / "normals.safetensors").unlink()
+    with pytest.raises(FileNotFoundError, match="normals.safetensors"):
+        load_model("normals", weights_dir=weights)
+    with pytest.raises(FileNotFoundError, match="missing.safetensors"):
+        load_model(tmp_path / "missing.safetensors")
+
+
+def test_card_inconsistent_with_checkpoint_or_malformed(weights):
+    card = json.loads((weights / "model_card.json").read_text())
+    card["models"]["default"]["use_normals"] = True
+    (weights / "model_card.json").write_text(json.dumps(card))
+    with pytest.raises(ValueError, match="use_normals"):
+        load_model("default", weights_dir=weights)
+    del card["models"]["default"]["sha256"]
+    (weights / "model_card.json").write_text(json.dumps(card))
+    with pytest.raises(ValueError, match="sha256"):
+        read_model_card(weights)
+    (weights / "model_card.json").write_text("{not json")
+    with pytest.raises(ValueError, match="not valid JSON"):
+        load_model("default", weights_dir=weights)
+
+
+def test_safetensors_without_o3dvis_config_is_refused(tmp_path):
+    from safetensors.torch import save_file
+
+    path = tmp_path / "foreign.safetensors"
+    save_file({"w": torch.zeros(3)}, str(path))
+    with pytest.raises(ValueError, match="not an o3dvis checkpoint"):
+        load_model(path)
+    with pytest.raises(TypeError, match="name_or_path"):
+        load_model(3)
+
+
+def test_pretrained_pairs_the_normals_model(weights):
+    vis = o3dvis.NeuralVisibility.pretrained(weights_dir=weights)
+    assert vis.normals_network is not None and vis.normals_network.config.use_normals
+    assert o3dvis.NeuralVisibility.pretrained(weights_dir=weights, use_normals=False).normals_network is None
+    points = np.random.default_rng(0).normal(size=(300, 3))
+    normals = points / np.linalg.norm(points, axis=1, keepdims=True)
+    assert vis.encode(points).network is vis.network
+    assert vis.encode(points, normals=normals).network is vis.normals_network
+
+
+def test_pretrained_from_the_shipped_folder(monkeypatch, weights):
+    card = models.WEIGHTS_DIR / models.CARD_NAME
+    if card.is_file():
+        entry = read_model_card()["models"]["default"]
+        assert file_sha256(models.WEIGHTS_DIR / entry["file"]) == entry["sha256"]
+        assert isinstance(o3dvis.NeuralVisibility.pretrained(), o3dvis.NeuralVisibility)
+    else:
+        with pytest.raises(FileNotFoundError, match="model_card.json"):
+            o3dvis.NeuralVisibility.pretrained()
+    monkeypatch.setattr(models, "WEIGHTS_DIR", weights)
+    assert _same_weights(o3dvis.NeuralVisibility.pretrained().network, _network(0))

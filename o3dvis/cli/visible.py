@@ -1,0 +1,72 @@
+"""``o3dvis visible``: write the points of a cloud that a camera sees."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+__all__ = ["register", "run"]
+
+
+def _vector(text: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3:
+        raise argparse.ArgumentTypeError(f"expected three comma-separated numbers x,y,z, got {text!r}")
+    return values
+
+
+def register(subparsers) -> None:
+    """Adds the ``visible`` subcommand."""
+    parser = subparsers.add_parser(
+        "visible", help="keep the points of a cloud that a camera sees",
+        description="Writes the points of IN visible from a camera position (or an orthographic "
+                    "direction), with their colours and normals. Write negative values with '=', "
+                    "e.g. --camera=-2,0,5.")
+    parser.add_argument("input", help="point cloud file readable by Open3D (.ply, .pcd, .xyz, ...)")
+    view = parser.add_mutually_exclusive_group(required=True)
+    view.add_argument("--camera", type=_vector, metavar="X,Y,Z", help="camera position")
+    view.add_argument("--direction", type=_vector, metavar="X,Y,Z",
+                      help="viewing direction of an orthographic camera")
+    parser.add_argument("-o", "--output", required=True, help="output point cloud file")
+    parser.add_argument("--model", default=None,
+                        help="shipped model name or .safetensors checkpoint (default: the shipped default)")
+    parser.add_argument("--threshold", type=float, default=0.5,
+                        help="a point is visible when its probability exceeds this (default 0.5)")
+    parser.add_argument("--device", default=None, help="torch device, e.g. cuda (default: cpu)")
+    parser.add_argument("--no-normals", action="store_true",
+                        help="ignore the normals of the input cloud")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Reads the cloud, selects the visible points, writes them.
+
+    Args:
+        args: the parsed command line.
+
+    Returns:
+        0 when the visible points were written, 1 when no point is visible.
+    """
+    import open3d as o3d
+
+    from ..visibility import select_visible
+
+    if not Path(args.input).is_file():
+        raise FileNotFoundError(f"{args.input} not found")
+    pcd = o3d.io.read_point_cloud(args.input)
+    if pcd.is_empty():
+        raise ValueError(f"no points could be read from {args.input}")
+    visible = select_visible(pcd, args.camera, direction=args.direction, threshold=args.threshold,
+                             model=args.model, device=args.device,
+                             normals=False if args.no_normals else None)
+    if not visible.has_points():
+        print(f"no point of {args.input} is visible; nothing written", file=sys.stderr)
+        return 1
+    if not o3d.io.write_point_cloud(args.output, visible):
+        raise RuntimeError(f"could not write {args.output}")
+    print(f"{len(visible.points)} of {len(pcd.points)} points visible -> {args.output}")
+    return 0

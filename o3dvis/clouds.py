@@ -1,0 +1,84 @@
+"""Point cloud inputs: legacy and tensor Open3D clouds, numpy and torch arrays."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import torch
+from torch import Tensor
+
+from .cameras import as_vectors
+
+__all__ = ["cloud_arrays", "cloud_device", "unit_normals"]
+
+
+def cloud_arrays(pcd) -> tuple[Tensor, Tensor | None]:
+    """Points and normals (when the cloud has them) of a cloud, as float64 tensors.
+
+    Args:
+        pcd: ``o3d.geometry.PointCloud``, ``o3d.t.geometry.PointCloud``, or an
+            (N, 3) numpy array / torch tensor / ``o3d.core.Tensor`` of points.
+
+    Returns:
+        ``(points, normals)``: (N, 3) float64 tensors on the cloud's device;
+        ``normals`` is None when the cloud has none (always for arrays).
+
+    Raises:
+        TypeError: an unsupported type or non-real dtype.
+        ValueError: an empty cloud, a wrong shape, NaN or Inf coordinates.
+    """
+    normals = None
+    if isinstance(pcd, o3d.geometry.PointCloud):
+        points = np.asarray(pcd.points)
+        if pcd.has_normals():
+            normals = np.asarray(pcd.normals)
+    elif isinstance(pcd, o3d.t.geometry.PointCloud):
+        if pcd.is_empty():
+            raise ValueError("point cloud is empty")
+        points = pcd.point.positions
+        if "normals" in pcd.point:
+            normals = pcd.point.normals
+    elif isinstance(pcd, (np.ndarray, Tensor, o3d.core.Tensor)):
+        points = pcd
+    else:
+        raise TypeError(f"expected an Open3D PointCloud or an (N, 3) array, got {type(pcd).__name__}")
+    shape = tuple(points.shape)
+    if len(shape) != 2 or shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {shape}")
+    if shape[0] == 0:
+        raise ValueError("point cloud is empty")
+    points = as_vectors(points, "points")
+    return points, None if normals is None else as_vectors(normals, "normals").to(points.device)
+
+
+def unit_normals(normals, num_points: int) -> Tensor:
+    """Checks (N, 3) normals and scales them to unit length.
+
+    Args:
+        normals: array-like of shape (num_points, 3).
+        num_points: number of points of the cloud.
+
+    Returns:
+        (N, 3) float64 tensor of unit vectors.
+
+    Raises:
+        ValueError: wrong shape, NaN/Inf or zero-length normals.
+        TypeError: non-real dtype.
+    """
+    normals = as_vectors(normals, "normals")
+    if normals.shape[0] != num_points:
+        raise ValueError(f"normals must have shape ({num_points}, 3), got {tuple(normals.shape)}")
+    length = normals.norm(dim=1, keepdim=True)
+    if (length == 0).any():
+        raise ValueError(f"{int((length == 0).sum())} normals have zero length")
+    return normals / length
+
+
+def cloud_device(pcd) -> torch.device:
+    """The torch device where a cloud's data lives (CPU for legacy clouds and numpy)."""
+    if isinstance(pcd, Tensor):
+        return pcd.device
+    tensor = pcd.point.positions if isinstance(pcd, o3d.t.geometry.PointCloud) and not pcd.is_empty() else pcd
+    if isinstance(tensor, o3d.core.Tensor) and tensor.device.get_type() == o3d.core.Device.DeviceType.CUDA:
+        return torch.device("cuda", tensor.device.get_id())
+    return torch.device("cpu")

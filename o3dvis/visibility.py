@@ -1,0 +1,471 @@
+"""Neural hidden point removal: which points of a cloud each camera sees.
+
+The network's U-Net runs once per cloud (:meth:`NeuralVisibility.encode`); each
+view then costs a depth-buffer pass and a small MLP over the points
+(:meth:`VisibilityField.query`). Cameras must lie outside the axis-aligned
+bounding box of the cloud (which also rules out a camera on a point); an
+orthographic ``direction`` has no such restriction.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import torch
+from torch import Tensor
+
+from .cameras import Views, as_vectors, as_views
+from .clouds import cloud_arrays, cloud_device, unit_normals
+from .models import available_models, load_model, torch_device
+from .nn.cues import view_cues
+from .nn.network import VisibilityNetwork
+from .nn.octree import normalize_points
+
+__all__ = ["NeuralVisibility", "VisibilityField", "hidden_point_removal_neural", "select_visible",
+           "register", "DEFAULT_CHUNK"]
+
+DEFAULT_CHUNK = 1 << 18
+"""Rows (views x points) that one MLP call processes at most."""
+
+_NORMALS_MODEL = "normals"
+_INSIDE_TOL = 1e-6
+
+
+def _fmt(vector: Tensor) -> str:
+    return "(" + ", ".join(f"{x:.6g}" for x in vector.detach().tolist()) + ")"
+
+
+class VisibilityField:
+    """Per-point features of one cloud, answering visibility queries for any views.
+
+    Made by :meth:`NeuralVisibility.encode`. The features are computed once
+    (without autograd); each query runs the per-view predictor only, in
+    batches of views and chunks of points of at most ``chunk_size`` rows.
+    """
+
+    def __init__(self, network: VisibilityNetwork, features: Tensor, points_n: Tensor,
+                 normals: Tensor | None, center: Tensor, scale: Tensor, bounds: tuple[Tensor, Tensor],
+                 chunk_size: int = DEFAULT_CHUNK):
+        self.network = network
+        self.features = features
+        self.points_n = points_n
+        self.normals = normals
+        self.center, self.scale = center, scale
+        self.bounds = bounds
+        self.chunk_size = chunk_size
+
+    @property
+    def num_points(self) -> int:
+        return self.points_n.shape[0]
+
+    @property
+    def device(self) -> torch.device:
+        return self.points_n.device
+
+    def __repr__(self) -> str:
+        normals = ", with normals" if self.normals is not None else ""
+        return f"VisibilityField({self.num_points} points on {self.device}{normals})"
+
+    def _normalised(self, views: Views) -> tuple[Tensor | None, Tensor | None]:
+        """(V, 3) cameras or directions of ``views`` in the field's normalised frame."""
+        dtype = self.points_n.dtype
+        if views.directions is not None:
+            return None, views.directions.to(self.device).to(dtype)
+        positions = views.positions.to(self.device)
+        lo, hi = self.bounds
+        tol = _INSIDE_TOL * self.scale
+        inside = ((positions.detach() >= lo - tol) & (positions.detach() <= hi + tol)).all(dim=1)
+        if inside.any():
+            i = int(inside.nonzero()[0, 0])
+            raise ValueError(f"camera {i} at {_fmt(positions[i])} lies inside the bounding box "
+                             f"{_fmt(lo)} - {_fmt(hi)} of the point cloud (or on a point); "
+                             f"cameras must be outside it")
+        cameras = ((positions - self.center) / self.scale).to(dtype)
+        if not torch.isfinite(cameras.detach()).all():
+            raise ValueError("a camera is too far from the point cloud to be represented; "
+                             "use direction= for a camera at infinity")
+        return cameras, None
+
+    def _view_inputs(self, camera: Tensor | None, direction: Tensor | None) -> tuple[Tensor, Tensor]:
+        dirs, cues = view_cues(self.points_n, camera, direction, self.network.config.cue_scales)
+        if self.normals is not None:
+            cues = torch.cat([cues, -(self.normals * dirs).sum(dim=1, keepdim=True)], dim=1)
+        return dirs, cues
+
+    def _batches(self, views: Views) -> Iterator[tuple[slice, Tensor]]:
+        """Yields ``(views slice, (v, N) probabilities)`` with frustum culling applied."""
+        cameras, directions = self._normalised(views)
+        n, total = self.num_points, len(views)
+        per_batch = max(1, self.chunk_size // n)
+        step = min(n, self.chunk_size)
+        for start in range(0, total, per_batch):
+            batch = slice(start, min(total, start + per_batch))
+            inputs = [self._view_inputs(None if cameras is None else cameras[i],
+                                        None if directions is None else directions[i])
+                      for i in range(batch.start, batch.stop)]
+            dirs = torch.stack([d for d, _ in inputs]) if len(inputs) > 1 else inputs[0][0][None]
+            cues = torch.stack([c for _, c in inputs]) if len(inputs) > 1 else inputs[0][1][None]
+            del inputs
+            logits = torch.cat([self.network.predictor(self.features[a:a + step], dirs[:, a:a + step],
+                                                       cues[:, a:a + step])
+                                for a in range(0, n, step)], dim=1)
+            probs = torch.sigmoid(logits[..., 1] - logits[..., 0])
+            masks = [(j, f.contains(self.points_n, self.center, self.scale))
+                     for j, f in enumerate(views.frustums[batch]) if f is not None]
+            if masks:
+                keep = torch.ones_like(probs, dtype=torch.bool)
+                for j, mask in masks:
+                    keep[j] = mask
+                probs = probs * keep
+            yield batch, probs
+
+    def probabilities(self, cameras=None, direction=None, *, frustum: bool = True) -> Tensor:
+        """Probability that each point is visible from each view.
+
+        Differentiable with respect to camera positions (or directions) given
+        as a torch tensor with ``requires_grad``; the point features are fixed.
+        Without such a tensor the computation runs under ``torch.inference_mode``.
+
+        Args:
+            cameras: camera positions, (3,) or (V, 3), as list, tuple, numpy,
+                torch or ``o3d.core.Tensor``; or ``o3d.camera.PinholeCameraParameters``,
+                a list of them, or a ``PinholeCameraTrajectory``.
+            direction: instead of ``cameras``, (3,) or (V, 3) viewing directions
+                (from the camera into the scene) of orthographic views.
+            frustum: for pinhole cameras with an image size, points that project
+                outside the image or lie behind the camera get probability 0.
+
+        Returns:
+            (V, N) float tensor on the field's device.
+
+        Raises:
+            ValueError: a camera inside the cloud's bounding box or on a point,
+                NaN/Inf, bad shapes, both or neither of cameras and direction.
+            TypeError: cameras that are not real numbers.
+        """
+        views = as_views(cameras, direction, frustum=frustum)
+        given = views.positions if views.positions is not None else views.directions
+        grad = torch.is_grad_enabled() and given.requires_grad
+        with contextlib.nullcontext() if grad else torch.inference_mode():
+            return torch.cat([probs for _, probs in self._batches(views)])
+
+    def query(self, cameras=None, direction=None, threshold: float = 0.5, *,
+              frustum: bool = True) -> np.ndarray:
+        """Which points each view sees.
+
+        Args:
+            cameras: camera positions or pinhole cameras, as in :meth:`probabilities`.
+            direction: instead of ``cameras``, viewing directions of orthographic views.
+            threshold: a point is visible when its probability exceeds this, in [0, 1].
+            frustum: cull points outside the image of pinhole cameras with an image size.
+
+        Returns:
+            (V, N) bool numpy array.
+
+        Raises:
+            ValueError: as :meth:`probabilities`, or a threshold outside [0, 1].
+        """
+        if isinstance(threshold, bool) or not isinstance(threshold, (int, float, np.floating, np.integer)):
+            raise TypeError(f"threshold must be a number, got {type(threshold).__name__}")
+        if not 0 <= threshold <= 1:
+            raise ValueError(f"threshold must be in [0, 1], got {threshold}")
+        views = as_views(cameras, direction, frustum=frustum)
+        out = np.empty((len(views), self.num_points), dtype=bool)
+        with torch.inference_mode():
+            for batch, probs in self._batches(views):
+                out[batch] = (probs > threshold).cpu().numpy()
+        return out
+
+
+class NeuralVisibility:
+    """A visibility network ready for Open3D clouds.
+
+    Args:
+        network: the network used for clouds without normals (or for all
+            clouds, when it takes normals itself).
+        normals_network: optional network taking normals, used automatically
+            for clouds that have normals.
+        device: torch device to run on (default: the network's device).
+        chunk_size: rows (views x points) per MLP call; bounds the memory of queries.
+
+    Example:
+        >>> vis = NeuralVisibility.pretrained()                     # doctest: +SKIP
+        >>> field = vis.encode(pcd)                                 # doctest: +SKIP
+        >>> mask = field.query([[0, 0, 5], [5, 0, 0]])              # doctest: +SKIP
+    """
+
+    def __init__(self, network: VisibilityNetwork, normals_network: VisibilityNetwork | None = None, *,
+                 device: str | torch.device | None = None, chunk_size: int = DEFAULT_CHUNK):
+        for name, net in (("network", network), ("normals_network", normals_network)):
+            if net is not None and not isinstance(net, VisibilityNetwork):
+                raise TypeError(f"{name} must be a VisibilityNetwork, got {type(net).__name__}")
+        if normals_network is not None and not normals_network.config.use_normals:
+            raise ValueError("normals_network must be a model that takes normals (config.use_normals)")
+        if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
+            raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}")
+        self.network = network
+        self.normals_network = normals_network
+        self.chunk_size = chunk_size
+        self.to(next(network.parameters()).device if device is None else device)
+
+    @classmethod
+    def pretrained(cls, name: str = "default", device: str | torch.device | None = None, *,
+                   use_normals: bool = True, weights_dir: str | Path | None = None) -> "NeuralVisibility":
+        """A shipped model from ``o3dvis/weights`` (sha256-checked, no pickle).
+
+        With ``name="default"`` the shipped ``"normals"`` model, when there is
+        one, is loaded too and used for clouds that have normals.
+
+        Args:
+            name: model name in the model card, or a ``.safetensors`` path.
+            device: torch device (default: CPU).
+            use_normals: False never loads the companion normals model.
+            weights_dir: folder of the model card (default: the shipped one).
+
+        Returns:
+            A ready :class:`NeuralVisibility`.
+
+        Raises:
+            FileNotFoundError: the model card or the checkpoint is missing
+                (no trained weights installed); the message names the file.
+            ValueError: unknown name (the message lists the available ones),
+                tampered or truncated checkpoint.
+        """
+        network = load_model(name, device, weights_dir=weights_dir)
+        normals_network = None
+        if (use_normals and name == "default" and not network.config.use_normals
+                and _NORMALS_MODEL in available_models(weights_dir)):
+            normals_network = load_model(_NORMALS_MODEL, device, weights_dir=weights_dir)
+        return cls(network, normals_network, device=device)
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.network.parameters()).device
+
+    def to(self, device: str | torch.device) -> "NeuralVisibility":
+        """Moves the networks to ``device`` (in place) and returns self."""
+        device = torch_device(device)
+        for net in (self.network, self.normals_network):
+            if net is not None:
+                net.to(device).eval()
+        return self
+
+    def __repr__(self) -> str:
+        normals = " + normals model" if self.normals_network is not None else ""
+        return f"NeuralVisibility({self.network.num_parameters()} parameters{normals}, {self.device})"
+
+    def _pick(self, cloud_normals: Tensor | None, normals, num_points: int
+              ) -> tuple[VisibilityNetwork, Tensor | None]:
+        """The network to use and the unit normals to feed it."""
+        takes_normals = self.normals_network
+        if takes_normals is None and self.network.config.use_normals:
+            takes_normals = self.network
+        if normals is None:
+            normals = cloud_normals if takes_normals is not None else None
+        elif normals is True:
+            if cloud_normals is None:
+                raise ValueError("normals=True but the point cloud has no normals")
+            normals = cloud_normals
+        elif normals is False:
+            normals = None
+        if normals is None:
+            if self.network.config.use_normals:
+                raise ValueError("this model needs normals and none were given (the cloud has none "
+                                 "or normals=False)")
+            return self.network, None
+        if takes_normals is None:
+            raise ValueError("normals were given but no loaded model takes normals")
+        return takes_normals, unit_normals(normals, num_points)
+
+    def encode(self, pcd, normals=None) -> VisibilityField:
+        """Runs the U-Net once over a cloud.
+
+        Args:
+            pcd: ``o3d.geometry.PointCloud``, ``o3d.t.geometry.PointCloud``, or
+                an (N, 3) numpy array / torch tensor of points.
+            normals: None uses the cloud's normals when it has them and a model
+                taking normals is loaded; False ignores normals; True requires
+                the cloud's normals; an (N, 3) array gives them explicitly.
+
+        Returns:
+            A :class:`VisibilityField` to query with cameras.
+
+        Raises:
+            ValueError: an empty cloud, NaN/Inf coordinates, wrong shapes, or
+                normals that the loaded models cannot use.
+            TypeError: unsupported input types or dtypes.
+        """
+        points, cloud_normals = cloud_arrays(pcd)
+        network, unit = self._pick(cloud_normals, normals, points.shape[0])
+        points = points.to(self.device)
+        lo, hi = points.amin(dim=0), points.amax(dim=0)
+        if (hi - lo).amax() > 0:
+            points_n, center, scale = normalize_points(points)
+        else:  # all points coincide: any scale maps them to the origin
+            center, scale = lo, torch.ones((), dtype=points.dtype, device=points.device)
+            points_n = points - center
+        points_n = points_n.float()
+        unit = None if unit is None else unit.to(self.device).float()
+        with torch.no_grad():
+            features = network.encode(points_n, normals=unit)
+        return VisibilityField(network, features, points_n, unit, center, scale, (lo, hi), self.chunk_size)
+
+
+_CACHE: dict[tuple[str, str], NeuralVisibility] = {}
+_CACHE_LOCK = threading.Lock()
+
+
+def _resolve_model(model, device: torch.device) -> NeuralVisibility:
+    """A :class:`NeuralVisibility` from the ``model=`` argument of the functions below."""
+    if isinstance(model, NeuralVisibility):
+        return model.to(device)
+    if isinstance(model, VisibilityNetwork):
+        return NeuralVisibility(model, device=device)
+    if model is None or isinstance(model, (str, Path)):
+        name = "default" if model is None else model
+        if not isinstance(name, str) or name not in available_models():
+            return NeuralVisibility.pretrained(name, device)
+        key = (name, str(device))
+        with _CACHE_LOCK:
+            if key not in _CACHE:
+                _CACHE[key] = NeuralVisibility.pretrained(name, device)
+            return _CACHE[key]
+    raise TypeError("model must be None, a model name or path, a NeuralVisibility or a "
+                    f"VisibilityNetwork, got {type(model).__name__}")
+
+
+def _visible_indices(pcd, cameras, direction, threshold: float, model, device, normals,
+                     frustum: bool = True) -> np.ndarray:
+    """Sorted int64 indices of the points of ``pcd`` visible from one view."""
+    views = as_views(cameras, direction, frustum=frustum)
+    if len(views) != 1:
+        raise ValueError(f"give one camera, got {len(views)}")
+    device = torch_device(device) if device is not None else cloud_device(pcd)
+    field = _resolve_model(model, device).encode(pcd, normals=normals)
+    return np.flatnonzero(field.query(views, threshold=threshold)[0]).astype(np.int64)
+
+
+def _surface_triangles(vertices: np.ndarray, camera: np.ndarray) -> np.ndarray:
+    """Triangles over ``vertices`` as the camera sees them, facing it (see :mod:`.apps.triangulation`)."""
+    from .apps.triangulation import DEFAULT_EDGE_FACTOR, local_spacing, visible_triangles
+
+    return visible_triangles(vertices, camera, np.arange(len(vertices)),
+                             DEFAULT_EDGE_FACTOR * local_spacing(vertices))
+
+
+def hidden_point_removal_neural(pcd, camera_location, radius: float | None = None, *,
+                                threshold: float = 0.5, model=None, device=None, triangulate: bool = True):
+    """Removes hidden points with the neural network: a drop-in for ``hidden_point_removal``.
+
+    Returns what Open3D's ``PointCloud.hidden_point_removal`` returns, so
+    ``mesh, pt_map = pcd.hidden_point_removal(camera, radius)`` can become
+    ``mesh, pt_map = o3dvis.hidden_point_removal_neural(pcd, camera, radius)``.
+    The mesh's vertices are exactly ``points[pt_map]``; its triangles are the
+    surface the camera sees: a Delaunay triangulation of those points in the
+    image plane without the triangles whose edges are much longer than the
+    local point spacing, ordered counter-clockwise as seen from the camera
+    (none when fewer than 3 points are visible or they project onto a line, or
+    with ``triangulate=False``). Unlike Open3D, ``pt_map`` is sorted. Point
+    normals are used when the cloud has them and a normals model is installed.
+
+    Args:
+        pcd: ``o3d.geometry.PointCloud`` or ``o3d.t.geometry.PointCloud``.
+        camera_location: (3,) camera position (list, tuple, numpy, torch or
+            ``o3d.core.Tensor``), outside the cloud's bounding box.
+        radius: unused; accepted so that existing calls work unchanged.
+        threshold: a point is visible when its probability exceeds this.
+        model: None (the shipped default), a model name or checkpoint path, a
+            :class:`NeuralVisibility` or a ``VisibilityNetwork``.
+        device: torch device, e.g. ``"cuda"`` (default: where the cloud lives, else CPU).
+        triangulate: False leaves the mesh without triangles, which saves the
+            triangulation's time (about as long as a view's query at 200 k points).
+
+    Returns:
+        ``(mesh, pt_map)``: for a legacy cloud an ``o3d.geometry.TriangleMesh``
+        and a ``list[int]``; for a tensor cloud an ``o3d.t.geometry.TriangleMesh``
+        and an Int64 ``o3d.core.Tensor``.
+
+    Raises:
+        ValueError: an empty cloud, NaN/Inf, a camera inside the cloud's
+            bounding box or on a point, a camera that is not one position.
+        TypeError: ``pcd`` is not an Open3D PointCloud, or bad dtypes.
+        FileNotFoundError: no installed model and no ``model`` given.
+    """
+    if not isinstance(pcd, (o3d.geometry.PointCloud, o3d.t.geometry.PointCloud)):
+        raise TypeError(f"pcd must be an Open3D PointCloud (legacy or tensor), got {type(pcd).__name__}")
+    camera = as_vectors(camera_location, "camera_location")
+    if camera.shape[0] != 1:
+        raise ValueError(f"camera_location must be one position of shape (3,), got {tuple(camera.shape)}")
+    index = _visible_indices(pcd, camera[0], None, threshold, model, device, None)
+    eye = camera[0].detach().cpu().numpy()
+    if isinstance(pcd, o3d.geometry.PointCloud):
+        vertices = np.asarray(pcd.points)[index]
+        mesh = o3d.geometry.TriangleMesh()
+        mesh.vertices = o3d.utility.Vector3dVector(vertices)
+        if triangulate:
+            mesh.triangles = o3d.utility.Vector3iVector(_surface_triangles(vertices, eye))
+        return mesh, index.tolist()
+    positions = pcd.point.positions
+    pt_map = o3d.core.Tensor(index, dtype=o3d.core.Dtype.Int64, device=positions.device)
+    mesh = o3d.t.geometry.TriangleMesh(positions.device)
+    mesh.vertex.positions = positions[pt_map]
+    if triangulate:
+        triangles = _surface_triangles(mesh.vertex.positions.cpu().numpy().astype(np.float64), eye)
+        mesh.triangle.indices = o3d.core.Tensor(triangles, dtype=o3d.core.Dtype.Int64,
+                                                device=positions.device)
+    return mesh, pt_map
+
+
+def select_visible(pcd, camera=None, *, direction=None, threshold: float = 0.5, model=None,
+                   device=None, normals=None, frustum: bool = True):
+    """The points of a cloud that one camera sees, as a point cloud.
+
+    Colours, normals and every other per-point attribute are kept.
+
+    Args:
+        pcd: ``o3d.geometry.PointCloud``, ``o3d.t.geometry.PointCloud``, or an
+            (N, 3) numpy array / torch tensor of points.
+        camera: one camera position (3,) or ``o3d.camera.PinholeCameraParameters``
+            (with an image size, points outside the image are dropped too).
+        direction: instead of ``camera``, the (3,) viewing direction of an
+            orthographic view.
+        threshold: a point is visible when its probability exceeds this.
+        model: None (the shipped default), a model name or checkpoint path, a
+            :class:`NeuralVisibility` or a ``VisibilityNetwork``.
+        device: torch device (default: where the cloud lives, else CPU).
+        normals: as in :meth:`NeuralVisibility.encode`.
+        frustum: False ignores the image bounds of a pinhole camera.
+
+    Returns:
+        A cloud of the same kind as ``pcd`` (a legacy ``PointCloud`` for arrays)
+        holding the visible points in their original order.
+
+    Raises:
+        ValueError: an empty cloud, NaN/Inf, a camera inside the cloud's
+            bounding box or on a point, more than one camera.
+        TypeError: unsupported input types or dtypes.
+    """
+    index = _visible_indices(pcd, camera, direction, threshold, model, device, normals, frustum)
+    if isinstance(pcd, o3d.geometry.PointCloud):
+        return pcd.select_by_index(index.tolist())
+    if isinstance(pcd, o3d.t.geometry.PointCloud):
+        device = pcd.point.positions.device
+        return pcd.select_by_index(o3d.core.Tensor(index, dtype=o3d.core.Dtype.Int64, device=device))
+    points, _ = cloud_arrays(pcd)
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.cpu().numpy()[index]))
+
+
+def register() -> None:
+    """Adds ``hidden_point_removal_neural`` as a method of Open3D's point clouds.
+
+    Open3D's pybind11 classes accept new Python attributes, so after this call
+    ``pcd.hidden_point_removal_neural(camera_location, radius)`` works on both
+    ``o3d.geometry.PointCloud`` and ``o3d.t.geometry.PointCloud``.
+    """
+    for cls in (o3d.geometry.PointCloud, o3d.t.geometry.PointCloud):
+        cls.hidden_point_removal_neural = hidden_point_removal_neural

@@ -1,0 +1,464 @@
+"""The Open3D-facing API: HPR drop-in semantics, camera forms, batching, gradients, bad input."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pydoc
+
+import numpy as np
+import open3d as o3d
+import pytest
+import torch
+
+import o3dvis
+from o3dvis import models
+from o3dvis.cameras import as_views
+from o3dvis.cli import visible as visible_cli
+from o3dvis.models import file_sha256
+from o3dvis.nn import NetworkConfig, VisibilityNetwork
+
+SMALL = dict(depth=5, full_depth=2, channels=(8, 16), feature_channels=8, num_frequencies=2, hidden=(16,))
+CAMERA = [0.0, 0.0, 5.0]
+
+
+@pytest.fixture(scope="module")
+def network() -> VisibilityNetwork:
+    torch.manual_seed(0)
+    return VisibilityNetwork(NetworkConfig(**SMALL)).eval()
+
+
+@pytest.fixture(scope="module")
+def vis(network) -> o3dvis.NeuralVisibility:
+    return o3dvis.NeuralVisibility(network)
+
+
+@pytest.fixture(scope="module")
+def pcd() -> o3d.geometry.PointCloud:
+    """Open3D's HPR example on a procedural shape: 3 000 Poisson-disk samples."""
+    mesh = o3dvis.data.random_shape(np.random.default_rng(3), parts=3)
+    o3d.utility.random.seed(1)
+    cloud = mesh.sample_points_poisson_disk(3000)
+    cloud.colors = o3d.utility.Vector3dVector(np.random.default_rng(0).random((3000, 3)))
+    return cloud
+
+
+@pytest.fixture(scope="module")
+def points(pcd) -> np.ndarray:
+    return np.asarray(pcd.points).copy()
+
+
+def _camera(points: np.ndarray, direction=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """A camera outside the cloud at one bounding-box diagonal from its centre."""
+    center = (points.min(0) + points.max(0)) / 2
+    diag = np.linalg.norm(points.max(0) - points.min(0))
+    return center + diag * np.asarray(direction) / np.linalg.norm(direction)
+
+
+def _median_threshold(vis, cloud, camera) -> float:
+    """A threshold that splits the points into visible and hidden halves."""
+    return float(vis.encode(cloud).probabilities(camera).median())
+
+
+def test_hpr_legacy_semantics(vis, pcd, points):
+    camera = _camera(points)
+    threshold = _median_threshold(vis, pcd, camera)
+    mesh, pt_map = o3dvis.hidden_point_removal_neural(pcd, camera, 500.0, threshold=threshold, model=vis)
+    assert isinstance(mesh, o3d.geometry.TriangleMesh)
+    assert isinstance(pt_map, list) and all(isinstance(i, int) for i in pt_map)
+    assert 0 < len(pt_map) < len(points)
+    assert min(pt_map) >= 0 and max(pt_map) < len(points) and len(set(pt_map)) == len(pt_map)
+    # Open3D's own test: the mesh vertices are the selected points.
+    np.testing.assert_array_equal(np.asarray(mesh.vertices), points[pt_map])
+    expected = vis.encode(points).query(camera, threshold=threshold)[0]
+    np.testing.assert_array_equal(np.flatnonzero(expected), pt_map)
+    triangles = np.asarray(mesh.triangles)
+    assert len(triangles) > 0 and triangles.min() >= 0 and triangles.max() < len(pt_map)
+    v = np.asarray(mesh.vertices)
+    normals = np.cross(v[triangles[:, 1]] - v[triangles[:, 0]], v[triangles[:, 2]] - v[triangles[:, 0]])
+    assert (np.einsum("ij,ij->i", normals, camera - v[triangles[:, 0]]) >= 0).all()
+
+
+@pytest.mark.parametrize("dtype", [o3d.core.float64, o3d.core.float32])
+def test_hpr_tensor_semantics(vis, pcd, points, dtype):
+    camera = _camera(points)
+    threshold = _median_threshold(vis, pcd, camera)
+    tpcd = o3d.t.geometry.PointCloud(o3d.core.Tensor(points, dtype=dtype))
+    mesh, pt_map = o3dvis.hidden_point_removal_neural(tpcd, o3d.core.Tensor(camera), 500.0,
+                                                      threshold=threshold, model=vis)
+    assert isinstance(mesh, o3d.t.geometry.TriangleMesh)
+    assert isinstance(pt_map, o3d.core.Tensor) and pt_map.dtype == o3d.core.int64
+    index = pt_map.numpy()
+    assert index.ndim == 1 and 0 < len(index) < len(points)
+    assert index.min() >= 0 and index.max() < len(points)
+    np.testing.assert_array_equal(mesh.vertex.positions.numpy(), tpcd.point.positions.numpy()[index])
+    assert mesh.vertex.positions.dtype == dtype
+    if dtype == o3d.core.float64:
+        _, legacy_map = o3dvis.hidden_point_removal_neural(pcd, camera, threshold=threshold, model=vis)
+        np.testing.assert_array_equal(index, legacy_map)
+
+
+def test_radius_is_unused_and_triangles_optional(vis, pcd, points):
+    camera = _camera(points)
+    maps = [o3dvis.hidden_point_removal_neural(pcd, camera, r, model=vis)[1] for r in (None, 1e-9, 1e5)]
+    assert maps[0] == maps[1] == maps[2]
+    mesh, pt_map = o3dvis.hidden_point_removal_neural(pcd, camera, model=vis, triangulate=False)
+    assert pt_map == maps[0] and len(mesh.triangles) == 0
+    np.testing.assert_array_equal(np.asarray(mesh.vertices), points[pt_map])
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error without CUDA")
+def test_cuda_without_cuda_is_a_clear_error(network, pcd, points):
+    with pytest.raises(ValueError, match="CUDA"):
+        o3dvis.hidden_point_removal_neural(pcd, _camera(points), model=network, device="cuda")
+    with pytest.raises(ValueError, match="unknown torch device"):
+        o3dvis.NeuralVisibility(network, device="gpu0")
+
+
+def test_batched_query_equals_one_call_per_camera(network, points):
+    rng = np.random.default_rng(1)
+    cameras = np.stack([_camera(points, d) for d in rng.normal(size=(5, 3))])
+    field = o3dvis.NeuralVisibility(network).encode(points)
+    batched = field.probabilities(cameras)
+    single = torch.cat([field.probabilities(c) for c in cameras])
+    torch.testing.assert_close(batched, single)
+    threshold = float(batched.median())
+    mask = field.query(cameras, threshold=threshold)
+    assert mask.shape == (5, len(points)) and mask.dtype == bool and 0 < mask.mean() < 1
+    singles = [field.query(c, threshold=threshold) for c in cameras]
+    np.testing.assert_array_equal(mask, np.concatenate(singles))
+    np.testing.assert_array_equal(mask, batched.numpy() > threshold)
+    # Small chunks: several point chunks per view, and several views per MLP call.
+    rows = []
+    hook = network.predictor.register_forward_hook(lambda m, args, out: rows.append(out.shape[:-1].numel()))
+    try:
+        for chunk in (1000, 7000):
+            rows.clear()
+            small = o3dvis.NeuralVisibility(network, chunk_size=chunk).encode(points)
+            torch.testing.assert_close(small.probabilities(cameras), batched, atol=1e-6, rtol=1e-5)
+            assert max(rows) <= chunk and sum(rows) == 5 * len(points)
+            assert len(rows) == (15 if chunk == 1000 else 3)
+    finally:
+        hook.remove()
+
+
+def _look_at(eye, target) -> np.ndarray:
+    forward = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(forward, [0.0, 1.0, 0.0] if abs(forward[1]) < 0.9 else [1.0, 0.0, 0.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    rotation = np.stack([right, down, forward])
+    extrinsic = np.eye(4)
+    extrinsic[:3, :3], extrinsic[:3, 3] = rotation, -rotation @ eye
+    return extrinsic
+
+
+def _pinhole(eye, target, width=-1, height=-1, focal=50.0) -> o3d.camera.PinholeCameraParameters:
+    params = o3d.camera.PinholeCameraParameters()
+    params.extrinsic = _look_at(np.asarray(eye, float), np.asarray(target, float))
+    params.intrinsic = o3d.camera.PinholeCameraIntrinsic(width, height, focal, focal,
+                                                         (width - 1) / 2, (height - 1) / 2)
+    return params
+
+
+def test_each_camera_form_gives_the_same_answer(vis, points):
+    field = vis.encode(points)
+    eye = np.array([0.0, 0.0, 4.0])
+    reference = field.probabilities(eye)
+    forms = [eye.tolist(), tuple(eye), eye.astype(np.float32), eye.astype(np.int64), eye[None],
+             torch.tensor(eye), torch.tensor(eye, dtype=torch.float32), o3d.core.Tensor(eye),
+             o3d.core.Tensor(eye[None].astype(np.float32)),
+             _pinhole(eye, points.mean(0)), [_pinhole(eye, points.mean(0))]]
+    for form in forms:
+        torch.testing.assert_close(field.probabilities(form), reference, atol=1e-6, rtol=1e-6)
+    trajectory = o3d.camera.PinholeCameraTrajectory()
+    trajectory.parameters = [_pinhole(eye, points.mean(0)), _pinhole(-eye, points.mean(0))]
+    torch.testing.assert_close(field.probabilities(trajectory), field.probabilities([eye, -eye]),
+                               atol=1e-6, rtol=1e-6)
+
+
+def test_pinhole_frustum_culls_points_outside_the_image(vis, points):
+    field = vis.encode(points)
+    eye = _camera(points)
+    params = _pinhole(eye, points.mean(0), width=40, height=30, focal=60.0)
+    # Independent projection of the points into the image.
+    cam = points @ params.extrinsic[:3, :3].T + params.extrinsic[:3, 3]
+    uv = cam[:, :2] / cam[:, 2:] * 60.0 + [19.5, 14.5]
+    inside = (cam[:, 2] > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] < 39.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < 29.5)
+    assert 0 < inside.mean() < 1
+    threshold = _median_threshold(vis, points, eye)
+    culled = field.query(params, threshold=threshold)[0]
+    free = field.query(params, threshold=threshold, frustum=False)[0]
+    assert not culled[~inside].any()
+    np.testing.assert_array_equal(culled[inside], free[inside])
+    assert free[~inside].any()
+    probs = field.probabilities(params)[0].numpy()
+    assert (probs[~inside] == 0).all()
+
+
+def test_orthographic_direction(vis, points):
+    field = vis.encode(points)
+    a = field.probabilities(direction=[0.0, 0.0, -1.0])
+    torch.testing.assert_close(field.probabilities(direction=[0.0, 0.0, -7.0]), a)
+    both = field.query(direction=[[0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+    assert both.shape == (2, len(points)) and both.dtype == bool
+    assert not torch.allclose(a, field.probabilities(direction=[1.0, 0.0, 0.0]))
+    with pytest.raises(ValueError, match="zero vector"):
+        field.query(direction=[0, 0, 0])
+    with pytest.raises(ValueError, match="exactly one"):
+        field.query(_camera(points), direction=[0, 0, 1])
+    with pytest.raises(ValueError, match="exactly one"):
+        field.query()
+
+
+def test_gradient_reaches_the_camera(vis, points):
+    field = vis.encode(points)
+    camera = torch.tensor(_camera(points, (1.0, 2.0, 3.0)), requires_grad=True)
+    probs = field.probabilities(camera)
+    assert probs.requires_grad and probs.shape == (1, len(points))
+    probs.sum().backward()
+    assert camera.grad is not None and torch.isfinite(camera.grad).all() and camera.grad.abs().sum() > 0
+    torch.testing.assert_close(probs.detach(), field.probabilities(camera.detach()))
+    direction = torch.tensor([0.0, 0.0, 1.0], requires_grad=True)
+    field.probabilities(direction=direction).sum().backward()
+    assert torch.isfinite(direction.grad).all()
+
+
+def test_invariant_to_point_order(vis, points):
+    camera = _camera(points, (1.0, -1.0, 0.5))
+    perm = np.random.default_rng(2).permutation(len(points))
+    a = vis.encode(points).probabilities(camera)[0]
+    b = vis.encode(points[perm]).probabilities(camera)[0]
+    torch.testing.assert_close(b, a[perm], atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("scale, offset", [(3.7, (10.0, -2.0, 5.0)), (1e-3, (1e6, 1e6, -1e6)),
+                                           (250.0, (0, 0, 0))])
+def test_invariant_to_translation_and_uniform_scale(vis, points, scale, offset):
+    camera = _camera(points, (-1.0, 0.3, 0.8))
+    a = vis.encode(points).probabilities(camera)
+    moved = points * scale + np.asarray(offset)
+    b = vis.encode(moved).probabilities(camera * scale + np.asarray(offset))
+    torch.testing.assert_close(b, a, atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.parametrize("func", [o3dvis.hidden_point_removal_neural, o3dvis.select_visible,
+                                  o3dvis.NeuralVisibility, o3dvis.NeuralVisibility.pretrained,
+                                  o3dvis.NeuralVisibility.encode, o3dvis.VisibilityField.query,
+                                  o3dvis.VisibilityField.probabilities, o3dvis.load_model, as_views])
+def test_docstrings_render_with_args_and_returns(func):
+    text = pydoc.render_doc(func, renderer=pydoc.plaintext)
+    assert "Args:" in text
+    if func is not o3dvis.NeuralVisibility:
+        assert "Returns:" in text
+
+
+def test_hpr_docstring_documents_radius_as_unused():
+    doc = o3dvis.hidden_point_removal_neural.__doc__
+    assert "radius: unused" in doc and "points[pt_map]" in doc
+
+
+def _empty_tensor_cloud():
+    return o3d.t.geometry.PointCloud()
+
+
+BAD_CLOUDS = [
+    (lambda p: o3d.geometry.PointCloud(), ValueError, "empty"),
+    (lambda p: _empty_tensor_cloud(), ValueError, "empty"),
+    (lambda p: np.zeros((0, 3)), ValueError, "empty"),
+    (lambda p: np.where(np.arange(len(p))[:, None] == 5, np.nan, p), ValueError, "NaN or Inf"),
+    (lambda p: np.where(np.arange(len(p))[:, None] == 5, np.inf, p), ValueError, "NaN or Inf"),
+    (lambda p: p[:, :2], ValueError, r"shape \(N, 3\)"),
+    (lambda p: p[None], ValueError, r"shape \(N, 3\)"),
+    (lambda p: p.astype(complex), TypeError, "real numbers"),
+    (lambda p: p > 0, TypeError, "real numbers"),
+    (lambda p: p.tolist(), TypeError, "PointCloud"),
+]
+
+
+@pytest.mark.parametrize("make, error, message", BAD_CLOUDS)
+def test_bad_clouds_raise_clear_errors(vis, points, make, error, message):
+    with pytest.raises(error, match=message):
+        vis.encode(make(points)).query(_camera(points))
+
+
+BAD_CAMERAS = [
+    ([np.nan, 0, 5], ValueError, "NaN or Inf"),
+    ([np.inf, 0, 5], ValueError, "NaN or Inf"),
+    ([0, 5], ValueError, r"shape \(3,\) or \(V, 3\)"),
+    (np.zeros((2, 2)), ValueError, r"shape \(3,\) or \(V, 3\)"),
+    (np.zeros((0, 3)), ValueError, "no vectors"),
+    ([[0, 0, 5], [0, 5]], ValueError, "3-vector"),
+    (np.array([True, False, True]), TypeError, "real numbers"),
+    ("0,0,5", TypeError, "real numbers"),
+    (torch.tensor([1j, 0, 5]), TypeError, "real numbers"),
+    ([0, 0, 1e300], ValueError, "too far"),
+]
+
+
+@pytest.mark.parametrize("camera, error, message", BAD_CAMERAS)
+def test_bad_cameras_raise_clear_errors(vis, points, camera, error, message):
+    with pytest.raises(error, match=message):
+        vis.encode(points).query(camera)
+
+
+def test_camera_inside_the_cloud_or_on_a_point(vis, pcd, points):
+    field = vis.encode(points)
+    for camera in (points.mean(0), points[np.argmax(points[:, 0])], points[0]):
+        with pytest.raises(ValueError, match="inside the bounding box"):
+            field.query(camera)
+        with pytest.raises(ValueError, match="inside the bounding box"):
+            o3dvis.hidden_point_removal_neural(pcd, camera, model=vis)
+    # Only the offending camera of a batch is named.
+    with pytest.raises(ValueError, match="camera 1 "):
+        field.query([_camera(points), points.mean(0)])
+
+
+def test_other_bad_arguments(vis, pcd, points):
+    field = vis.encode(points)
+    camera = _camera(points)
+    with pytest.raises(ValueError, match="threshold"):
+        field.query(camera, threshold=1.5)
+    with pytest.raises(TypeError, match="threshold"):
+        field.query(camera, threshold="high")
+    with pytest.raises(ValueError, match="one position"):
+        o3dvis.hidden_point_removal_neural(pcd, [camera, camera], model=vis)
+    with pytest.raises(TypeError, match="PointCloud"):
+        o3dvis.hidden_point_removal_neural(points, camera, model=vis)
+    with pytest.raises(ValueError, match="one camera"):
+        o3dvis.select_visible(pcd, [camera, -camera], model=vis)
+    with pytest.raises(TypeError, match="model must be"):
+        o3dvis.select_visible(pcd, camera, model=3)
+    params = o3d.camera.PinholeCameraParameters()
+    params.extrinsic = np.diag([2.0, 1.0, 1.0, 1.0])
+    with pytest.raises(ValueError, match="rigid"):
+        field.query(params)
+    with pytest.raises(TypeError, match="VisibilityNetwork"):
+        o3dvis.NeuralVisibility("default")
+
+
+def test_unknown_model_name(pcd, points, monkeypatch, tmp_path, network):
+    network.save(tmp_path / "default.safetensors")
+    card = {"models": {"default": {"file": "default.safetensors",
+                                   "sha256": file_sha256(tmp_path / "default.safetensors")}}}
+    (tmp_path / "model_card.json").write_text(json.dumps(card))
+    monkeypatch.setattr(models, "WEIGHTS_DIR", tmp_path)
+    with pytest.raises(ValueError, match="unknown model 'tiny'; available: default"):
+        o3dvis.hidden_point_removal_neural(pcd, _camera(points), model="tiny")
+    _, pt_map = o3dvis.hidden_point_removal_neural(pcd, _camera(points), threshold=0.4)
+    _, expected = o3dvis.hidden_point_removal_neural(pcd, _camera(points), threshold=0.4, model=network)
+    assert pt_map == expected
+
+
+TINY = {
+    "one point": np.array([[0.1, 0.2, 0.3]]),
+    "two points": np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]),
+    "three points": np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
+    "duplicates": np.repeat([[0.5, 0.5, 0.5]], 10, axis=0),
+    "planar": np.c_[np.random.default_rng(0).random((500, 2)), np.zeros(500)],
+    "collinear": np.c_[np.linspace(0, 1, 50), np.zeros(50), np.zeros(50)],
+    "offset 1e6 float32": (np.random.default_rng(1).normal(size=(400, 3)) + 1e6).astype(np.float32),
+}
+
+
+@pytest.mark.parametrize("name", TINY)
+def test_planar_and_tiny_clouds_get_an_answer(vis, name):
+    points = TINY[name]
+    camera = points.astype(np.float64).mean(0) + [0.3, -0.2, 5.0]
+    field = vis.encode(points)
+    assert torch.isfinite(field.probabilities(camera)).all()
+    mask = field.query(camera)
+    assert mask.shape == (1, len(points)) and mask.dtype == bool
+    mesh, pt_map = o3dvis.hidden_point_removal_neural(
+        o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64))), camera, model=vis)
+    np.testing.assert_array_equal(np.asarray(mesh.vertices), points.astype(np.float64)[pt_map])
+    np.testing.assert_array_equal(np.flatnonzero(mask[0]), pt_map)
+
+
+def test_select_visible_keeps_colours_and_normals(vis, pcd, points):
+    cloud = o3d.geometry.PointCloud(pcd)
+    cloud.estimate_normals()
+    camera = _camera(points)
+    threshold = _median_threshold(vis, points, camera)
+    out = o3dvis.select_visible(cloud, camera, threshold=threshold, model=vis)
+    index = np.flatnonzero(vis.encode(points).query(camera, threshold=threshold)[0])
+    assert 0 < len(index) < len(points)
+    np.testing.assert_array_equal(np.asarray(out.points), points[index])
+    np.testing.assert_array_equal(np.asarray(out.colors), np.asarray(cloud.colors)[index])
+    np.testing.assert_array_equal(np.asarray(out.normals), np.asarray(cloud.normals)[index])
+    tcloud = o3d.t.geometry.PointCloud.from_legacy(cloud, o3d.core.float64)
+    tout = o3dvis.select_visible(tcloud, camera, threshold=threshold, model=vis)
+    assert isinstance(tout, o3d.t.geometry.PointCloud)
+    np.testing.assert_array_equal(tout.point.positions.numpy(), points[index])
+    np.testing.assert_array_equal(tout.point.colors.numpy(), np.asarray(cloud.colors)[index])
+    np.testing.assert_array_equal(tout.point.normals.numpy(), np.asarray(cloud.normals)[index])
+    arrays = o3dvis.select_visible(points, camera, threshold=threshold, model=vis)
+    np.testing.assert_array_equal(np.asarray(arrays.points), points[index])
+
+
+def test_normals_are_used_automatically_when_a_normals_model_exists(network, points):
+    torch.manual_seed(5)
+    normals_net = VisibilityNetwork(NetworkConfig(**SMALL, use_normals=True))
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    plain = o3d.geometry.PointCloud(cloud)
+    cloud.estimate_normals()
+    paired = o3dvis.NeuralVisibility(network, normals_net)
+    assert paired.encode(cloud).network is normals_net
+    assert paired.encode(cloud, normals=False).network is network
+    assert paired.encode(plain).network is network
+    with pytest.raises(ValueError, match="no normals"):
+        paired.encode(plain, normals=True)
+    alone = o3dvis.NeuralVisibility(network)
+    assert alone.encode(cloud).network is network
+    with pytest.raises(ValueError, match="no loaded model takes normals"):
+        alone.encode(cloud, normals=True)
+    with pytest.raises(ValueError, match="needs normals"):
+        o3dvis.NeuralVisibility(normals_net).encode(plain)
+    with pytest.raises(ValueError, match="zero length"):
+        paired.encode(points, normals=np.zeros_like(points))
+    camera = _camera(points)
+    a = paired.encode(cloud).probabilities(camera)
+    b = paired.encode(points, normals=-2 * np.asarray(cloud.normals)).probabilities(camera)
+    assert not torch.allclose(a, b)  # the given normals reach the network
+
+
+def test_register_attaches_the_method(vis, pcd, points):
+    o3dvis.register()
+    camera = _camera(points)
+    mesh, pt_map = pcd.hidden_point_removal_neural(camera, 100.0, model=vis)
+    assert pt_map == o3dvis.hidden_point_removal_neural(pcd, camera, model=vis)[1]
+    tpcd = o3d.t.geometry.PointCloud(o3d.core.Tensor(points))
+    _, tmap = tpcd.hidden_point_removal_neural(o3d.core.Tensor(camera), 100.0, model=vis)
+    assert tmap.numpy().tolist() == pt_map
+
+
+def test_cli_visible_writes_the_visible_points(tmp_path, network, pcd, points, capsys):
+    ckpt = tmp_path / "m.safetensors"
+    network.save(ckpt)
+    src, dst = tmp_path / "in.ply", tmp_path / "out.ply"
+    o3d.io.write_point_cloud(str(src), pcd)
+    parser = argparse.ArgumentParser()
+    visible_cli.register(parser.add_subparsers())
+    camera = _camera(points)
+    args = parser.parse_args(["visible", str(src), f"--camera={','.join(map(str, camera))}", "-o", str(dst),
+                              "--model", str(ckpt), "--threshold", "0.4"])
+    assert args.func(args) == 0
+    written = np.asarray(o3d.io.read_point_cloud(str(dst)).points)
+    expected = np.flatnonzero(o3dvis.NeuralVisibility(network).encode(points).query(camera, threshold=0.4)[0])
+    np.testing.assert_allclose(written, points[expected])
+    assert f"{len(expected)} of {len(points)} points visible" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        parser.parse_args(["visible", str(src), "--camera", "1,2", "-o", str(dst)])
+    args = parser.parse_args(["visible", str(tmp_path / "none.ply"), "--camera", "0,0,5", "-o", str(dst)])
+    with pytest.raises(FileNotFoundError, match="none.ply"):
+        args.func(args)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_cuda_matches_cpu(network, points):
+    camera = _camera(points)
+    cpu = o3dvis.NeuralVisibility(network).encode(points).probabilities(camera)
+    gpu = o3dvis.NeuralVisibility(network, device="cuda").encode(torch.tensor(points)).probabilities(camera)
+    assert gpu.device.type == "cuda"
+    torch.testing.assert_close(gpu.cpu(), cpu, atol=1e-4, rtol=1e-4)
+    network.to("cpu")

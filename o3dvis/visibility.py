@@ -185,6 +185,8 @@ class VisibilityField:
 class NeuralVisibility:
     """A visibility network ready for Open3D clouds.
 
+    The networks are moved to ``device`` and put in eval mode (in place).
+
     Args:
         network: the network used for clouds without normals (or for all
             clouds, when it takes normals itself).

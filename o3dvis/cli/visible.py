@@ -23,7 +23,7 @@ def register(subparsers) -> None:
     """Adds the ``visible`` subcommand."""
     parser = subparsers.add_parser(
         "visible", help="keep the points of a cloud that a camera sees",
-        description="Writes the points of IN visible from a camera position (or an orthographic "
+        description="Writes the points of INPUT visible from a camera position (or an orthographic "
                     "direction), with their colours and normals. Write negative values with '=', "
                     "e.g. --camera=-2,0,5.")
     parser.add_argument("input", help="point cloud file readable by Open3D (.ply, .pcd, .xyz, ...)")

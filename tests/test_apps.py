@@ -91,9 +91,11 @@ def test_tensor_cloud_gets_normals(sphere):
 def test_points_no_view_sees_take_the_nearest_normal():
     rng = np.random.default_rng(0)
     points = np.column_stack([rng.random((500, 2)), np.zeros(500)])
-    cameras = np.array([[0.5, 0.5, 3.0]])
-    visibility = (points[:, 0] < 0.7)[None]
-    normals = multiview_normals(points, cameras, visibility)
+
+    def top_left_from_above(p, cameras):  # only cameras above the plane see, and only x < 0.7
+        return (cameras[:, 2:] > 0.5) & (p[:, 0] < 0.7)
+
+    normals = multiview_normals(points, top_left_from_above, 12)
     assert np.allclose(normals, [0, 0, 1])
 
 

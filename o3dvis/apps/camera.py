@@ -120,11 +120,6 @@ class View(Frustum):
         v = k[1, 1] * cam[:, 1] / safe + k[1, 2]
         return np.stack([u, v], axis=1), depth
 
-    def pixel_centers(self) -> np.ndarray:
-        """(H*W, 2) pixel centres as (u, v), in row-major order."""
-        rows, cols = np.mgrid[0:self.height, 0:self.width]
-        return np.stack([cols.ravel(), rows.ravel()], axis=1).astype(np.float64)
-
     def to_open3d(self) -> o3d.camera.PinholeCameraParameters:
         """The same camera as Open3D ``PinholeCameraParameters``."""
         params = o3d.camera.PinholeCameraParameters()

@@ -46,17 +46,38 @@ def _fill_from_nearest(points: np.ndarray, values: np.ndarray, known: np.ndarray
     return values
 
 
-def multiview_normals(points: np.ndarray, cameras: np.ndarray, visibility: np.ndarray,
+def _add_triangle_normals(total: np.ndarray, points: np.ndarray, cameras: np.ndarray,
+                          visibility: np.ndarray, max_edge: np.ndarray, subset: np.ndarray | None,
+                          progress: bool, desc: str) -> None:
+    """Adds to ``total`` the unit normals of the triangles each view makes at each point."""
+    from tqdm import tqdm
+
+    for cam, vis in tqdm(zip(cameras, visibility), total=len(cameras), disable=not progress,
+                         desc=desc, unit="view"):
+        seen = np.flatnonzero(vis if subset is None else vis & subset)
+        triangles = visible_triangles(points, cam, seen, max_edge)
+        normals = triangle_normals(points, triangles)
+        length = np.linalg.norm(normals, axis=1)
+        ok = length > 0
+        unit, corners = normals[ok] / length[ok, None], triangles[ok].ravel()
+        for k in range(3):
+            total[:, k] += np.bincount(corners, np.repeat(unit[:, k], 3), minlength=len(points))
+
+
+def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_views: int = 64,
                       edge_factor: float = DEFAULT_EDGE_FACTOR, progress: bool = False) -> np.ndarray:
     """Oriented unit normals from per-view triangulations of the visible points.
 
     Args:
         points: (N, 3) points.
-        cameras: (V, 3) camera positions.
-        visibility: (V, N) bool, which points each camera sees.
+        method: the visibility method (see :func:`o3dvis.apps.methods.resolve_method`).
+        num_views: cameras on a Fibonacci sphere of radius = bounding-box diagonal.
+        refine_views: more cameras for the points that no triangle of the first
+            ones covers (in concavities few directions see); only those points
+            and their neighbours are triangulated again. 0 turns this off.
         edge_factor: triangles with an edge longer than ``edge_factor`` times the
             local point spacing (distance to the 6th neighbour) are dropped.
-        progress: show a progress bar over the views.
+        progress: show progress bars over the views.
 
     Returns:
         (N, 3) unit normals, each facing the cameras that see its point; points
@@ -65,19 +86,25 @@ def multiview_normals(points: np.ndarray, cameras: np.ndarray, visibility: np.nd
     Raises:
         ValueError: when no view yields a triangle (e.g. all points collinear).
     """
-    from tqdm import tqdm
-
+    if num_views < 1 or refine_views < 0:
+        raise ValueError(f"num_views must be at least 1 and refine_views at least 0, got "
+                         f"{num_views} and {refine_views}")
+    method = resolve_method(method)
     max_edge = edge_factor * local_spacing(points)
     total = np.zeros((len(points), 3))
-    for cam, vis in tqdm(zip(cameras, visibility), total=len(cameras), disable=not progress,
-                         desc="normals", unit="view"):
-        triangles = visible_triangles(points, cam, np.flatnonzero(vis), max_edge)
-        normals = triangle_normals(points, triangles)
-        length = np.linalg.norm(normals, axis=1)
-        ok = length > 0
-        unit, corners = normals[ok] / length[ok, None], triangles[ok].ravel()
-        for k in range(3):
-            total[:, k] += np.bincount(corners, np.repeat(unit[:, k], 3), minlength=len(points))
+    cameras = viewpoints_around(points, num_views)
+    _add_triangle_normals(total, points, cameras, method(points, cameras), max_edge, None,
+                          progress, "normals")
+    missing = np.linalg.norm(total, axis=1) <= 1e-9
+    if refine_views and missing.any() and not missing.all():
+        _, neighbours = cKDTree(points).query(points[missing], k=min(16, len(points)))
+        around = np.zeros(len(points), dtype=bool)
+        around[neighbours.ravel()] = True
+        extra = np.zeros_like(total)
+        cameras = viewpoints_around(points, refine_views)
+        _add_triangle_normals(extra, points, cameras, method(points, cameras), max_edge, around,
+                              progress, "refine")
+        total[missing] = extra[missing]
     length = np.linalg.norm(total, axis=1)
     known = length > 1e-9
     if not known.any():
@@ -88,7 +115,7 @@ def multiview_normals(points: np.ndarray, cameras: np.ndarray, visibility: np.nd
     return _fill_from_nearest(points, normals, known)
 
 
-def estimate_normals_neural(pcd, num_views: int = 26, method=None, *,
+def estimate_normals_neural(pcd, num_views: int = 26, method=None, *, refine_views: int = 64,
                             edge_factor: float = DEFAULT_EDGE_FACTOR, progress: bool = False):
     """Estimates oriented normals from visibility, in place, like ``pcd.estimate_normals()``.
 
@@ -101,24 +128,32 @@ def estimate_normals_neural(pcd, num_views: int = 26, method=None, *,
         num_views: number of cameras.
         method: the visibility method (default: the pretrained neural network);
             see :func:`o3dvis.apps.methods.resolve_method`.
+        refine_views: more cameras for the points the first ``num_views`` leave
+            without a triangle (0: none); those points alone are triangulated again.
         edge_factor: triangles with an edge longer than this many local point
             spacings are dropped (they bridge gaps or depth jumps).
-        progress: show a progress bar.
+        progress: show progress bars.
 
     Returns:
         ``pcd``, with unit normals set.
     """
     points = cloud_points(pcd)
     _get_normals(pcd)
-    if num_views < 1:
-        raise ValueError(f"num_views must be at least 1, got {num_views}")
-    cameras = viewpoints_around(points, num_views)
-    visibility = resolve_method(method)(points, cameras)
-    _set_normals(pcd, multiview_normals(points, cameras, visibility, edge_factor, progress))
+    _set_normals(pcd, multiview_normals(points, method, num_views, refine_views, edge_factor, progress))
     return pcd
 
 
-def orient_normals_neural(pcd, num_views: int = 26, method=None):
+def _vote(points: np.ndarray, normals: np.ndarray, cameras: np.ndarray, visibility: np.ndarray
+          ) -> np.ndarray:
+    """Sum over the cameras that see each point of cos(normal, direction to the camera), (N,)."""
+    vote = np.zeros(len(points))
+    for cam, vis in zip(cameras, visibility):
+        towards = cam - points[vis]
+        vote[vis] += np.einsum("ij,ij->i", normals[vis], towards) / np.linalg.norm(towards, axis=1)
+    return vote
+
+
+def orient_normals_neural(pcd, num_views: int = 26, method=None, *, refine_views: int = 64):
     """Flips the normals a cloud already has to face the cameras that see their points.
 
     Each point's orientation is voted by the cameras that see it, weighted by
@@ -129,6 +164,8 @@ def orient_normals_neural(pcd, num_views: int = 26, method=None):
         pcd: ``o3d.geometry.PointCloud`` (legacy or tensor) with normals.
         num_views: number of cameras on a sphere of radius = bounding-box diagonal.
         method: the visibility method (default: the pretrained neural network).
+        refine_views: more cameras asked about the points the first ones do not
+            see (0: none).
 
     Returns:
         ``pcd``, with its normals oriented in place.
@@ -137,16 +174,18 @@ def orient_normals_neural(pcd, num_views: int = 26, method=None):
     normals = _get_normals(pcd)
     if normals is None or len(normals) != len(points):
         raise ValueError("the point cloud has no normals to orient: call estimate_normals first")
-    if num_views < 1:
-        raise ValueError(f"num_views must be at least 1, got {num_views}")
+    if num_views < 1 or refine_views < 0:
+        raise ValueError(f"num_views must be at least 1 and refine_views at least 0, got "
+                         f"{num_views} and {refine_views}")
     normals = np.array(normals, dtype=np.float64)
+    method = resolve_method(method)
     cameras = viewpoints_around(points, num_views)
-    visibility = resolve_method(method)(points, cameras)
-    vote = np.zeros(len(points))
-    for cam, vis in zip(cameras, visibility):
-        towards = cam - points[vis]
-        cosine = np.einsum("ij,ij->i", normals[vis], towards) / np.linalg.norm(towards, axis=1)
-        vote[vis] += cosine
+    vote = _vote(points, normals, cameras, method(points, cameras))
+    if refine_views and (vote == 0).any():
+        unseen = vote == 0
+        cameras = viewpoints_around(points, refine_views)
+        vote[unseen] = _vote(points[unseen], normals[unseen], cameras,
+                             method(points, cameras)[:, unseen])
     normals[vote < 0] *= -1
     known = vote != 0
     guide = _fill_from_nearest(points, normals, known)

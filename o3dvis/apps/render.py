@@ -14,7 +14,7 @@ from .camera import View, cloud_points, legacy_cloud, make_view
 from .methods import resolve_method
 from .triangulation import local_spacing
 
-__all__ = ["render_points", "depth_image", "splat", "point_colors", "lambert"]
+__all__ = ["render_points", "depth_image", "splat", "rasterize", "point_colors", "lambert"]
 
 MAX_SPLAT_RADIUS = 32
 
@@ -52,14 +52,67 @@ def splat(view: View, points: np.ndarray, radius: np.ndarray | float,
             hit = np.flatnonzero((col >= 0) & (col < view.width) & (row >= 0) & (row < view.height))
             pixels.append(row[hit] * view.width + col[hit])
             owners.append(hit)
-    pixels, owners = np.concatenate(pixels), np.concatenate(owners)
-    order = np.lexsort((z[owners], pixels))
-    pixels, first = np.unique(pixels[order], return_index=True)
-    nearest = owners[order][first]
+    pixels, owners = _nearest_per_pixel(np.concatenate(pixels), z, np.concatenate(owners))
     index = np.full(view.height * view.width, -1, dtype=np.int64)
     depth = np.zeros(view.height * view.width)
-    index[pixels], depth[pixels] = drawn[nearest], z[nearest]
+    index[pixels], depth[pixels] = drawn[owners], z[owners]
     return index.reshape(view.height, view.width), depth.reshape(view.height, view.width)
+
+
+def _nearest_per_pixel(pixels: np.ndarray, depth: np.ndarray, owners: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """The z-buffer test: for each covered pixel, the candidate of smallest ``depth[owner]``.
+
+    Args:
+        pixels: (K,) flat pixel index of each candidate.
+        depth: depths, indexed by ``owners``.
+        owners: (K,) what each candidate draws.
+
+    Returns:
+        The distinct covered pixels and the owner that wins each.
+    """
+    order = np.lexsort((depth[owners], pixels))
+    pixels, first = np.unique(pixels[order], return_index=True)
+    return pixels, owners[order][first]
+
+
+def rasterize(view: View, points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Z-buffered depth image of triangles over ``points``, depth interpolated inside each.
+
+    Args:
+        view: the camera.
+        points: (N, 3) vertices.
+        triangles: (T, 3) vertex indices.
+
+    Returns:
+        (H, W) float64 depth along the optical axis at each pixel centre, 0
+        where no triangle covers it. Triangles reaching behind the camera are skipped.
+    """
+    uv, z = view.project(points)
+    triangles = triangles[(z[triangles] > 0).all(axis=1)]
+    corners = uv[triangles]
+    edge1, edge2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    det = edge1[:, 0] * edge2[:, 1] - edge1[:, 1] * edge2[:, 0]
+    lo = np.maximum(np.ceil(corners.min(axis=1)), 0).astype(np.int64)
+    hi = np.minimum(np.floor(corners.max(axis=1)), [view.width - 1, view.height - 1]).astype(np.int64)
+    size = np.maximum(hi - lo + 1, 0) * (np.abs(det) > 1e-12)[:, None]
+    count = size[:, 0] * size[:, 1]
+    owner = np.repeat(np.arange(len(triangles)), count)
+    local = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    col = lo[owner, 0] + local % size[owner, 0]
+    row = lo[owner, 1] + local // np.maximum(size[owner, 0], 1)
+    offset = np.stack([col, row], axis=1) - corners[owner, 0]
+    inv = 1.0 / det[owner]
+    l1 = (offset[:, 0] * edge2[owner, 1] - offset[:, 1] * edge2[owner, 0]) * inv
+    l2 = (edge1[owner, 0] * offset[:, 1] - edge1[owner, 1] * offset[:, 0]) * inv
+    bary = np.stack([1 - l1 - l2, l1, l2], axis=1)
+    inside = (bary >= -1e-9).all(axis=1)
+    fragment_depth = np.einsum("ij,ij->i", bary[inside], z[triangles[owner[inside]]])
+    pixels, winner = _nearest_per_pixel(row[inside] * view.width + col[inside], fragment_depth,
+                                        np.arange(inside.sum()))
+    image = np.zeros(view.height * view.width)
+    image[pixels] = fragment_depth[winner]
+    return image.reshape(view.height, view.width)
 
 
 def lambert(pcd, points: np.ndarray, light_location: np.ndarray) -> np.ndarray:

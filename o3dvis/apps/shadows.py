@@ -13,8 +13,8 @@ import open3d as o3d
 
 from .camera import as_camera_location, cloud_points, legacy_cloud, make_view
 from .methods import resolve_method
-from .render import image_from, lambert, splat, splat_size
-from .triangulation import DEFAULT_EDGE_FACTOR, delaunay_surface, local_spacing
+from .render import image_from, lambert, rasterize, splat, splat_size
+from .triangulation import DEFAULT_EDGE_FACTOR, local_spacing, visible_triangles
 
 __all__ = ["shadow_map", "points_in_shadow", "render_with_shadows"]
 
@@ -47,20 +47,8 @@ def shadow_map(pcd, light, resolution: int = 512, method=None, *,
         raise ValueError(f"resolution must be a positive number of pixels, got {resolution}")
     view = make_view(points, light, int(resolution), int(resolution))
     seen = np.flatnonzero(resolve_method(method)(points, light[None])[0])
-    uv, depth = view.project(points[seen])
-    max_edge = edge_factor * local_spacing(points)[seen]
-    tri, keep = delaunay_surface(points[seen], uv, max_edge)
-    image = np.zeros(view.width * view.height)
-    if tri is not None:
-        pixels = view.pixel_centers()
-        simplex = tri.find_simplex(pixels)
-        hit = np.flatnonzero(simplex >= 0)
-        hit = hit[keep[simplex[hit]]]
-        transform = tri.transform[simplex[hit]]
-        bary = np.einsum("ijk,ik->ij", transform[:, :2], pixels[hit] - transform[:, 2])
-        bary = np.column_stack([bary, 1 - bary.sum(axis=1)])
-        image[hit] = np.einsum("ij,ij->i", bary, depth[tri.simplices[simplex[hit]]])
-    return o3d.geometry.Image(image.reshape(view.height, view.width).astype(np.float32))
+    triangles = visible_triangles(points, light, seen, edge_factor * local_spacing(points))
+    return o3d.geometry.Image(rasterize(view, points, triangles).astype(np.float32))
 
 
 def points_in_shadow(pcd, light, method=None) -> np.ndarray:

@@ -29,9 +29,8 @@ def local_spacing(points: np.ndarray, k: int = 6) -> np.ndarray:
     return spacing
 
 
-def delaunay_surface(points: np.ndarray, coords: np.ndarray, max_edge: np.ndarray
-                     ) -> tuple[Delaunay | None, np.ndarray]:
-    """Delaunay triangulation of 2D ``coords`` with a mask of the triangles kept in 3D.
+def delaunay_surface(points: np.ndarray, coords: np.ndarray, max_edge: np.ndarray) -> np.ndarray:
+    """Delaunay triangles of 2D ``coords`` whose edges are short enough in 3D.
 
     A triangle is kept when each of its edges is no longer, in 3D, than the
     larger ``max_edge`` of the edge's two end points.
@@ -42,21 +41,20 @@ def delaunay_surface(points: np.ndarray, coords: np.ndarray, max_edge: np.ndarra
         max_edge: (M,) longest edge allowed at each point.
 
     Returns:
-        The ``scipy.spatial.Delaunay`` object (None when the coordinates are too
-        few or all collinear) and the (T,) bool mask of kept simplices.
+        (T, 3) int64 indices into ``points`` (none when the coordinates are too
+        few or all collinear).
     """
     if len(coords) < 3:
-        return None, np.zeros(0, dtype=bool)
+        return np.zeros((0, 3), dtype=np.int64)
     try:
-        tri = Delaunay(coords)
+        s = Delaunay(coords).simplices.astype(np.int64)
     except (QhullError, ValueError):
-        return None, np.zeros(0, dtype=bool)
-    s = tri.simplices
+        return np.zeros((0, 3), dtype=np.int64)
     keep = np.ones(len(s), dtype=bool)
     for a, b in ((0, 1), (1, 2), (2, 0)):
         length = np.linalg.norm(points[s[:, a]] - points[s[:, b]], axis=1)
         keep &= length <= np.maximum(max_edge[s[:, a]], max_edge[s[:, b]])
-    return tri, keep
+    return s[keep]
 
 
 def triangle_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -91,10 +89,7 @@ def visible_triangles(points: np.ndarray, camera_location: np.ndarray, indices: 
     cam = sub @ extrinsic[:3, :3].T + extrinsic[:3, 3]
     front = cam[:, 2] > 1e-12 * max(1.0, float(np.abs(cam).max()))
     indices, sub, cam = indices[front], sub[front], cam[front]
-    tri, keep = delaunay_surface(sub, cam[:, :2] / cam[:, 2:3], max_edge[indices])
-    if tri is None:
-        return np.zeros((0, 3), dtype=np.int64)
-    triangles = indices[tri.simplices[keep]]
+    triangles = indices[delaunay_surface(sub, cam[:, :2] / cam[:, 2:3], max_edge[indices])]
     normals = triangle_normals(points, triangles)
     away = np.einsum("ij,ij->i", normals, camera_location - points[triangles[:, 0]]) < 0
     triangles[away] = triangles[away][:, [0, 2, 1]]

@@ -1,0 +1,182 @@
+"""Oriented normals: o3dvis against Open3D's estimate_normals + orient_normals_consistent_tangent_plane.
+
+For each mesh and cloud size, points are sampled uniformly on the surface with
+their face normals, and three pipelines estimate oriented normals:
+
+* ``Open3D``: ``estimate_normals(KNN(k))`` + ``orient_normals_consistent_tangent_plane(k)``
+  (in a subprocess with a time limit);
+* ``o3dvis``: ``estimate_normals_neural`` (triangles of the surface seen from
+  ``--views`` cameras, oriented towards them);
+* ``PCA + o3dvis``: Open3D's ``estimate_normals(KNN(k))`` oriented by ``orient_normals_neural``.
+
+Scores: *oriented* = share of points whose normal points to the same side as
+the reference; *angle* = mean unsigned angle to the true normal (degrees).
+The reference side is the outward normal on closed meshes (every edge shared
+by two triangles; winding made consistent, sign from the signed volume). Elsewhere mesh winding is arbitrary, so the
+reference is the side that ray-cast visibility from 100 random cameras sees: points
+seen from both sides (open sheets) or from no camera are not scored for
+orientation (the table says which share is scored).
+
+    nice -n 10 python3 benchmarks/bench_normals.py --method gt --limit 12 --out benchmarks/results/normals_gt.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import open3d as o3d
+
+from mesh_bench import (Timed, add_common_flags, load_mesh, markdown, mesh_subset, method_label,
+                        open3d_normals, sample, visibility_method)
+from o3dvis.apps.normals import estimate_normals_neural, orient_normals_neural
+from o3dvis.data.groundtruth import sample_viewpoints, visibility_from_mesh
+
+PIPELINES = ("Open3D", "o3dvis", "PCA + o3dvis")
+REFERENCE_VIEWS = 100
+
+
+def outward_mesh(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh | None:
+    """A copy wound consistently with normals pointing out, or None for an open or non-orientable mesh.
+
+    Closed means every edge has exactly two triangles; self-intersections are allowed.
+    """
+    if not (mesh.is_edge_manifold(allow_boundary_edges=False) and mesh.is_orientable()):
+        return None
+    out = o3d.geometry.TriangleMesh(mesh)
+    if not out.orient_triangles():
+        return None
+    v, t = np.asarray(out.vertices), np.asarray(out.triangles)
+    if np.einsum("ij,ij->i", v[t[:, 0]], np.cross(v[t[:, 1]], v[t[:, 2]])).sum() < 0:
+        out.triangles = o3d.utility.Vector3iVector(t[:, [0, 2, 1]])
+    return out
+
+
+def visibility_reference(mesh, points, normals) -> tuple[np.ndarray, np.ndarray]:
+    """Normals flipped to the side 100 random cameras see, and which points that decides.
+
+    The cameras are random (seeded), not the Fibonacci lattices o3dvis uses.
+    """
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    cameras = sample_viewpoints(REFERENCE_VIEWS, (lo + hi) / 2, float(np.linalg.norm(hi - lo)),
+                                np.random.default_rng(REFERENCE_VIEWS))
+    visible = visibility_from_mesh(mesh, points, cameras)
+    side = np.sign(np.einsum("vnk,nk->vn", cameras[:, None, :] - points[None], normals))
+    front, back = (visible & (side > 0)).any(axis=0), (visible & (side < 0)).any(axis=0)
+    return np.where(back[:, None] & ~front[:, None], -normals, normals), front ^ back
+
+
+def scores(estimate: np.ndarray, reference: np.ndarray, scored: np.ndarray) -> tuple[float, float]:
+    cos = np.einsum("ij,ij->i", estimate, reference) / np.maximum(np.linalg.norm(estimate, axis=1), 1e-300)
+    oriented = 100 * float((cos[scored] > 0).mean())
+    angle = float(np.degrees(np.arccos(np.clip(np.abs(cos), 0, 1))).mean())
+    return oriented, angle
+
+
+def run_o3dvis(points, method, views, pca_knn=None) -> tuple[np.ndarray | None, float, float, str]:
+    """o3dvis normals (or PCA normals oriented by o3dvis): normals, seconds, of which visibility, status."""
+    timed = Timed(method)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    start = time.perf_counter()
+    try:
+        if pca_knn is None:
+            estimate_normals_neural(pcd, views, timed)
+        else:
+            pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(pca_knn))
+            orient_normals_neural(pcd, views, timed)
+    except Exception as e:  # reported in the table, never stops the run
+        return None, float("nan"), timed.seconds, f"error: {type(e).__name__}: {str(e)[:60]}"
+    return np.asarray(pcd.normals), time.perf_counter() - start, timed.seconds, "ok"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_common_flags(parser, "20000,100000")
+    args = parser.parse_args()
+    sizes = [int(s) for s in args.points.split(",")]
+    shared_method = None if args.method == "gt" else visibility_method(args, None)
+    records = []
+    for path in mesh_subset(args.meshes, args.limit):
+        mesh = load_mesh(path)
+        outward = outward_mesh(mesh)
+        method = shared_method or visibility_method(args, mesh)
+        for n in sizes:
+            points, normals = sample(outward or mesh, n, path.name, args.seed)
+            if outward is not None:
+                reference, scored, kind = normals, np.ones(n, bool), "outward"
+            else:
+                reference, scored = visibility_reference(mesh, points, normals)
+                kind = f"visible side ({100 * scored.mean():.0f} %)"
+            row = {"mesh": path.stem, "n": n, "reference": kind}
+            est, seconds, status = open3d_normals(points, args.knn, args.timeout)
+            result = {"Open3D": (est, seconds, None, status),
+                      "o3dvis": run_o3dvis(points, method, args.views),
+                      "PCA + o3dvis": run_o3dvis(points, method, args.views, args.knn)}
+            for name, (est, seconds, vis_seconds, status) in result.items():
+                ok = status == "ok"
+                oriented, angle = scores(est, reference, scored) if ok else (float("nan"), float("nan"))
+                row[name] = dict(status=status, oriented=oriented, angle=angle, seconds=seconds,
+                                 vis=vis_seconds)
+            records.append(row)
+            print(" | ".join(_row(row)), flush=True)
+    report = _report(records, sizes, args)
+    print("\n" + report)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(report + "\n")
+    return 0
+
+
+def _cell(r: dict) -> list[str]:
+    if r["status"] != "ok":
+        return [r["status"] if r["status"] != "timeout" else "timeout", "", ""]
+    time_text = f"{r['seconds']:.2f}" + (f" ({r['vis']:.2f})" if r["vis"] is not None else "")
+    return [f"{r['oriented']:.2f}", f"{r['angle']:.2f}", time_text]
+
+
+def _row(row: dict) -> list[str]:
+    return [row["mesh"], str(row["n"]), row["reference"]] + sum((_cell(row[p]) for p in PIPELINES), [])
+
+
+def _report(records: list[dict], sizes: list[int], args) -> str:
+    header = ["mesh", "points", "reference"] + sum(
+        ([f"{p} oriented %", f"{p} angle °", f"{p} s" + (" (visibility s)" if p != "Open3D" else "")]
+         for p in PIPELINES), [])
+    parts = [f"Normals benchmark: {len(records)} runs, o3dvis with {method_label(args)}, "
+             f"{args.views} views; Open3D with k = {args.knn}, limit {args.timeout:g} s per run.",
+             "", markdown(header, [_row(r) for r in records]), "", "Summary:", ""]
+    summary = []
+    for n in sizes:
+        rows = [r for r in records if r["n"] == n]
+        for p in PIPELINES:
+            ok = [r[p] for r in rows if r[p]["status"] == "ok"]
+            timeouts = sum(r[p]["status"] == "timeout" for r in rows)
+            errors = len(rows) - len(ok) - timeouts
+            if ok:
+                oriented = np.array([o["oriented"] for o in ok])
+                summary.append([str(n), p, f"{len(ok)}/{len(rows)}", str(timeouts), str(errors),
+                                f"{oriented.mean():.2f}", f"{oriented.min():.2f}",
+                                f"{(oriented >= 99).sum()}/{len(ok)}",
+                                f"{np.mean([o['angle'] for o in ok]):.2f}",
+                                f"{np.median([o['seconds'] for o in ok]):.2f}",
+                                f"{np.sum([o['seconds'] for o in ok]):.1f}"])
+            else:
+                summary.append([str(n), p, f"0/{len(rows)}", str(timeouts), str(errors)] + [""] * 6)
+        both = [(r["Open3D"], r["o3dvis"]) for r in rows if r["o3dvis"]["status"] == "ok"
+                and r["Open3D"]["status"] in ("ok", "timeout")]
+        if both:
+            ratio = np.median([a["seconds"] / b["seconds"] for a, b in both])
+            summary.append([str(n), "Open3D s / o3dvis s (median)", "", "", "", "", "", "", "",
+                            f"{ratio:.2f}x", ""])
+    parts.append(markdown(["points", "pipeline", "ok", "timeouts", "errors", "mean oriented %",
+                           "min oriented %", "meshes ≥ 99 %", "mean angle °", "median s", "total s"],
+                          summary))
+    parts.append("")
+    parts.append("Timeouts count at the limit in the speed ratio. Times are wall-clock on a shared "
+                 "machine; '(visibility s)' is the part spent in the visibility method.")
+    return "\n".join(parts)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

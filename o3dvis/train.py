@@ -38,6 +38,7 @@ class TrainConfig:
     weight_decay: float = 1e-4
     warmup: int = 200
     val_every: int = 500
+    log_every: int = 50
     val_points: int = 8192
     val_views: int = 4
     workers: int = 0
@@ -172,7 +173,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
         bar.set_postfix(loss=f"{run_loss:.3f}", acc=f"{run_acc:.3f}")
         if rank != 0:
             continue
-        if step % 50 == 0:
+        if step % cfg.log_every == 0:
             log.write(json.dumps({"step": step, "loss": loss.item(), "acc": acc,
                                   "lr": sched.get_last_lr()[0], "time": time.time() - t0}) + "\n")
             log.flush()

@@ -1,0 +1,210 @@
+"""The torch core: octree tables, sparse convolutions, network invariances."""
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from o3dvis.nn import (NetworkConfig, Octree, OctreeConv, OctreeDownsample, OctreeUpsample,
+                       VisibilityNetwork, ViewEmbedding, morton_decode, morton_encode,
+                       normalize_points, octree_interpolate, view_cues)
+from o3dvis.nn import octree as octree_module
+
+
+def _full_grid_octree(depth=3):
+    """An octree whose finest level is fully occupied (one point per voxel centre)."""
+    res = 1 << depth
+    idx = torch.stack(torch.meshgrid(*(torch.arange(res),) * 3, indexing="ij"), -1).reshape(-1, 3)
+    points = (idx.double() + 0.5) / res * 2 - 1
+    return Octree(points, depth=depth, full_depth=1), idx
+
+
+def _to_grid(x, xyz, res):
+    grid = torch.zeros(1, x.shape[1], res, res, res, dtype=x.dtype)
+    grid[0, :, xyz[:, 0], xyz[:, 1], xyz[:, 2]] = x.T
+    return grid
+
+
+def test_morton_roundtrip_and_order():
+    xyz = torch.randint(0, 1 << 10, (500, 3))
+    key = morton_encode(xyz, 10)
+    assert torch.equal(morton_decode(key, 10), xyz)
+    # the child slot (lowest 3 bits) is x<<2 | y<<1 | z
+    assert torch.equal(key & 7, ((xyz[:, 0] & 1) << 2) | ((xyz[:, 1] & 1) << 1) | (xyz[:, 2] & 1))
+
+
+def test_octree_parents_children_consistent():
+    torch.manual_seed(0)
+    pts = torch.rand(3000, 3) * 2 - 1
+    batch = torch.randint(0, 3, (3000,))
+    o = Octree(pts, batch, depth=6, full_depth=2)
+    assert o.num_nodes(2) == 3 * 64
+    for level in range(1, 7):
+        parent = o.parent[level]
+        assert torch.equal(o.keys[level - 1][parent], o.keys[level] >> 3)
+        ch = o.children[level - 1][parent, o.keys[level] & 7]
+        assert torch.equal(ch, torch.arange(o.num_nodes(level)))
+    # every point sits in the leaf whose coordinates contain it
+    leaf_xyz = o.coords(6)[o.point_leaf]
+    assert torch.equal(leaf_xyz, ((pts + 1) * 32).floor().long())
+    assert torch.equal(o.batch_of(6)[o.point_leaf], batch)
+
+
+def test_neighbours_dense_and_sparse_lookup_agree(monkeypatch):
+    torch.manual_seed(1)
+    pts = torch.rand(2000, 3) * 2 - 1
+    dense = Octree(pts, depth=5, full_depth=2).neighbours(5)
+    monkeypatch.setattr(octree_module, "_DENSE_CELLS", 0)
+    sparse = Octree(pts, depth=5, full_depth=2).neighbours(5)
+    assert torch.equal(dense, sparse)
+
+
+def test_neighbours_do_not_cross_clouds():
+    pts = torch.zeros(2, 3)
+    o = Octree(pts, torch.tensor([0, 1]), depth=3, full_depth=1)
+    nbr = o.neighbours(3)
+    n = o.num_nodes(3)
+    assert n == 2 and (nbr[:, 13] == torch.arange(2)).all()
+    assert ((nbr == n) | (nbr == torch.arange(2)[:, None])).all()
+
+
+def test_conv_equals_conv3d_on_full_grid():
+    torch.manual_seed(0)
+    o, xyz = _full_grid_octree(3)
+    conv = OctreeConv(4, 5).double()
+    x = torch.randn(o.num_nodes(3), 4, dtype=torch.float64)
+    y = conv(x, o, 3)
+    order = o.coords(3)
+    w = conv.weight.view(27, 4, 5).permute(2, 1, 0).reshape(5, 4, 3, 3, 3)
+    ref = F.conv3d(_to_grid(x, order, 8), w, padding=1)[0][:, order[:, 0], order[:, 1], order[:, 2]].T
+    torch.testing.assert_close(y, ref)
+
+
+def test_down_and_up_sampling_equal_strided_convs():
+    torch.manual_seed(0)
+    o, _ = _full_grid_octree(3)
+    fine, coarse = o.coords(3), o.coords(2)
+    x = torch.randn(o.num_nodes(3), 3, dtype=torch.float64)
+    down = OctreeDownsample(3, 2).double()
+    w = down.weight.view(8, 3, 2).permute(2, 1, 0).reshape(2, 3, 2, 2, 2)
+    ref = F.conv3d(_to_grid(x, fine, 8), w, stride=2)[0][:, coarse[:, 0], coarse[:, 1], coarse[:, 2]].T
+    torch.testing.assert_close(down(x, o, 3), ref)
+
+    up = OctreeUpsample(2, 3).double()
+    xc = torch.randn(o.num_nodes(2), 2, dtype=torch.float64)
+    wt = up.weight.view(2, 8, 3).permute(0, 2, 1).reshape(2, 3, 2, 2, 2)
+    ref = F.conv_transpose3d(_to_grid(xc, coarse, 4), wt, stride=2)[0][:, fine[:, 0], fine[:, 1], fine[:, 2]].T
+    torch.testing.assert_close(up(xc, o, 2), ref)
+
+
+def test_conv_gradcheck():
+    torch.manual_seed(0)
+    pts = torch.rand(40, 3, dtype=torch.float64) * 2 - 1
+    o = Octree(pts, depth=3, full_depth=1)
+    conv = OctreeConv(2, 2).double()
+    x = torch.randn(o.num_nodes(3), 2, dtype=torch.float64, requires_grad=True)
+    w = conv.weight.detach().clone().requires_grad_()
+    assert torch.autograd.gradcheck(
+        lambda a, w: torch.func.functional_call(conv, {"weight": w}, (a, o, 3)), (x, w))
+
+
+def test_interpolation_is_convex_and_exact_at_centres():
+    o, _ = _full_grid_octree(3)
+    feats = o.coords(3).double()  # linear field: interpolation must reproduce it inside
+    centres = (feats + 0.5) / 8 * 2 - 1
+    out = octree_interpolate(feats, o, centres, torch.zeros(len(centres), dtype=torch.long))
+    torch.testing.assert_close(out, feats)
+    mid = torch.tensor([[0.01, 0.02, -0.03]], dtype=torch.float64)
+    got = octree_interpolate(feats, o, mid, torch.zeros(1, dtype=torch.long))
+    torch.testing.assert_close(got, (mid + 1) / 2 * 8 - 0.5)
+
+
+def test_embedding_matches_direct_sinusoids():
+    d = torch.nn.functional.normalize(torch.randn(100, 3, dtype=torch.float64), dim=1)
+    emb = ViewEmbedding(6)(d)
+    ref = [d] + [f(2**k * torch.pi * d) for k in range(6) for f in (torch.sin, torch.cos)]
+    torch.testing.assert_close(emb, torch.cat(ref, dim=1))
+
+
+def test_view_cues_flag_the_far_side_of_a_sphere():
+    torch.manual_seed(0)
+    p = torch.nn.functional.normalize(torch.randn(20000, 3), dim=1)
+    cam = torch.tensor([3.0, 0.0, 0.0])
+    _, cues = view_cues(p, cam)
+    visible = (p * (cam - p)).sum(1) > 0
+    # residual to the nearest depth of the pixel at scale 2: small in front, large behind
+    res = cues[:, 2]
+    assert res[visible].median() < 0.5 and res[~visible].median() > 2.0
+    # the finest buffer has holes: most hidden points are alone in their pixel there
+    assert cues[~visible, 0].median() < cues[~visible, 2].median()
+
+
+def _sphere_with_bump(n=3000, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    p = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1)
+    return p * (1 + 0.3 * (p[:, :1] > 0.7))
+
+
+@pytest.mark.parametrize("use_normals", [False, True])
+def test_network_invariant_to_order_translation_and_scale(use_normals):
+    torch.manual_seed(0)
+    net = VisibilityNetwork(NetworkConfig(depth=6, use_normals=use_normals)).eval()
+    pts = _sphere_with_bump().double()
+    normals = torch.nn.functional.normalize(pts, dim=1).float() if use_normals else None
+    cam = torch.tensor([2.5, 1.0, 0.5], dtype=torch.float64)
+
+    def probs(points, camera, nrm):
+        pn, c, s = normalize_points(points)
+        with torch.no_grad():
+            f = net.encode(pn.float(), normals=nrm)
+            return net.predict(f, pn.float(), ((camera - c) / s).float(), normals=nrm).softmax(1)[:, 1]
+
+    base = probs(pts, cam, normals)
+    perm = torch.randperm(len(pts))
+    shuffled = probs(pts[perm], cam, None if normals is None else normals[perm])
+    torch.testing.assert_close(shuffled, base[perm], atol=1e-4, rtol=0)
+    moved = probs(pts * 3.7 + torch.tensor([10.0, -4.0, 2.0], dtype=torch.float64),
+                  cam * 3.7 + torch.tensor([10.0, -4.0, 2.0], dtype=torch.float64), normals)
+    torch.testing.assert_close(moved, base, atol=1e-4, rtol=0)
+
+
+def test_gradient_reaches_camera_and_all_parameters():
+    net = VisibilityNetwork(NetworkConfig(depth=6))
+    pts = _sphere_with_bump()
+    pn, _, _ = normalize_points(pts)
+    cam = torch.tensor([2.0, 0.5, 0.3], requires_grad=True)
+    f = net.encode(pn)
+    net.predict(f, pn, cam).log_softmax(1)[:, 1].sum().backward()
+    assert cam.grad is not None and torch.isfinite(cam.grad).all() and cam.grad.abs().sum() > 0
+    assert all(p.grad is not None for p in net.parameters())
+
+
+def test_checkpoint_roundtrip(tmp_path):
+    net = VisibilityNetwork(NetworkConfig(depth=6, channels=(8, 16, 16, 16, 16), num_frequencies=3))
+    net.save(tmp_path / "m.safetensors", {"step": 7})
+    again = VisibilityNetwork.load(tmp_path / "m.safetensors")
+    assert again.config == net.config
+    for a, b in zip(net.state_dict().values(), again.state_dict().values()):
+        assert torch.equal(a, b)
+
+
+def test_training_smoke_loss_falls(tmp_path):
+    """A few steps on tiny procedural data: the loss must fall."""
+    from o3dvis.data.prepare import _save, label_mesh
+    from o3dvis.data.shapes import write_shapes
+    from o3dvis.train import TrainConfig, train
+
+    meshes = write_shapes(str(tmp_path / "meshes"), 3, seed=5)
+    data = tmp_path / "data"
+    data.mkdir()
+    for m in meshes:
+        s = label_mesh(m, num_points=3000, num_views=8)
+        _save(s, data / f"{s.name}.npz")
+    torch.manual_seed(0)
+    cfg = TrainConfig(data=[str(data)], out=str(tmp_path / "run"), steps=40, batch_size=2, lr=3e-3,
+                      warmup=5, val_every=1000, log_every=5, network={"depth": 6},
+                      augmentation={"min_points": 1500, "max_points": 3000, "views": 4, "noise": 0})
+    train(cfg, progress=False)
+    log = [__import__("json").loads(line) for line in open(tmp_path / "run" / "log.jsonl")]
+    losses = [r["loss"] for r in log if "loss" in r]
+    assert len(losses) == 8 and np.mean(losses[-2:]) < 0.8 * np.mean(losses[:2])

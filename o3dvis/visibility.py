@@ -22,7 +22,6 @@ from torch import Tensor
 from .cameras import Views, as_vectors, as_views
 from .clouds import cloud_arrays, cloud_device, unit_normals
 from .models import available_models, load_model, torch_device
-from .nn.cues import view_cues
 from .nn.network import VisibilityNetwork
 from .nn.octree import normalize_points
 
@@ -92,10 +91,7 @@ class VisibilityField:
         return cameras, None
 
     def _view_inputs(self, camera: Tensor | None, direction: Tensor | None) -> tuple[Tensor, Tensor]:
-        dirs, cues = view_cues(self.points_n, camera, direction, self.network.config.cue_scales)
-        if self.normals is not None:
-            cues = torch.cat([cues, -(self.normals * dirs).sum(dim=1, keepdim=True)], dim=1)
-        return dirs, cues
+        return self.network.view_inputs(self.points_n, camera, direction, self.normals)
 
     def _batches(self, views: Views) -> Iterator[tuple[slice, Tensor]]:
         """Yields ``(views slice, (v, N) probabilities)`` with frustum culling applied."""
@@ -361,18 +357,19 @@ def _surface_triangles(vertices: np.ndarray, camera: np.ndarray) -> np.ndarray:
 
 
 def hidden_point_removal_neural(pcd, camera_location, radius: float | None = None, *,
-                                threshold: float = 0.5, model=None, device=None, triangulate: bool = True):
+                                threshold: float = 0.5, model=None, device=None, triangulate: bool = False):
     """Removes hidden points with the neural network: a drop-in for ``hidden_point_removal``.
 
     Returns what Open3D's ``PointCloud.hidden_point_removal`` returns, so
     ``mesh, pt_map = pcd.hidden_point_removal(camera, radius)`` can become
     ``mesh, pt_map = o3dvis.hidden_point_removal_neural(pcd, camera, radius)``.
-    The mesh's vertices are exactly ``points[pt_map]``; its triangles are the
-    surface the camera sees: a Delaunay triangulation of those points in the
-    image plane without the triangles whose edges are much longer than the
-    local point spacing, ordered counter-clockwise as seen from the camera
-    (none when fewer than 3 points are visible or they project onto a line, or
-    with ``triangulate=False``). Unlike Open3D, ``pt_map`` is sorted. Point
+    The mesh's vertices are exactly ``points[pt_map]``. By default it has no
+    triangles (most callers use only ``pt_map``, and triangulating costs about
+    as much as the visibility query); with ``triangulate=True`` its triangles
+    are the surface the camera sees: a Delaunay triangulation of those points
+    in the image plane without the triangles whose edges are much longer than
+    the local point spacing, ordered counter-clockwise as seen from the camera
+    (none when fewer than 3 points are visible or they project onto a line). Unlike Open3D, ``pt_map`` is sorted. Point
     normals are used when the cloud has them and a normals model is installed.
 
     Args:
@@ -384,8 +381,7 @@ def hidden_point_removal_neural(pcd, camera_location, radius: float | None = Non
         model: None (the shipped default), a model name or checkpoint path, a
             :class:`NeuralVisibility` or a ``VisibilityNetwork``.
         device: torch device, e.g. ``"cuda"`` (default: where the cloud lives, else CPU).
-        triangulate: False leaves the mesh without triangles, which saves the
-            triangulation's time (about as long as a view's query at 200 k points).
+        triangulate: also triangulate the visible surface (see above).
 
     Returns:
         ``(mesh, pt_map)``: for a legacy cloud an ``o3d.geometry.TriangleMesh``

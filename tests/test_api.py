@@ -63,7 +63,8 @@ def _median_threshold(vis, cloud, camera) -> float:
 def test_hpr_legacy_semantics(vis, pcd, points):
     camera = _camera(points)
     threshold = _median_threshold(vis, pcd, camera)
-    mesh, pt_map = o3dvis.hidden_point_removal_neural(pcd, camera, 500.0, threshold=threshold, model=vis)
+    mesh, pt_map = o3dvis.hidden_point_removal_neural(pcd, camera, 500.0, threshold=threshold, model=vis,
+                                                      triangulate=True)
     assert isinstance(mesh, o3d.geometry.TriangleMesh)
     assert isinstance(pt_map, list) and all(isinstance(i, int) for i in pt_map)
     assert 0 < len(pt_map) < len(points)
@@ -102,7 +103,7 @@ def test_radius_is_unused_and_triangles_optional(vis, pcd, points):
     camera = _camera(points)
     maps = [o3dvis.hidden_point_removal_neural(pcd, camera, r, model=vis)[1] for r in (None, 1e-9, 1e5)]
     assert maps[0] == maps[1] == maps[2]
-    mesh, pt_map = o3dvis.hidden_point_removal_neural(pcd, camera, model=vis, triangulate=False)
+    mesh, pt_map = o3dvis.hidden_point_removal_neural(pcd, camera, model=vis)
     assert pt_map == maps[0] and len(mesh.triangles) == 0
     np.testing.assert_array_equal(np.asarray(mesh.vertices), points[pt_map])
 

@@ -92,15 +92,21 @@ class VisibilityNetwork(nn.Module):
             feature = leaf[octree.point_leaf]
         return self.predictor.project(torch.cat([feature, points], dim=1))
 
-    def predict(self, features: Tensor, points: Tensor, camera: Tensor | None = None,
-                direction: Tensor | None = None, normals: Tensor | None = None) -> Tensor:
-        """(N, 2) logits of one cloud for one camera position or viewing direction."""
+    def view_inputs(self, points: Tensor, camera: Tensor | None = None,
+                    direction: Tensor | None = None, normals: Tensor | None = None
+                    ) -> tuple[Tensor, Tensor]:
+        """(N, 3) view directions and (N, Z) cues of one cloud for one view."""
         dirs, cues = view_cues(points, camera, direction, self.config.cue_scales)
         if self.config.use_normals:
             if normals is None:
                 raise ValueError("this model needs normals")
             cues = torch.cat([cues, -(normals * dirs).sum(dim=1, keepdim=True)], dim=1)
-        return self.predictor(features, dirs, cues)
+        return dirs, cues
+
+    def predict(self, features: Tensor, points: Tensor, camera: Tensor | None = None,
+                direction: Tensor | None = None, normals: Tensor | None = None) -> Tensor:
+        """(N, 2) logits of one cloud for one camera position or viewing direction."""
+        return self.predictor(features, *self.view_inputs(points, camera, direction, normals))
 
     def num_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())

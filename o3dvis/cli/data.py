@@ -54,6 +54,14 @@ def _train(args) -> int:
     return 0
 
 
+def _publish(args) -> int:
+    from ..publish import publish
+
+    entry = publish(args.checkpoint, args.name, args.run, args.manifest, args.eval, args.command_line)
+    print(json.dumps({args.name: {k: entry[k] for k in ("file", "sha256", "bytes")}}))
+    return 0
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     fmt = argparse.RawDescriptionHelpFormatter
     p = sub.add_parser("shapes", help="write random procedural training meshes", formatter_class=fmt,
@@ -101,3 +109,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default="cpu")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_train)
+
+    p = sub.add_parser("publish", help="install a checkpoint as a shipped model", formatter_class=fmt,
+                       description="Copy a checkpoint into o3dvis/weights/ and write its model-card entry\n"
+                                   "(architecture, data licences, steps, validation, sha256).\n\n"
+                                   "example:\n  o3dvis publish runs/default/best.safetensors --name default "
+                                   "--run runs/default --manifest ../shared/meshes/MANIFEST.csv")
+    p.add_argument("checkpoint")
+    p.add_argument("--name", required=True)
+    p.add_argument("--run", help="the training run folder (config.json, log.jsonl)")
+    p.add_argument("--manifest", help="MANIFEST.csv of the training meshes (licences)")
+    p.add_argument("--eval", help="JSON written by 'o3dvis eval' to record as the validation table")
+    p.add_argument("--command-line", help="the exact training command, for the card")
+    p.set_defaults(func=_publish)

@@ -47,6 +47,30 @@ class TrainConfig:
     device: str = "cpu"
     network: dict = field(default_factory=dict)
     augmentation: dict = field(default_factory=dict)
+    init: str | None = None
+
+
+def warm_start(net: VisibilityNetwork, source: VisibilityNetwork) -> None:
+    """Copies ``source``'s weights into ``net`` where a wider input (e.g. normals) adds channels.
+
+    Weights over the extra input channels start at zero, so ``net`` computes
+    what ``source`` computed until training gives them a use.
+    """
+    from .nn.conv import _Linear
+
+    target = dict(net.named_parameters()) | dict(net.named_buffers())
+    linear = {f"{name}.weight": m for name, m in net.named_modules() if isinstance(m, _Linear)}
+    for name, value in list(source.named_parameters()) + list(source.named_buffers()):
+        dst = target[name]
+        with torch.no_grad():
+            if dst.shape == value.shape:
+                dst.copy_(value)
+                continue
+            dst.zero_()
+            if name in linear:  # (taps * in, out): the input channels are interleaved with taps
+                taps = dst.shape[0] // linear[name].in_channels
+                dst, value = dst.view(taps, -1, dst.shape[1]), value.view(taps, -1, value.shape[1])
+            dst[tuple(slice(0, s) for s in value.shape)].copy_(value)
 
 
 def batch_loss(net: torch.nn.Module, batch: Batch, use_normals: bool) -> tuple[torch.Tensor, float]:
@@ -146,6 +170,8 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
         opt.load_state_dict(state["optimizer"])
         sched.load_state_dict(state["scheduler"])
         start, best = int(state["step"]), float(state["best"])
+    elif cfg.init:
+        warm_start(net, VisibilityNetwork.load(cfg.init))
     if rank == 0:
         (out / "config.json").write_text(json.dumps(asdict(cfg), indent=2))
     model = _Encoder(net)

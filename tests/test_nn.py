@@ -208,3 +208,27 @@ def test_training_smoke_loss_falls(tmp_path):
     log = [__import__("json").loads(line) for line in open(tmp_path / "run" / "log.jsonl")]
     losses = [r["loss"] for r in log if "loss" in r]
     assert len(losses) == 8 and np.mean(losses[-2:]) < 0.8 * np.mean(losses[:2])
+
+
+def test_warm_start_into_a_normals_model_keeps_the_function():
+    from o3dvis.train import warm_start
+
+    torch.manual_seed(0)
+    small = dict(depth=6, channels=(8, 16, 16, 16, 16))
+    source = VisibilityNetwork(NetworkConfig(**small))
+    for p in source.parameters():  # non-trivial BN statistics and weights
+        p.data.normal_()
+    for m in source.modules():
+        if isinstance(m, torch.nn.BatchNorm1d):
+            m.running_mean.normal_()
+            m.running_var.uniform_(0.5, 2)
+    target = VisibilityNetwork(NetworkConfig(**small, use_normals=True))
+    warm_start(target, source)
+    source.eval(), target.eval()
+    pn, _, _ = normalize_points(_sphere_with_bump())
+    normals = torch.nn.functional.normalize(torch.randn_like(pn), dim=1)
+    cam = torch.tensor([2.0, 0.5, 0.3])
+    with torch.no_grad():
+        a = source.predict(source.encode(pn), pn, cam)
+        b = target.predict(target.encode(pn, normals=normals), pn, cam, normals=normals)
+    torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)

@@ -46,7 +46,7 @@ def _train(args) -> int:
     cfg = TrainConfig(
         data=args.data, out=args.out, val=args.val, steps=args.steps, batch_size=args.batch_size,
         lr=args.lr, val_every=args.val_every, workers=args.workers, seed=args.seed, device=args.device,
-        network=network,
+        network=network, init=args.init,
         augmentation={"min_points": args.min_points, "max_points": args.max_points,
                       "views": args.views, "noise": args.noise, "noise_prob": args.noise_prob})
     best = train(cfg)
@@ -108,6 +108,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--init", help="start from this checkpoint (extra input channels start at zero)")
     p.set_defaults(func=_train)
 
     p = sub.add_parser("publish", help="install a checkpoint as a shipped model", formatter_class=fmt,

@@ -8,7 +8,7 @@ import sys
 
 __all__ = ["main", "build_parser"]
 
-_MODULES = ("data", "visible", "eval", "apps")
+_MODULES = ("data", "visible", "eval", "apps", "demo")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -25,8 +25,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (ValueError, TypeError, FileNotFoundError, RuntimeError) as e:
-        print(f"o3dvis {args.command}: error: {e}", file=sys.stderr)
+    except (ValueError, TypeError, OSError, RuntimeError) as e:
+        message = str(e).strip().splitlines() or [type(e).__name__]
+        print(f"o3dvis {args.command}: error: {message[0]}", file=sys.stderr)
         return 2
 
 

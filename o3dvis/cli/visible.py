@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 __all__ = ["register", "run"]
 
@@ -24,8 +23,10 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "visible", help="keep the points of a cloud that a camera sees",
         description="Writes the points of INPUT visible from a camera position (or an orthographic "
-                    "direction), with their colours and normals. Write negative values with '=', "
-                    "e.g. --camera=-2,0,5.")
+                    "direction), with their colours and normals.",
+        epilog="Write negative coordinates with '=', e.g. --camera=-2,0,5.\n\nExample:\n"
+               "  o3dvis visible scan.ply --camera 0,0,5 -o scan_visible.ply",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("input", help="point cloud file readable by Open3D (.ply, .pcd, .xyz, ...)")
     view = parser.add_mutually_exclusive_group(required=True)
     view.add_argument("--camera", type=_vector, metavar="X,Y,Z", help="camera position")
@@ -54,19 +55,20 @@ def run(args: argparse.Namespace) -> int:
     import open3d as o3d
 
     from ..visibility import select_visible
+    from .apps import _read_cloud, _stages
 
-    if not Path(args.input).is_file():
-        raise FileNotFoundError(f"{args.input} not found")
-    pcd = o3d.io.read_point_cloud(args.input)
-    if pcd.is_empty():
-        raise ValueError(f"no points could be read from {args.input}")
-    visible = select_visible(pcd, args.camera, direction=args.direction, threshold=args.threshold,
-                             model=args.model, device=args.device,
-                             normals=False if args.no_normals else None)
-    if not visible.has_points():
-        print(f"no point of {args.input} is visible; nothing written", file=sys.stderr)
-        return 1
-    if not o3d.io.write_point_cloud(args.output, visible):
-        raise RuntimeError(f"could not write {args.output}")
+    with _stages(3, "visible") as bar:
+        pcd = _read_cloud(args.input)
+        bar.update()
+        visible = select_visible(pcd, args.camera, direction=args.direction, threshold=args.threshold,
+                                 model=args.model, device=args.device,
+                                 normals=False if args.no_normals else None)
+        bar.update()
+        if not visible.has_points():
+            print(f"no point of {args.input} is visible; nothing written", file=sys.stderr)
+            return 1
+        if not o3d.io.write_point_cloud(args.output, visible):
+            raise RuntimeError(f"could not write {args.output}")
+        bar.update()
     print(f"{len(visible.points)} of {len(pcd.points)} points visible -> {args.output}")
     return 0

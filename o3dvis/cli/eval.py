@@ -55,8 +55,9 @@ def _grid(name: str) -> str:
 def _add_method_args(p: argparse.ArgumentParser, default: str) -> None:
     p.add_argument("--methods", type=_names, default=_names(default),
                    help=f"comma-separated: hpr, hpr-exp, neural, neural-normals (default: {default})")
-    p.add_argument("--checkpoint", type=Path, default=None,
-                   help="network checkpoint (.safetensors) for 'neural' (default: shipped weights)")
+    p.add_argument("--model", "--checkpoint", dest="checkpoint", default=None, metavar="MODEL",
+                   help="shipped model name or .safetensors checkpoint for 'neural' "
+                        "(default: the shipped default; --checkpoint is the older name)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads (default: 2)")
 
 
@@ -109,13 +110,24 @@ def _write(out: Path | None, report: dict, markdown: str) -> None:
         print(f"wrote {out} and {out.with_suffix('.md')}", file=sys.stderr)
 
 
+def _checkpoint(model: str | None) -> Path | None:
+    """The file ``--model`` names: None for the shipped default, a shipped model's file, or a path."""
+    if model is None or model == "default":
+        return None
+    from ..models import WEIGHTS_DIR, available_models, read_model_card
+
+    if not Path(model).is_file() and model in available_models():
+        return WEIGHTS_DIR / read_model_card()["models"][model]["file"]
+    return Path(model)
+
+
 def _methods(args, sweeps: dict):
     import torch
 
     from ..methods import resolve_methods
 
     torch.set_num_threads(max(1, args.threads))
-    methods, absent = resolve_methods(args.methods, args.checkpoint, sweeps)
+    methods, absent = resolve_methods(args.methods, _checkpoint(args.checkpoint), sweeps)
     for name, reason in absent.items():
         print(f"{name}: absent ({reason})", file=sys.stderr)
     return methods, absent

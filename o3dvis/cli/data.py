@@ -89,7 +89,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "Several GPUs: torchrun --nproc_per_node=N -m o3dvis train ... --device cuda\n\n"
                                    "example:\n  o3dvis train data/train data/proc --val data/val --out runs/default")
     p.add_argument("data", nargs="+", help="folders of prepared .npz files")
-    p.add_argument("--out", required=True, help="run folder (checkpoints, log)")
+    p.add_argument("-o", "--out", required=True, help="run folder (checkpoints, log)")
     p.add_argument("--val", help="folder of prepared validation files")
     p.add_argument("--steps", type=int, default=10_000, help="optimiser steps in all (default 10000)")
     p.add_argument("--batch-size", type=int, default=4, help="clouds per step and process (default 4)")

@@ -26,7 +26,7 @@ def register(subparsers) -> None:
                     "and writes pictures: input, neural, HPR, ground truth, and errors (false "
                     "positives red, false negatives blue).",
         epilog=_EXAMPLE, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", default="o3dvis-demo", help="folder for the PNGs (default: o3dvis-demo)")
+    p.add_argument("-o", "--out", default="o3dvis-demo", help="folder for the PNGs (default: o3dvis-demo)")
     p.add_argument("--points", type=int, default=20_000, help="points on the sample (default: 20000)")
     p.add_argument("--camera", type=_vector, metavar="X,Y,Z", default=None,
                    help="camera position (default: one bounding-box diagonal from the centre)")

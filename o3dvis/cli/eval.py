@@ -81,7 +81,7 @@ def register(subparsers) -> None:
     p.add_argument("--gamma", type=_floats, default=None,
                    help=f"hpr-exp sweep of the kernel exponent, < 0 (default: {_grid('hpr-exp')})")
     p.add_argument("--seed", type=int, default=0, help="seed of subsampling and noise (default: 0)")
-    p.add_argument("--out", type=Path, default=None, help="write JSON here and the Markdown next to it (.md)")
+    p.add_argument("-o", "--out", type=Path, default=None, help="write JSON here and the Markdown next to it (.md)")
     p.add_argument("--cache", type=Path, default=None,
                    help="folder of per-file baseline results; a rerun resumes from it "
                         "(empty it after changing a baseline)")
@@ -97,7 +97,7 @@ def register(subparsers) -> None:
     _add_method_args(p, "hpr,hpr-exp,neural")
     p.add_argument("--repeats", type=int, default=1, help="best of this many runs (default: 1)")
     p.add_argument("--seed", type=int, default=0, help="seed of the cloud and cameras (default: 0)")
-    p.add_argument("--out", type=Path, default=None, help="write JSON here and the Markdown next to it (.md)")
+    p.add_argument("-o", "--out", type=Path, default=None, help="write JSON here and the Markdown next to it (.md)")
     p.set_defaults(func=run_bench)
 
 

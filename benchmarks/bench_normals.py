@@ -12,12 +12,14 @@ their face normals, and three pipelines estimate oriented normals:
 Scores: *oriented* = share of points whose normal points to the same side as
 the reference; *angle* = mean unsigned angle to the true normal (degrees).
 The reference side is the outward normal on closed meshes (every edge shared
-by two triangles; winding made consistent, sign from the signed volume). Elsewhere mesh winding is arbitrary, so the
-reference is the side that ray-cast visibility from 100 random cameras sees: points
-seen from both sides (open sheets) or from no camera are not scored for
-orientation (the table says which share is scored).
+by two triangles; winding made consistent, sign from the signed volume).
+Elsewhere mesh winding is arbitrary, so the reference is the side that
+ray-cast visibility from 100 random cameras sees: points seen from both sides
+(open sheets) or from no camera are not scored for orientation (the table
+says which share is scored).
 
-    nice -n 10 python3 benchmarks/bench_normals.py --method gt --limit 12 --out benchmarks/results/normals_gt.md
+    nice -n 10 python3 benchmarks/bench_normals.py --method gt --limit 10 --points 20000,100000 \\
+        --out benchmarks/results/normals_gt.md
 """
 
 from __future__ import annotations
@@ -28,8 +30,8 @@ import time
 import numpy as np
 import open3d as o3d
 
-from mesh_bench import (Timed, add_common_flags, load_mesh, markdown, mesh_subset, method_label,
-                        open3d_normals, sample, visibility_method)
+from mesh_bench import (Timed, add_common_flags, command_line, load_mesh, markdown, mesh_subset,
+                        method_label, open3d_normals, sample, visibility_method)
 from o3dvis.apps.normals import estimate_normals_neural, orient_normals_neural
 from o3dvis.data.groundtruth import sample_viewpoints, visibility_from_mesh
 
@@ -74,17 +76,17 @@ def scores(estimate: np.ndarray, reference: np.ndarray, scored: np.ndarray) -> t
     return oriented, angle
 
 
-def run_o3dvis(points, method, views, pca_knn=None) -> tuple[np.ndarray | None, float, float, str]:
+def run_o3dvis(points, method, args, pca_knn=None) -> tuple[np.ndarray | None, float, float, str]:
     """o3dvis normals (or PCA normals oriented by o3dvis): normals, seconds, of which visibility, status."""
     timed = Timed(method)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     start = time.perf_counter()
     try:
         if pca_knn is None:
-            estimate_normals_neural(pcd, views, timed)
+            estimate_normals_neural(pcd, args.views, timed, refine_views=args.refine_views)
         else:
             pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(pca_knn))
-            orient_normals_neural(pcd, views, timed)
+            orient_normals_neural(pcd, args.views, timed, refine_views=args.refine_views)
     except Exception as e:  # reported in the table, never stops the run
         return None, float("nan"), timed.seconds, f"error: {type(e).__name__}: {str(e)[:60]}"
     return np.asarray(pcd.normals), time.perf_counter() - start, timed.seconds, "ok"
@@ -111,8 +113,8 @@ def main() -> int:
             row = {"mesh": path.stem, "n": n, "reference": kind}
             est, seconds, status = open3d_normals(points, args.knn, args.timeout)
             result = {"Open3D": (est, seconds, None, status),
-                      "o3dvis": run_o3dvis(points, method, args.views),
-                      "PCA + o3dvis": run_o3dvis(points, method, args.views, args.knn)}
+                      "o3dvis": run_o3dvis(points, method, args),
+                      "PCA + o3dvis": run_o3dvis(points, method, args, args.knn)}
             for name, (est, seconds, vis_seconds, status) in result.items():
                 ok = status == "ok"
                 oriented, angle = scores(est, reference, scored) if ok else (float("nan"), float("nan"))
@@ -143,8 +145,9 @@ def _report(records: list[dict], sizes: list[int], args) -> str:
     header = ["mesh", "points", "reference"] + sum(
         ([f"{p} oriented %", f"{p} angle °", f"{p} s" + (" (visibility s)" if p != "Open3D" else "")]
          for p in PIPELINES), [])
-    parts = [f"Normals benchmark: {len(records)} runs, o3dvis with {method_label(args)}, "
-             f"{args.views} views; Open3D with k = {args.knn}, limit {args.timeout:g} s per run.",
+    parts = [command_line(), "",
+             f"Normals benchmark: {len(records)} runs, o3dvis with {method_label(args)}; "
+             f"Open3D with k = {args.knn}, limit {args.timeout:g} s per run.",
              "", markdown(header, [_row(r) for r in records]), "", "Summary:", ""]
     summary = []
     for n in sizes:

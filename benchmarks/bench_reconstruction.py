@@ -24,8 +24,8 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from mesh_bench import (Timed, add_common_flags, load_mesh, markdown, mesh_subset, method_label,
-                        open3d_normals, sample, visibility_method)
+from mesh_bench import (Timed, add_common_flags, command_line, load_mesh, markdown, mesh_subset,
+                        method_label, open3d_normals, sample, visibility_method)
 from o3dvis.apps.reconstruction import reconstruct_poisson
 
 EVAL_POINTS = 30_000
@@ -71,7 +71,8 @@ def main() -> int:
             start, method.seconds = time.perf_counter(), 0.0
             try:
                 ours = reconstruct_poisson(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)),
-                                           args.depth, method, num_views=args.views)[0]
+                                           args.depth, method, num_views=args.views,
+                                           refine_views=args.refine_views)[0]
                 record["o3dvis"] = (*surface_distance(ours, source, diagonal, args.seed),
                                     time.perf_counter() - start, "ok")
             except Exception as e:  # reported, never stops the run
@@ -129,8 +130,9 @@ def _report(records: list[dict], rows: list[list[str]], sizes: list[int], args) 
             summary.append([str(n), "o3dvis F-score higher", f"{better}/{len(both)} meshes",
                             "", "", "", ""])
     return "\n".join([
-        f"Poisson benchmark (depth {args.depth}, untrimmed): o3dvis normals with {method_label(args)}, "
-        f"{args.views} views; Open3D normals with k = {args.knn}, limit {args.timeout:g} s per run. "
+        command_line(), "",
+        f"Poisson benchmark (depth {args.depth}, untrimmed): o3dvis normals with {method_label(args)}; "
+        f"Open3D normals with k = {args.knn}, limit {args.timeout:g} s per run. "
         f"Chamfer in % of the bbox diagonal, F-score at {100 * F_THRESHOLD:g} % of it; "
         "times include normals and Poisson.", "",
         markdown(header, rows), "", "Summary:", "",

@@ -43,6 +43,8 @@ def add_common_flags(parser: argparse.ArgumentParser, points: str) -> None:
                                                            "(default: the shipped weights)")
     parser.add_argument("--hpr-k", type=float, default=2.0, help="HPR radius = diagonal * 10**K (default 2)")
     parser.add_argument("--views", type=int, default=26, help="cameras for the o3dvis normals (default 26)")
+    parser.add_argument("--refine-views", type=int, default=64,
+                        help="more cameras for points the first leave uncovered (default 64)")
     parser.add_argument("--knn", type=int, default=30,
                         help="neighbours of Open3D's estimate_normals and orient_normals_consistent_tangent_plane "
                              "(default 30)")
@@ -93,9 +95,11 @@ def visibility_method(args: argparse.Namespace, mesh: o3d.geometry.TriangleMesh)
 
 
 def method_label(args: argparse.Namespace) -> str:
-    return {"gt": "ground-truth visibility (ray cast on the mesh)",
-            "hpr": f"Open3D HPR visibility (radius = diagonal x 10^{args.hpr_k:g})",
-            "neural": f"neural visibility ({args.checkpoint or 'shipped weights'})"}[args.method]
+    """What ran as o3dvis: the visibility method and the cameras."""
+    method = {"gt": "ground-truth visibility (ray cast on the mesh)",
+              "hpr": f"Open3D HPR visibility (radius = diagonal x 10^{args.hpr_k:g})",
+              "neural": f"neural visibility ({args.checkpoint or 'shipped weights'})"}[args.method]
+    return f"{method}, {args.views} views + {args.refine_views} refinement views"
 
 
 class Timed:
@@ -146,6 +150,11 @@ def _open3d_normals_worker(src: str, dst: str, knn: str) -> None:
     pcd.orient_normals_consistent_tangent_plane(int(knn))
     seconds = time.perf_counter() - start
     np.savez(dst, normals=np.asarray(pcd.normals), seconds=seconds)
+
+
+def command_line() -> str:
+    """The command that produced a report, for its first line."""
+    return "Command: `python3 " + " ".join(sys.argv) + "`"
 
 
 def markdown(header: list[str], rows: list[list[str]]) -> str:

@@ -345,3 +345,18 @@ def test_cli_normals_render_shadow_reconstruct(tmp_path, sphere):
     assert len(o3d.io.read_triangle_mesh(str(tmp_path / "m.ply")).triangles) > 1000
     with pytest.raises(ValueError, match="--mesh"):
         _cli("normals", cloud_path, "-o", out, "--method", "gt")
+
+
+def test_cli_best_view_with_a_checkpoint(tmp_path, sphere):
+    from o3dvis.nn import NetworkConfig, VisibilityNetwork
+
+    torch.manual_seed(0)
+    checkpoint = tmp_path / "tiny.safetensors"
+    VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 16), feature_channels=8, num_frequencies=2,
+                                    hidden=(16,))).save(checkpoint)
+    cloud_path = str(tmp_path / "sphere.ply")
+    o3d.io.write_point_cloud(cloud_path, _cloud(sphere[0][:1000]))
+    assert _cli("best-view", cloud_path, "--model", str(checkpoint), "--steps", "3", "--starts", "2",
+                "-o", str(tmp_path / "best.png"), "--plot", str(tmp_path / "loss.png")) == 0
+    assert np.asarray(o3d.io.read_image(str(tmp_path / "best.png"))).shape == (480, 640, 3)
+    assert (tmp_path / "loss.png").stat().st_size > 0

@@ -20,6 +20,7 @@ __all__ = ["estimate_normals_neural", "orient_normals_neural", "multiview_normal
 
 
 def _get_normals(pcd) -> np.ndarray | None:
+    """The cloud's normals, None when it has none; TypeError for anything but a PointCloud."""
     if isinstance(pcd, o3d.geometry.PointCloud):
         return np.asarray(pcd.normals) if pcd.has_normals() else None
     if isinstance(pcd, o3d.t.geometry.PointCloud):
@@ -138,7 +139,7 @@ def estimate_normals_neural(pcd, num_views: int = 26, method=None, *, refine_vie
         ``pcd``, with unit normals set.
     """
     points = cloud_points(pcd)
-    _get_normals(pcd)
+    _get_normals(pcd)  # only clouds can take normals
     _set_normals(pcd, multiview_normals(points, method, num_views, refine_views, edge_factor, progress))
     return pcd
 

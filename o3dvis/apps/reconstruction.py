@@ -46,7 +46,8 @@ def reconstruct_view_dependent(pcd, camera, method=None, *,
     return mesh
 
 
-def reconstruct_poisson(pcd, depth: int = 8, method=None, *, num_views: int = 26, width: float = 0,
+def reconstruct_poisson(pcd, depth: int = 8, method=None, *, num_views: int = 26,
+                        refine_views: int = 64, width: float = 0,
                         scale: float = 1.1, linear_fit: bool = False, n_threads: int = -1,
                         progress: bool = False
                         ) -> tuple[o3d.geometry.TriangleMesh, o3d.utility.DoubleVector]:
@@ -62,13 +63,18 @@ def reconstruct_poisson(pcd, depth: int = 8, method=None, *, num_views: int = 26
         depth, width, scale, linear_fit, n_threads: as in Open3D's
             ``create_from_point_cloud_poisson``.
         method: the visibility method (default: the pretrained neural network).
-        num_views: cameras used to estimate the normals.
+        num_views, refine_views: cameras used to estimate the normals (see
+            :func:`~o3dvis.apps.normals.estimate_normals_neural`).
         progress: show a progress bar while estimating the normals.
 
     Returns:
         The mesh and the per-vertex densities, as Open3D returns them.
     """
     cloud = o3d.geometry.PointCloud(legacy_cloud(pcd))
-    estimate_normals_neural(cloud, num_views, method, progress=progress)
-    return o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-        cloud, depth=depth, width=width, scale=scale, linear_fit=linear_fit, n_threads=n_threads)
+    estimate_normals_neural(cloud, num_views, method, refine_views=refine_views, progress=progress)
+    # Open3D's Poisson loses precision far from the origin (georeferenced clouds): solve centred
+    center = cloud.get_axis_aligned_bounding_box().get_center()
+    mesh, densities = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
+        cloud.translate(-center), depth=depth, width=width, scale=scale, linear_fit=linear_fit,
+        n_threads=n_threads)
+    return mesh.translate(center), densities

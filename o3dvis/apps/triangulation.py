@@ -17,7 +17,7 @@ DEFAULT_EDGE_FACTOR = 3.0
 def local_spacing(points: np.ndarray, k: int = 6) -> np.ndarray:
     """Per-point sampling scale: the distance to the ``k``-th nearest other point, (N,).
 
-    Duplicated points are ignored so that they do not shrink the scale to zero.
+    Where duplicates make that distance 0, the distance to the nearest distinct point is used.
     """
     if len(points) < 2:
         return np.zeros(len(points))
@@ -25,8 +25,7 @@ def local_spacing(points: np.ndarray, k: int = 6) -> np.ndarray:
     dist, _ = cKDTree(points).query(points, k=k + 1)
     dist = dist[:, 1:]
     positive = np.where(dist > 0, dist, np.inf).min(axis=1)
-    spacing = np.maximum(dist[:, -1], np.where(np.isfinite(positive), positive, 0))
-    return spacing
+    return np.maximum(dist[:, -1], np.where(np.isfinite(positive), positive, 0))
 
 
 def delaunay_surface(points: np.ndarray, coords: np.ndarray, max_edge: np.ndarray) -> np.ndarray:

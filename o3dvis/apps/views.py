@@ -50,8 +50,9 @@ def best_view(pcd, maximize: bool = True, steps: int = 300, method=None, *, star
     radius = float(np.linalg.norm(hi - lo)) if distance is None else float(distance)
     if not radius > 0:
         raise ValueError("the camera distance must be positive (the points span no volume)")
-    center = torch.tensor((lo + hi) / 2, dtype=torch.float32)
-    direction = torch.tensor(fibonacci_sphere(starts), dtype=torch.float32, requires_grad=True)
+    # float64: a float32 camera far from the origin (georeferenced clouds) is off by its ulp
+    center = torch.tensor((lo + hi) / 2, dtype=torch.float64)
+    direction = torch.tensor(fibonacci_sphere(starts), dtype=torch.float64, requires_grad=True)
     optimizer = torch.optim.Adam([direction], lr=lr)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps)
     sign = -1.0 if maximize else 1.0

@@ -27,6 +27,12 @@ def _add_method_flags(parser: argparse.ArgumentParser, choices=("neural", "hpr",
                             help="mesh the points were sampled from (for --method gt)")
 
 
+def _add_view_flags(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--views", type=int, default=26, help="cameras for the normals (default 26)")
+    parser.add_argument("--refine-views", type=int, default=64,
+                        help="more cameras for the points the first leave uncovered (default 64, 0: none)")
+
+
 def _method(args: argparse.Namespace):
     """The visibility method the flags name."""
     if args.method == "neural":
@@ -81,13 +87,13 @@ def _parser(subparsers, name: str, help: str, description: str, example: str) ->
 def register(subparsers) -> None:
     """Adds the application subcommands."""
     p = _parser(subparsers, "normals", "estimate oriented normals from visibility",
-                "Estimates oriented normals of IN from the surface seen by --views cameras around it "
-                "(or, with --orient-only, orients the normals IN already has) and writes the cloud.",
+                "Estimates oriented normals of the input cloud from the surface seen by --views cameras around it "
+                "(or, with --orient-only, orients the normals it already has) and writes the cloud.",
                 "o3dvis normals scan.ply -o scan_normals.ply --views 26")
     p.add_argument("input", help="point cloud file readable by Open3D (.ply, .pcd, .xyz, ...)")
     p.add_argument("-o", "--output", required=True, help="output point cloud file")
-    p.add_argument("--views", type=int, default=26, help="number of cameras (default 26)")
-    p.add_argument("--orient-only", action="store_true", help="keep the normals of IN, only orient them")
+    _add_view_flags(p)
+    p.add_argument("--orient-only", action="store_true", help="keep the normals of the input, only orient them")
     _add_method_flags(p)
     p.set_defaults(func=_normals)
 
@@ -101,12 +107,12 @@ def register(subparsers) -> None:
     p.add_argument("--depth", type=int, default=8, help="Poisson octree depth (default 8)")
     p.add_argument("--trim", type=float, default=0.0,
                    help="drop Poisson vertices below this density quantile, e.g. 0.02 (default 0)")
-    p.add_argument("--views", type=int, default=26, help="cameras for the normals (default 26)")
+    _add_view_flags(p)
     _add_method_flags(p)
     p.set_defaults(func=_reconstruct)
 
     p = _parser(subparsers, "shadow", "render a cloud with the shadows a point light casts",
-                "Renders IN from --camera lit by a point light at --light, shadowed points dark, "
+                "Renders the input cloud from --camera lit by a point light at --light, shadowed points dark, "
                 "and optionally saves the light's shadow map (float depth, .npy).",
                 "o3dvis shadow scan.ply --light 0,0,3 --camera 2,-2,1 -o shadows.png")
     p.add_argument("input", help="point cloud file readable by Open3D")
@@ -134,7 +140,7 @@ def register(subparsers) -> None:
     p.set_defaults(func=_best_view)
 
     p = _parser(subparsers, "render", "render a cloud to an image, hidden points removed",
-                "Renders the points of IN that --camera sees (z-buffered splats, no display needed), "
+                "Renders the points of the input cloud that --camera sees (z-buffered splats, no display needed), "
                 "coloured by their colours or shaded by their normals.",
                 "o3dvis render scan.ply --camera 2,-2,1 -o scan.png --depth-output depth.npy")
     p.add_argument("input", help="point cloud file readable by Open3D")
@@ -157,9 +163,9 @@ def _normals(args: argparse.Namespace) -> int:
     pcd = _read_cloud(args.input)
     method = _method(args)
     if args.orient_only:
-        orient_normals_neural(pcd, args.views, method)
+        orient_normals_neural(pcd, args.views, method, refine_views=args.refine_views)
     else:
-        estimate_normals_neural(pcd, args.views, method, progress=True)
+        estimate_normals_neural(pcd, args.views, method, refine_views=args.refine_views, progress=True)
     if not o3d.io.write_point_cloud(args.output, pcd):
         raise RuntimeError(f"could not write {args.output}")
     print(f"{len(pcd.points)} oriented normals -> {args.output}")
@@ -180,7 +186,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
         if not 0 <= args.trim < 1:
             raise ValueError(f"--trim must be a quantile in [0, 1), got {args.trim}")
         mesh, densities = reconstruct_poisson(pcd, args.depth, method, num_views=args.views,
-                                              progress=True)
+                                              refine_views=args.refine_views, progress=True)
         if args.trim > 0:
             densities = np.asarray(densities)
             mesh.remove_vertices_by_mask(densities < np.quantile(densities, args.trim))

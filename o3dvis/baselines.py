@@ -24,6 +24,8 @@ from collections.abc import Callable
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
+from .cameras import real_array
+
 __all__ = ["hidden_point_removal_mask", "exponential_hpr_mask", "hpr_method", "exponential_method",
            "SWEEPS", "sweep", "Method"]
 
@@ -33,8 +35,8 @@ _RANK_TOL = 1e-9
 
 
 def _check(points, cameras) -> tuple[np.ndarray, np.ndarray]:
-    points = np.asarray(points, dtype=np.float64)
-    cameras = np.atleast_2d(np.asarray(cameras, dtype=np.float64))
+    points = real_array(points, "points", "an (N, 3) array")
+    cameras = np.atleast_2d(real_array(cameras, "cameras", "a (3,) or (V, 3) array"))
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {points.shape}")
     if len(points) == 0:

@@ -19,7 +19,7 @@ import open3d as o3d
 import torch
 from torch import Tensor
 
-__all__ = ["Frustum", "Views", "as_views", "as_vectors", "frustum_from_pinhole"]
+__all__ = ["Frustum", "Views", "as_views", "as_vectors", "real_array", "frustum_from_pinhole"]
 
 _ORTHONORMAL_TOL = 1e-4
 
@@ -115,14 +115,7 @@ def as_vectors(value, name: str = "camera") -> Tensor:
             raise TypeError(f"{name} must hold real numbers, got a torch tensor of {value.dtype}")
         tensor = value.to(torch.float64)
     else:
-        try:
-            array = np.asarray(value)
-        except ValueError as e:  # ragged nested sequences
-            raise ValueError(f"{name} must be a 3-vector or a (V, 3) array: {e}") from None
-        if array.dtype == bool or array.dtype.kind not in "iuf":
-            raise TypeError(f"{name} must hold real numbers, got {type(value).__name__} "
-                            f"of dtype {array.dtype}")
-        tensor = torch.from_numpy(array.astype(np.float64))
+        tensor = torch.from_numpy(real_array(value, name, "a 3-vector or a (V, 3) array"))
     if tensor.ndim == 1:
         tensor = tensor[None]
     if tensor.ndim != 2 or tensor.shape[1] != 3:
@@ -132,6 +125,33 @@ def as_vectors(value, name: str = "camera") -> Tensor:
     if not torch.isfinite(tensor.detach()).all():
         raise ValueError(f"{name} has NaN or Inf coordinates")
     return tensor
+
+
+def real_array(value, name: str, expected: str = "an array of numbers") -> np.ndarray:
+    """Converts an array-like of real numbers to a float64 numpy array of any shape.
+
+    Unlike ``np.asarray(value, dtype=np.float64)``, it refuses what is not a
+    real number instead of casting it (bool, complex, strings, objects).
+
+    Args:
+        value: list, tuple, numpy array or anything ``np.asarray`` takes.
+        name: what the value is, for error messages.
+        expected: the shape expected, for the message on ragged sequences.
+
+    Returns:
+        float64 array.
+
+    Raises:
+        TypeError: not an array-like of real numbers.
+        ValueError: ragged nested sequences.
+    """
+    try:
+        array = np.asarray(value)
+    except ValueError as e:  # ragged nested sequences
+        raise ValueError(f"{name} must be {expected}: {e}") from None
+    if array.dtype == bool or array.dtype.kind not in "iuf":
+        raise TypeError(f"{name} must hold real numbers, got {type(value).__name__} of dtype {array.dtype}")
+    return array.astype(np.float64)
 
 
 def frustum_from_pinhole(params: o3d.camera.PinholeCameraParameters) -> tuple[Tensor, Frustum | None]:

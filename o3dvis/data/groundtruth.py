@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
+from ..cameras import real_array
+
 __all__ = ["visibility_from_mesh", "sample_viewpoints", "as_legacy_mesh"]
 
 
@@ -15,8 +17,11 @@ def as_legacy_mesh(mesh) -> o3d.geometry.TriangleMesh:
     if isinstance(mesh, o3d.t.geometry.TriangleMesh):
         return mesh.to_legacy()
     if isinstance(mesh, (tuple, list)) and len(mesh) == 2:
-        vertices = np.asarray(mesh[0], dtype=np.float64)
-        triangles = np.asarray(mesh[1], dtype=np.int32)
+        vertices = real_array(mesh[0], "mesh vertices", "a (V, 3) array")
+        triangles = np.asarray(mesh[1])
+        if triangles.size and triangles.dtype.kind not in "iu":
+            raise TypeError(f"mesh triangles must hold integer vertex indices, got dtype {triangles.dtype}")
+        triangles = triangles.astype(np.int32)
         if vertices.ndim != 2 or vertices.shape[1] != 3 or triangles.ndim != 2 or triangles.shape[1] != 3:
             raise ValueError("mesh arrays must be vertices (V, 3) and triangles (T, 3)")
         if triangles.size and (triangles.min() < 0 or triangles.max() >= len(vertices)):
@@ -45,8 +50,12 @@ def visibility_from_mesh(mesh, points, cameras, tolerance: float = 1e-4) -> np.n
     legacy = as_legacy_mesh(mesh)
     if len(legacy.triangles) == 0:
         raise ValueError("mesh has no triangles")
-    points = np.asarray(points, dtype=np.float64)
-    cameras = np.atleast_2d(np.asarray(cameras, dtype=np.float64))
+    if not np.isfinite(np.asarray(legacy.vertices)).all():
+        raise ValueError("mesh vertices must be finite (no NaN or Inf)")
+    if not (np.isfinite(tolerance) and tolerance >= 0):
+        raise ValueError(f"tolerance must be a finite number >= 0, got {tolerance}")
+    points = real_array(points, "points", "an (N, 3) array")
+    cameras = np.atleast_2d(real_array(cameras, "cameras", "a (3,) or (V, 3) array"))
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {points.shape}")
     if cameras.ndim != 2 or cameras.shape[1] != 3:

@@ -69,8 +69,21 @@ def reconstruct_poisson(pcd, depth: int = 8, method=None, *, num_views: int = 26
 
     Returns:
         The mesh and the per-vertex densities, as Open3D returns them.
+
+    Raises:
+        ValueError: an octree of fewer than 2 levels (``depth`` < 2, or a
+            ``width`` near the cloud's size), on which Open3D fails and then
+            aborts the process at exit; ``scale`` <= 0.
     """
+    if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)) or depth < 2:
+        raise ValueError(f"depth must be an int >= 2, got {depth!r}")
+    if not (np.isfinite(width) and width >= 0 and np.isfinite(scale) and scale > 0):
+        raise ValueError(f"width must be >= 0 and scale > 0, got width={width} and scale={scale}")
     cloud = o3d.geometry.PointCloud(legacy_cloud(pcd))
+    size = float(cloud.get_axis_aligned_bounding_box().get_extent().max()) if cloud.has_points() else 0.0
+    if width > 0 and scale * size <= 2 * width:  # Open3D's depth from width: ceil(log2(scale size / width))
+        raise ValueError(f"width={width} gives an octree of fewer than 2 levels over a cloud {size:g} "
+                         f"wide (scale={scale}); use a smaller width or width=0 with depth")
     estimate_normals_neural(cloud, num_views, method, refine_views=refine_views, progress=progress)
     # Open3D's Poisson loses precision far from the origin (georeferenced clouds): solve centred
     center = cloud.get_axis_aligned_bounding_box().get_center()

@@ -50,17 +50,18 @@ class TrainConfig:
     init: str | None = None
 
 
-def warm_start(net: VisibilityNetwork, source: VisibilityNetwork) -> None:
-    """Copies ``source``'s weights into ``net`` where a wider input (e.g. normals) adds channels.
+def warm_start(net: VisibilityNetwork, state: dict[str, torch.Tensor]) -> None:
+    """Copies a state dict into ``net`` where shapes differ by added input channels.
 
-    Weights over the extra input channels start at zero, so ``net`` computes
-    what ``source`` computed until training gives them a use.
+    Used to start a normals model from a default one, or a model with more view
+    cues from an earlier one: weights over the added inputs start at zero, so
+    ``net`` first computes what the source computed from the shared inputs.
     """
     from .nn.conv import _Linear
 
-    target = dict(net.named_parameters()) | dict(net.named_buffers())
+    target = net.state_dict()
     linear = {f"{name}.weight": m for name, m in net.named_modules() if isinstance(m, _Linear)}
-    for name, value in list(source.named_parameters()) + list(source.named_buffers()):
+    for name, value in state.items():
         dst = target[name]
         with torch.no_grad():
             if dst.shape == value.shape:
@@ -171,7 +172,9 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
         sched.load_state_dict(state["scheduler"])
         start, best = int(state["step"]), float(state["best"])
     elif cfg.init:
-        warm_start(net, VisibilityNetwork.load(cfg.init))
+        from safetensors.torch import load_file
+
+        warm_start(net, load_file(cfg.init, device=str(device)))
     if rank == 0:
         (out / "config.json").write_text(json.dumps(asdict(cfg), indent=2))
     model = _Encoder(net)

@@ -130,13 +130,27 @@ def test_view_cues_flag_the_far_side_of_a_sphere():
     torch.manual_seed(0)
     p = torch.nn.functional.normalize(torch.randn(20000, 3), dim=1)
     cam = torch.tensor([3.0, 0.0, 0.0])
-    _, cues = view_cues(p, cam)
+    dirs, cues = view_cues(p, cam)
+    assert cues.shape == (20000, 36)
+    torch.testing.assert_close(dirs, torch.nn.functional.normalize(p - cam, dim=1))
     visible = (p * (cam - p)).sum(1) > 0
-    # residual to the nearest depth of the pixel at scale 2: small in front, large behind
-    res = cues[:, 2]
-    assert res[visible].median() < 0.5 and res[~visible].median() > 2.0
-    # the finest buffer has holes: most hidden points are alone in their pixel there
-    assert cues[~visible, 0].median() < cues[~visible, 2].median()
+    # residual to the own pixel (patch centre, index 4) at scale 2 (columns 9..17):
+    # small in front, large behind, where the front surface covers every pixel
+    own = cues[:, 9 + 4]
+    assert own[visible].median() < 0.5 and own[~visible].median() > 2.0
+    # the finest buffer has holes: many hidden points are alone in their pixel there
+    assert (cues[~visible, 4] == 0).float().mean() > 0.2
+    # an empty neighbour pixel is marked as such: the corners of the image are empty
+    assert (cues == -5.0).any()
+
+
+def test_view_cues_orthographic_direction():
+    p = torch.nn.functional.normalize(torch.randn(5000, 3), dim=1)
+    dirs, cues = view_cues(p, direction=torch.tensor([-1.0, 0.0, 0.0]))
+    assert torch.equal(dirs, torch.tensor([-1.0, 0.0, 0.0]).expand(5000, 3))
+    visible = p[:, 0] > 0
+    own = cues[:, 9 + 4]
+    assert own[visible].median() < 0.5 and own[~visible].median() > 2.0
 
 
 def _sphere_with_bump(n=3000, seed=0):
@@ -223,7 +237,7 @@ def test_warm_start_into_a_normals_model_keeps_the_function():
             m.running_mean.normal_()
             m.running_var.uniform_(0.5, 2)
     target = VisibilityNetwork(NetworkConfig(**small, use_normals=True))
-    warm_start(target, source)
+    warm_start(target, source.state_dict())
     source.eval(), target.eval()
     pn, _, _ = normalize_points(_sphere_with_bump())
     normals = torch.nn.functional.normalize(torch.randn_like(pn), dim=1)

@@ -3,10 +3,11 @@
 For one viewpoint the points are projected onto an image around the viewing
 axis (azimuthal-equidistant for a camera position, parallel for a viewing
 direction) and a min-depth buffer is built at several resolutions with a
-scatter-min. A point's residual to the nearest depth of its pixel (and of the
-pixel's 3x3 neighbourhood), measured in pixel footprints, is strong evidence of
-occlusion; the network learns which scale to trust from the local geometry.
-The cost is linear in the number of points and has no parameter to tune.
+scatter-min. A point's depth residuals to the 3x3 pixels around its own,
+measured in pixel footprints, show whether it lies behind the nearest surface
+or on it (a sloped surface has residuals that change across the patch); the
+network learns which scale to trust. The cost is linear in the number of
+points and has no parameter to tune.
 """
 
 from __future__ import annotations
@@ -23,8 +24,11 @@ __all__ = ["view_cues", "num_cues", "DEFAULT_SCALES"]
 DEFAULT_SCALES = (1, 2, 4, 8)
 
 
+_EMPTY = -5.0  # cue of a neighbour pixel that no point falls into (below any asinh(+-50))
+
+
 def num_cues(scales: Sequence[int] = DEFAULT_SCALES) -> int:
-    return 2 * len(scales)
+    return 9 * len(scales)
 
 
 def _frame(forward: Tensor) -> tuple[Tensor, Tensor]:
@@ -50,7 +54,10 @@ def view_cues(points: Tensor, camera: Tensor | None = None, direction: Tensor | 
 
     Returns:
         ``(dirs, cues)``: (N, 3) unit vectors from the camera to the points and
-        (N, 2 * len(scales)) cues. Both are differentiable in ``camera``.
+        (N, 9 * len(scales)) cues: ``asinh`` of the depth residual to each of
+        the 3x3 pixels around the point's own, in pixel footprints, or
+        ``_EMPTY`` where that pixel is empty. Both are differentiable in
+        ``camera`` (the pixel assignment itself is piecewise constant).
     """
     if (camera is None) == (direction is None):
         raise ValueError("give exactly one of camera and direction")
@@ -80,10 +87,12 @@ def view_cues(points: Tensor, camera: Tensor | None = None, direction: Tensor | 
         pixel = 2 * half / res
         iu = ((u.detach() + half) / pixel).long().clamp_(0, res - 1)
         iv = ((v.detach() + half) / pixel).long().clamp_(0, res - 1)
-        cell = iu * res + iv
-        zbuf = depth.new_full((res * res,), float("inf")).scatter_reduce(0, cell, depth, "amin")
-        pooled = -F.max_pool2d(-zbuf.view(1, 1, res, res), 3, stride=1, padding=1).view(-1)
-        width = pixel * footprint
-        cues.append(torch.log1p((depth - zbuf[cell]) / width))
-        cues.append(torch.log1p((depth - pooled[cell]) / width))
-    return dirs, torch.stack(cues, dim=1)
+        zbuf = depth.new_full((res * res,), float("inf")).scatter_reduce(0, iu * res + iv, depth, "amin")
+        padded = F.pad(zbuf.view(1, 1, res, res), (1, 1, 1, 1), value=float("inf")).view(-1)
+        patch = torch.tensor([du * (res + 2) + dv for du in (-1, 0, 1) for dv in (-1, 0, 1)],
+                             device=points.device)
+        near = padded[((iu + 1) * (res + 2) + iv + 1)[:, None] + patch]
+        found = torch.isfinite(near)
+        residual = (depth[:, None] - torch.where(found, near, depth[:, None])) / (pixel * footprint)[:, None]
+        cues.append(torch.where(found, torch.asinh(residual.clamp(-50, 50)), _EMPTY))
+    return dirs, torch.cat(cues, dim=1)

@@ -77,7 +77,7 @@ class VisibilityField:
             return None, views.directions.to(self.device).to(dtype)
         positions = views.positions.to(self.device)
         lo, hi = self.bounds
-        tol = _INSIDE_TOL * self.scale
+        tol = _INSIDE_TOL * (hi - lo).amax() / 2  # zero when all points coincide: only they are inside
         inside = ((positions.detach() >= lo - tol) & (positions.detach() <= hi + tol)).all(dim=1)
         if inside.any():
             i = int(inside.nonzero()[0, 0])

@@ -1,0 +1,215 @@
+"""Property-based fuzzing of the visibility API with hypothesis (a tiny random network, small clouds).
+
+Clouds are drawn on a dyadic grid (integers times a power of two) in several shapes: scattered,
+with repeated points, flat, on a line, clustered; as numpy/torch arrays or Open3D clouds, in
+float32 or float64, at scales from 2^-36 to 2^24. Properties:
+
+* any cloud with cameras outside its bounding box gets a (V, N) bool answer, probabilities in
+  [0, 1], and the drop-in functions agree with it; a camera inside gets a ValueError;
+* the answer does not depend on the order of the points (up to float summation order);
+* moving cloud and camera together, or scaling both by a power of two, changes nothing, bit for
+  bit (on a dyadic grid these maps are exact in float64, so any difference is a real dependence);
+* repeated points get the same answer; the same call twice gives the same bits;
+* the HPR baselines answer on the same clouds, repeated points alike, the nearest point visible.
+
+CI runs about 1 000 cases derandomized (the same every run); benchmarks/fuzz_long.py runs the
+same properties with fresh random cases for longer (``O3DVIS_FUZZ_SCALE``, ``O3DVIS_FUZZ_RANDOM``).
+"""
+
+from __future__ import annotations
+
+import os
+from collections import Counter
+from functools import lru_cache
+
+import numpy as np
+import open3d as o3d
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+import o3dvis
+from o3dvis.nn import NetworkConfig, VisibilityNetwork
+
+SCALE = float(os.environ.get("O3DVIS_FUZZ_SCALE", "1"))
+RANDOM = os.environ.get("O3DVIS_FUZZ_RANDOM") == "1"
+COUNTS: Counter = Counter()
+"""Examples run per property (read by benchmarks/fuzz_long.py)."""
+
+UNIT = 6  # coordinates are integers times 2 ** (exponent - UNIT)
+_KINDS = ("scattered", "repeated", "flat", "line", "clustered")
+
+
+def _settings(examples: int):
+    return settings(max_examples=max(1, round(examples * SCALE)), deadline=None, derandomize=not RANDOM,
+                    database=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+
+
+@lru_cache(maxsize=None)
+def tiny_model() -> o3dvis.NeuralVisibility:
+    """A randomly initialised small network (the properties hold for any weights)."""
+    torch.manual_seed(0)
+    network = VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 8, 8, 8), feature_channels=8,
+                                              num_frequencies=2, hidden=(16,)))
+    return o3dvis.NeuralVisibility(network)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@st.composite
+def grid_clouds(draw, max_points: int = 40) -> tuple[np.ndarray, int]:
+    """``(units, exponent)``: (N, 3) int64 grid coordinates of one of the shapes, and a scale exponent."""
+    n = draw(st.integers(1, max_points))
+    kind = draw(st.sampled_from(_KINDS))
+    units = draw(arrays(np.int64, (n, 3), elements=st.integers(-4096, 4096)))
+    if kind == "repeated":
+        units = units[np.arange(n) % draw(st.integers(1, n))]
+    elif kind == "flat":
+        units[:, draw(st.integers(0, 2))] = units[0, 0]
+    elif kind == "line":
+        direction = draw(arrays(np.int64, 3, elements=st.integers(-40, 40)))
+        units = units[:1] // 4 + np.arange(n)[:, None] * direction
+    elif kind == "clustered":
+        units[: n // 2] //= 256
+    return units, draw(st.integers(-30, 30))
+
+
+@st.composite
+def outside_cameras(draw, units: np.ndarray, count: int) -> np.ndarray:
+    """(V, 3) grid cameras outside the bounding box of ``units``: off one face by at least one unit."""
+    cameras = draw(arrays(np.int64, (count, 3), elements=st.integers(-8192, 8192)))
+    lo, hi = units.min(axis=0), units.max(axis=0)
+    for camera in cameras:
+        axis, gap = draw(st.integers(0, 2)), draw(st.integers(1, 8192))
+        camera[axis] = hi[axis] + gap if draw(st.booleans()) else lo[axis] - gap
+    return cameras
+
+
+def _world(units: np.ndarray, exponent: int) -> np.ndarray:
+    return units * 2.0 ** (exponent - UNIT)
+
+
+def _as_input(points: np.ndarray, form: str, dtype):
+    points = points.astype(dtype)
+    if form == "torch":
+        return torch.from_numpy(points)
+    if form == "open3d":
+        return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
+    if form == "open3d-tensor":
+        return o3d.t.geometry.PointCloud(o3d.core.Tensor(points))
+    return points
+
+
+def _probabilities(points, cameras) -> torch.Tensor:
+    return tiny_model().encode(points).probabilities(cameras)
+
+
+@given(grid_clouds(), st.data())
+@_settings(200)
+def test_any_cloud_gets_a_well_formed_answer(cloud, data):
+    COUNTS["well-formed answer"] += 1
+    units, exponent = cloud
+    views = data.draw(st.integers(1, 3))
+    cameras = _world(data.draw(outside_cameras(units, views)), exponent)
+    form = data.draw(st.sampled_from(["numpy", "torch", "open3d", "open3d-tensor"]))
+    dtype = data.draw(st.sampled_from([np.float64, np.float32]))
+    pcd = _as_input(_world(units, exponent), form, dtype)
+    n = len(units)
+    camera_form = data.draw(st.sampled_from(["numpy", "list", "torch", "open3d"]))
+    given_cameras = {"numpy": cameras, "list": cameras.tolist(), "torch": torch.from_numpy(cameras),
+                     "open3d": o3d.core.Tensor(cameras)}[camera_form]
+    field = tiny_model().encode(pcd)
+    mask = field.query(given_cameras)
+    probs = field.probabilities(given_cameras)
+    assert isinstance(mask, np.ndarray) and mask.dtype == bool and mask.shape == (views, n)
+    assert isinstance(probs, torch.Tensor) and probs.shape == (views, n) and probs.dtype == torch.float32
+    assert bool(((probs >= 0) & (probs <= 1)).all())
+    np.testing.assert_array_equal(mask, probs.numpy() > 0.5)
+    if form.startswith("open3d"):
+        mesh, pt_map = o3dvis.hidden_point_removal_neural(pcd, cameras[0], model=tiny_model())
+        index = np.asarray(pt_map if isinstance(pt_map, list) else pt_map.numpy())
+        np.testing.assert_array_equal(index, np.flatnonzero(mask[0]))
+        selected = o3dvis.select_visible(pcd, cameras[0], model=tiny_model())
+        count = len(selected.points) if form == "open3d" else len(selected.point.positions)
+        assert count == mask[0].sum()
+    fraction = data.draw(arrays(np.int64, 3, elements=st.integers(0, 2**20))) / 2**20
+    lo, hi = _world(units.min(axis=0), exponent), _world(units.max(axis=0), exponent)
+    inside = lo + (hi - lo) * fraction
+    with pytest.raises(ValueError, match="inside the bounding box"):
+        field.query(inside)
+
+
+@given(grid_clouds(), st.data())
+@_settings(150)
+def test_answer_does_not_depend_on_point_order(cloud, data):
+    COUNTS["point order"] += 1
+    units, exponent = cloud
+    cameras = _world(data.draw(outside_cameras(units, 2)), exponent)
+    order = np.asarray(data.draw(st.permutations(range(len(units)))), dtype=np.int64)
+    points = _world(units, exponent)
+    a = _probabilities(points, cameras)[:, order]
+    b = _probabilities(points[order], cameras)
+    torch.testing.assert_close(b, a, atol=1e-4, rtol=0)  # features sum points in another order
+    decided = (a - 0.5).abs() > 1e-3
+    assert torch.equal((a > 0.5)[decided], (b > 0.5)[decided])
+
+
+@given(grid_clouds(), st.data())
+@_settings(200)
+def test_moving_or_scaling_cloud_and_camera_together_changes_nothing(cloud, data):
+    COUNTS["translation and scale"] += 1
+    units, exponent = cloud
+    cameras = data.draw(outside_cameras(units, 2))
+    shift = data.draw(arrays(np.int64, 3, elements=st.integers(-2**26, 2**26)))
+    factor = data.draw(st.integers(-8, 8))
+    a = _probabilities(_world(units, exponent), _world(cameras, exponent))
+    b = _probabilities(_world(units + shift, exponent), _world(cameras + shift, exponent))
+    c = _probabilities(_world(units, exponent + factor), _world(cameras, exponent + factor))
+    assert torch.equal(a, b), f"moved by {_world(shift, exponent)}: max difference {(a - b).abs().max():.3g}"
+    assert torch.equal(a, c), f"scaled by 2^{factor}: max difference {(a - c).abs().max():.3g}"
+
+
+@given(grid_clouds(), st.data())
+@_settings(150)
+def test_repeated_points_share_an_answer_and_calls_repeat_exactly(cloud, data):
+    COUNTS["repeats and determinism"] += 1
+    units, exponent = cloud
+    copies = np.asarray(data.draw(st.lists(st.integers(0, len(units) - 1), min_size=1, max_size=10)))
+    units = np.concatenate([units, units[copies]])
+    points, cameras = _world(units, exponent), _world(data.draw(outside_cameras(units, 2)), exponent)
+    probs = _probabilities(points, cameras)
+    same = (units[:, None] == units[None]).all(axis=2)
+    first = same.argmax(axis=1)
+    # equal rows may round differently in the MLP's blocked matrix products: not bit for bit
+    torch.testing.assert_close(probs, probs[:, first], atol=1e-6, rtol=0)
+    again = o3dvis.NeuralVisibility(tiny_model().network).encode(points.copy())
+    assert torch.equal(again.probabilities(cameras.copy()), probs)
+    np.testing.assert_array_equal(again.query(cameras), probs.numpy() > 0.5)
+
+
+@given(grid_clouds(max_points=60), st.data())
+@_settings(300)
+def test_hpr_baselines_answer_any_cloud(cloud, data):
+    COUNTS["HPR baselines"] += 1
+    units, exponent = cloud
+    points = _world(units, exponent)
+    cameras = _world(data.draw(outside_cameras(units, data.draw(st.integers(1, 3)))), exponent)
+    diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) or 1.0
+    distance = np.linalg.norm(points[None] - cameras[:, None], axis=2)
+    nearest = distance == distance.min(axis=1, keepdims=True)
+    same = (units[:, None] == units[None]).all(axis=2).argmax(axis=1)
+    for mask in (o3dvis.hidden_point_removal_mask(points, cameras, diagonal * 100.0),
+                 o3dvis.exponential_hpr_mask(points, cameras, -0.01)):
+        assert mask.dtype == bool and mask.shape == (len(cameras), len(points))
+        np.testing.assert_array_equal(mask, mask[:, same])
+        assert mask[nearest].all(), "the point nearest to a camera is hidden"
+    with pytest.raises(ValueError, match="coincides"):
+        o3dvis.hidden_point_removal_mask(points, points[data.draw(st.integers(0, len(points) - 1))], diagonal)

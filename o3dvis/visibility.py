@@ -4,7 +4,9 @@ The network's U-Net runs once per cloud (:meth:`NeuralVisibility.encode`); each
 view then costs a depth-buffer pass and a small MLP over the points
 (:meth:`VisibilityField.query`). Cameras must lie outside the axis-aligned
 bounding box of the cloud (which also rules out a camera on a point); an
-orthographic ``direction`` has no such restriction.
+orthographic ``direction`` has no such restriction. A flat cloud (a plane, a
+line, coincident points) seen from off its plane or line hides nothing: there
+every point is visible, exactly, whatever the network says.
 """
 
 from __future__ import annotations
@@ -33,10 +35,23 @@ DEFAULT_CHUNK = 1 << 18
 
 _NORMALS_MODEL = "normals"
 _INSIDE_TOL = 1e-6
+_FLAT_TOL = 1e-9
 
 
 def _fmt(vector: Tensor) -> str:
     return "(" + ", ".join(f"{x:.6g}" for x in vector.detach().tolist()) + ")"
+
+
+def _flat_hull(points: Tensor) -> tuple[Tensor, Tensor] | None:
+    """Centre and orthonormal basis (rows) of the affine hull of a flat cloud; None for a 3-D one.
+
+    A cloud is flat when its third singular value (about its mean) is below ``_FLAT_TOL`` times
+    the first; the singular values come from the 3x3 R of a QR, so this is O(N) and accurate.
+    """
+    centre = points.mean(dim=0)
+    _, s, vt = torch.linalg.svd(torch.linalg.qr(points - centre, mode="r").R)
+    rank = int((s > _FLAT_TOL * s[0]).sum()) if s[0] > 0 else 0
+    return None if rank == 3 else (centre, vt[:rank])
 
 
 class VisibilityField:
@@ -45,11 +60,13 @@ class VisibilityField:
     Made by :meth:`NeuralVisibility.encode`. The features are computed once
     (without autograd); each query runs the per-view predictor only, in
     batches of views and chunks of points of at most ``chunk_size`` rows.
+    For a flat cloud (``hull``: centre and basis of its plane or line, in the
+    normalised frame), views from off that plane or line see every point.
     """
 
     def __init__(self, network: VisibilityNetwork, features: Tensor, points_n: Tensor,
                  normals: Tensor | None, center: Tensor, scale: Tensor, bounds: tuple[Tensor, Tensor],
-                 chunk_size: int = DEFAULT_CHUNK):
+                 chunk_size: int = DEFAULT_CHUNK, hull: tuple[Tensor, Tensor] | None = None):
         self.network = network
         self.features = features
         self.points_n = points_n
@@ -57,6 +74,7 @@ class VisibilityField:
         self.center, self.scale = center, scale
         self.bounds = bounds
         self.chunk_size = chunk_size
+        self.hull = hull
 
     @property
     def num_points(self) -> int:
@@ -93,9 +111,23 @@ class VisibilityField:
     def _view_inputs(self, camera: Tensor | None, direction: Tensor | None) -> tuple[Tensor, Tensor]:
         return self.network.view_inputs(self.points_n, camera, direction, self.normals)
 
+    def _off_the_hull(self, views: Views) -> Tensor | None:
+        """(V,) bool: the views from off the plane or line of a flat cloud (None for a 3-D cloud)."""
+        if self.hull is None:
+            return None
+        centre, basis = self.hull
+        if views.directions is not None:
+            offset, tol = views.directions.detach().to(self.device), _INSIDE_TOL
+        else:
+            lo, hi = self.bounds
+            offset = (views.positions.detach().to(self.device) - self.center) / self.scale - centre
+            tol = _INSIDE_TOL * (hi - lo).amax() / 2 / self.scale
+        return (offset - (offset @ basis.T) @ basis).norm(dim=1) > tol
+
     def _batches(self, views: Views) -> Iterator[tuple[slice, Tensor]]:
         """Yields ``(views slice, (v, N) probabilities)`` with frustum culling applied."""
         cameras, directions = self._normalised(views)
+        clear = self._off_the_hull(views)
         n, total = self.num_points, len(views)
         per_batch = max(1, self.chunk_size // n)
         step = min(n, self.chunk_size)
@@ -111,6 +143,8 @@ class VisibilityField:
                                                        cues[:, a:a + step])
                                 for a in range(0, n, step)], dim=1)
             probs = torch.sigmoid(logits[..., 1] - logits[..., 0])
+            if clear is not None:  # a flat cloud seen from off its plane or line hides nothing
+                probs = torch.where(clear[batch, None], torch.ones_like(probs), probs)
             masks = [(j, f.contains(self.points_n, self.center, self.scale))
                      for j, f in enumerate(views.frustums[batch]) if f is not None]
             if masks:
@@ -307,11 +341,13 @@ class NeuralVisibility:
         else:  # all points coincide: any scale maps them to the origin
             center, scale = lo, torch.ones((), dtype=points.dtype, device=points.device)
             points_n = points - center
+        hull = _flat_hull(points_n)  # in float64, where a flat cloud is flat to the last bits
         points_n = points_n.float()
         unit = None if unit is None else unit.to(self.device).float()
         with torch.no_grad():
             features = network.encode(points_n, normals=unit)
-        return VisibilityField(network, features, points_n, unit, center, scale, (lo, hi), self.chunk_size)
+        return VisibilityField(network, features, points_n, unit, center, scale, (lo, hi), self.chunk_size,
+                               hull)
 
 
 _CACHE: dict[tuple[str, str], NeuralVisibility] = {}

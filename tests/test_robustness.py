@@ -576,3 +576,28 @@ def test_ten_million_points(vis):
     assert mask.shape == (1, len(points)) and mask.dtype == bool
     truth = points @ camera > 1.0  # on the unit sphere, p is visible from c exactly when p . c > |p|^2
     assert (mask[0] == truth).mean() > 0.95
+
+
+def test_a_flat_cloud_is_all_visible_from_off_its_plane_and_left_to_the_network_in_it():
+    from o3dvis.nn import NetworkConfig, VisibilityNetwork
+
+    torch.manual_seed(1)
+    vis = o3dvis.NeuralVisibility(VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 8, 8, 8),
+                                                                  feature_channels=8, hidden=(16,))))
+    tilted = PLANE @ o3d.geometry.get_rotation_matrix_from_xyz([0.3, -0.7, 1.1]).T + [5.0, -2.0, 7.0]
+    noisy = tilted + 1e-13 * np.random.default_rng(0).normal(size=tilted.shape)
+    normal = np.cross(tilted[1] - tilted[0], tilted[12] - tilted[0])
+    normal /= np.linalg.norm(normal)
+    in_plane = tilted.mean(axis=0) + 3 * (tilted[-1] - tilted[0])
+    for cloud in (tilted, noisy):
+        field = vis.encode(cloud)
+        raw = o3dvis.VisibilityField(field.network, field.features, field.points_n, None, field.center,
+                                     field.scale, field.bounds)  # the same field without the flat rule
+        off = [tilted.mean(axis=0) + 4 * normal, tilted.mean(axis=0) - 5 * normal]
+        assert (field.probabilities(off) == 1).all() and not (raw.probabilities(off) == 1).all()
+        torch.testing.assert_close(field.probabilities(in_plane), raw.probabilities(in_plane), rtol=0, atol=0)
+        assert (field.probabilities(direction=normal) == 1).all()
+        torch.testing.assert_close(field.probabilities(direction=tilted[1] - tilted[0]),
+                                   raw.probabilities(direction=tilted[1] - tilted[0]), rtol=0, atol=0)
+    sphere = vis.encode(SPHERE)
+    assert sphere.hull is None and not (sphere.probabilities(CAMERA) == 1).all()

@@ -1,7 +1,7 @@
 """The demo: neural visibility against Open3D's HPR on the shipped sample, as pictures.
 
 The shipped sample is a procedural shape built at run time (no mesh file):
-five primitives -- two tori, a sphere, a cup and a plate -- wound through each
+five primitives -- two tori, a bowl, a cup and a plate -- wound through each
 other, so much of the surface hides behind other parts. Points are sampled on
 its surface; the camera sits at one bounding-box diagonal from the centre (the
 distance the network is trained at). Ground truth is ray-cast on the mesh.

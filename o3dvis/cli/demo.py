@@ -12,7 +12,7 @@ __all__ = ["register", "run"]
 _EXAMPLE = """example:
   o3dvis demo --out demo --points 20000
 
-The sample is a fixed procedural shape (two tori, a sphere, a cup and a plate
+The sample is a fixed procedural shape (two tori, a bowl, a cup and a plate
 wound through each other) built at run time; ground truth is ray-cast on it.
 Write negative coordinates with '=', e.g. --camera=-2,0,1."""
 

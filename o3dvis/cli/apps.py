@@ -9,7 +9,7 @@ from .visible import _vector
 
 __all__ = ["register"]
 
-_EPILOG = "Write negative coordinates with '=', e.g. --camera=-2,0,5.\n\nExample:\n  "
+_EPILOG = "Write negative coordinates with '=', e.g. --camera=-2,0,5.\n\nexample:\n  "
 
 
 def _add_method_flags(parser: argparse.ArgumentParser, choices=("neural", "hpr", "gt")) -> None:

@@ -24,7 +24,7 @@ def register(subparsers) -> None:
         "visible", help="keep the points of a cloud that a camera sees",
         description="Writes the points of INPUT visible from a camera position (or an orthographic "
                     "direction), with their colours and normals.",
-        epilog="Write negative coordinates with '=', e.g. --camera=-2,0,5.\n\nExample:\n"
+        epilog="Write negative coordinates with '=', e.g. --camera=-2,0,5.\n\nexample:\n"
                "  o3dvis visible scan.ply --camera 0,0,5 -o scan_visible.ply",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("input", help="point cloud file readable by Open3D (.ply, .pcd, .xyz, ...)")

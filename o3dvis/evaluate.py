@@ -246,8 +246,9 @@ def evaluate(files: list[Path], data_dir: str | Path, methods: dict[str, dict[st
         stored = _read_cache(cache, path) if cache else {}
         done = {name: stored[name] for name in cached if name in stored}
         counts = evaluate_sample(load_sample(path), methods, densities, noises, seed, views, done)
-        if cache:
-            _write_cache(cache, path, {**stored, **{n: counts[n] for n in cached if n in counts}})
+        fresh = {n: counts[n] for n in cached if n in counts and counts[n] != stored.get(n)}
+        if cache and fresh:
+            _write_cache(cache, path, {**stored, **fresh})
         out[path.name] = {"category": category_of(path, data_dir), "counts": counts}
     return out
 

@@ -207,10 +207,12 @@ def _read_cache(cache: Path, path: Path) -> dict:
     return data["counts"] if data.get("file") == [stat.st_size, stat.st_mtime_ns] else {}
 
 
-def _write_cache(cache: Path, path: Path, counts: dict) -> None:
+def _write_cache(cache: Path, path: Path, fresh: dict) -> None:
+    """Adds ``fresh`` results (whole methods) to the cache, re-read now: runs of other methods may share it."""
     stat = path.stat()
-    tmp = cache.with_suffix(".tmp")
-    tmp.write_text(json.dumps({"file": [stat.st_size, stat.st_mtime_ns], "counts": counts}))
+    tmp = cache.with_suffix(f".{os.getpid()}.tmp")
+    tmp.write_text(json.dumps({"file": [stat.st_size, stat.st_mtime_ns],
+                               "counts": {**_read_cache(cache, path), **fresh}}))
     os.replace(tmp, cache)
 
 
@@ -248,7 +250,7 @@ def evaluate(files: list[Path], data_dir: str | Path, methods: dict[str, dict[st
         counts = evaluate_sample(load_sample(path), methods, densities, noises, seed, views, done)
         fresh = {n: counts[n] for n in cached if n in counts and counts[n] != stored.get(n)}
         if cache and fresh:
-            _write_cache(cache, path, {**stored, **fresh})
+            _write_cache(cache, path, fresh)
         out[path.name] = {"category": category_of(path, data_dir), "counts": counts}
     return out
 

@@ -1,0 +1,123 @@
+"""Concurrency: forked DataLoader workers, threads sharing one model, repeated calls.
+
+Open3D's HPR has died inside DataLoader workers (Open3D #7233); o3dvis must work there, give
+the same answers as in the main process, be callable from several threads on one model, and
+give the same bits for the same call twice.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import open3d as o3d
+import pytest
+import torch
+
+import o3dvis
+from o3dvis.data import random_shape
+
+CLOUDS = 6
+POINTS = 1200
+
+
+def _cloud(i: int) -> o3d.geometry.PointCloud:
+    mesh = random_shape(np.random.default_rng(i), parts=2)
+    o3d.utility.random.seed(i)
+    return mesh.sample_points_uniformly(POINTS)
+
+
+def _camera(pcd: o3d.geometry.PointCloud, i: int) -> np.ndarray:
+    points = np.asarray(pcd.points)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    direction = np.random.default_rng(100 + i).normal(size=3)
+    return (lo + hi) / 2 + np.linalg.norm(hi - lo) * direction / np.linalg.norm(direction)
+
+
+@pytest.fixture(scope="module")
+def vis() -> o3dvis.NeuralVisibility:
+    """The shipped model, loaded once; one intra-op thread per caller (the machine is shared, and
+    two OpenMP threads on two busy cores are 30x slower than one)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield o3dvis.NeuralVisibility.pretrained()
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    clouds = [_cloud(i) for i in range(CLOUDS)]
+    return clouds, [_camera(c, i) for i, c in enumerate(clouds)]
+
+
+class VisibleDataset(torch.utils.data.Dataset):
+    """Each item runs the drop-in, select_visible and Open3D's HPR (through the baseline) on one cloud."""
+
+    def __init__(self, clouds, cameras, model):
+        self.clouds, self.cameras, self.model = clouds, cameras, model
+
+    def __len__(self) -> int:
+        return len(self.clouds)
+
+    def __getitem__(self, i: int):
+        pcd, camera = self.clouds[i], self.cameras[i]
+        _, pt_map = o3dvis.hidden_point_removal_neural(pcd, camera, model=self.model)
+        selected = np.asarray(o3dvis.select_visible(pcd, camera, model=self.model).points)
+        points = np.asarray(pcd.points)
+        hpr = o3dvis.hidden_point_removal_mask(points, camera, 100 * np.linalg.norm(np.ptp(points, axis=0)))[0]
+        return torch.tensor(pt_map), torch.from_numpy(selected), torch.from_numpy(hpr)
+
+
+def _load(dataset, workers: int) -> list:
+    loader = torch.utils.data.DataLoader(dataset, batch_size=None, num_workers=workers,
+                                         multiprocessing_context="fork" if workers else None,
+                                         timeout=120 if workers else 0)
+    return list(loader)
+
+
+@pytest.mark.parametrize("model", ["shared", "default"])
+def test_forked_dataloader_workers_give_the_main_process_answers(vis, scenes, model):
+    """The model loaded before the fork (shared) or inside each worker (model=None)."""
+    dataset = VisibleDataset(*scenes, vis if model == "shared" else None)
+    main = _load(dataset, 0)
+    forked = _load(dataset, 2)
+    assert len(forked) == CLOUDS
+    for (pt_map, selected, hpr), (pt_map2, selected2, hpr2), pcd in zip(main, forked, scenes[0]):
+        assert 0 < len(pt_map) < POINTS
+        torch.testing.assert_close(pt_map2, pt_map, rtol=0, atol=0)
+        torch.testing.assert_close(selected2, selected, rtol=0, atol=0)
+        np.testing.assert_array_equal(selected.numpy(), np.asarray(pcd.points)[pt_map.numpy()])
+        torch.testing.assert_close(hpr2, hpr, rtol=0, atol=0)
+        assert 0 < hpr.float().mean() < 1
+
+
+def test_threads_sharing_one_model_give_the_sequential_answers(vis, scenes):
+    clouds, cameras = scenes
+    fields = [vis.encode(c) for c in clouds]
+    calls = []
+    for i, (pcd, camera, field) in enumerate(zip(clouds, cameras, fields)):
+        others = np.stack([_camera(pcd, 10 + i + k) for k in range(3)])
+        calls += [lambda pcd=pcd, camera=camera: o3dvis.hidden_point_removal_neural(pcd, camera, model=vis)[1],
+                  lambda pcd=pcd, camera=camera: np.asarray(o3dvis.select_visible(pcd, camera, model=vis).points),
+                  lambda field=field, others=others: field.query(others),
+                  lambda pcd=pcd, others=others: vis.encode(pcd).probabilities(others).numpy(),
+                  lambda pcd=pcd, camera=camera: o3dvis.hidden_point_removal_neural(pcd, camera)[1]]
+    sequential = [call() for call in calls]
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        concurrent = list(pool.map(lambda call: call(), calls * 2))
+    for expected, got in zip(sequential * 2, concurrent):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(expected))
+
+
+def test_the_same_call_twice_gives_the_same_bits(vis, scenes):
+    clouds, cameras = scenes
+    pcd, camera = clouds[0], cameras[0]
+    first = o3dvis.hidden_point_removal_neural(pcd, camera, model=vis)[1]
+    assert first == o3dvis.hidden_point_removal_neural(pcd, camera, model=vis)[1]
+    fresh = o3dvis.NeuralVisibility.pretrained()  # a second load of the shipped weights
+    assert first == o3dvis.hidden_point_removal_neural(pcd, camera, model=fresh)[1]
+    cameras_all = np.stack(cameras)
+    a = vis.encode(pcd).probabilities(cameras_all)
+    b = vis.encode(o3d.geometry.PointCloud(pcd)).probabilities(cameras_all.copy())
+    assert torch.equal(a, b)
+    np.testing.assert_array_equal(vis.encode(pcd).query(cameras_all), a.numpy() > 0.5)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import zipfile
 import zlib
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -97,7 +98,7 @@ def load_sample(path: str | Path) -> Sample:
             n = int(f["num_points"])
             vis = np.unpackbits(f["visibility"], axis=1, count=n).astype(bool)
             return Sample(f["points"], f["normals"], f["cameras"], vis, path.stem)
-    except (OSError, KeyError, ValueError, zlib.error, EOFError) as e:
+    except (OSError, KeyError, ValueError, zlib.error, EOFError, zipfile.BadZipFile) as e:
         raise ValueError(f"{path}: not a readable o3dvis sample ({e})") from e
 
 

@@ -1,8 +1,11 @@
 """Training loop: CPU or CUDA, several GPUs with DDP under ``torchrun``, resumable.
 
-A run directory holds ``last.safetensors`` + ``last_state.pt`` (optimizer,
-schedule, step; loaded with ``weights_only=True``), ``best.safetensors`` (best
-validation accuracy so far) and ``log.jsonl``.
+A run directory holds ``last.safetensors`` + ``last_state.pt`` (weights,
+optimizer, schedule, step; loaded with ``weights_only=True``), ``best.safetensors``
+(best validation accuracy so far) and ``log.jsonl``. Checkpoints are written to a
+temporary file and renamed, and ``last_state.pt`` alone is what a resume reads, so
+a run killed at any moment resumes from its last complete checkpoint; log records
+past that checkpoint are dropped then (the resumed run writes them again).
 """
 
 from __future__ import annotations
@@ -131,6 +134,27 @@ class _Encoder(torch.nn.Module):
         return self.net.predict(*args, **kwargs)
 
 
+def _atomic(path: Path, write) -> None:
+    """Calls ``write(tmp)`` and renames ``tmp`` to ``path``: a kill leaves the old file or the new one."""
+    tmp = path.with_name(path.name + ".tmp")
+    write(tmp)
+    os.replace(tmp, path)
+
+
+def _truncate_log(path: Path, step: int) -> None:
+    """Keeps the records of ``log.jsonl`` up to ``step`` (a record cut short by a kill goes too)."""
+    if not path.exists():
+        return
+    kept = []
+    for line in path.read_text().splitlines():
+        try:
+            if json.loads(line).get("step", 0) <= step:
+                kept.append(line + "\n")
+        except json.JSONDecodeError:
+            continue
+    _atomic(path, lambda tmp: tmp.write_text("".join(kept)))
+
+
 def _files(dirs: list[str]) -> list[Path]:
     files = sorted(p for d in dirs for p in Path(d).glob("*.npz") if not p.name.endswith(".tmp.npz"))
     if not files:
@@ -152,6 +176,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
         if device.type == "cuda":
             device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
             torch.cuda.set_device(device)
+    files, val_files = _files(cfg.data), (_files([cfg.val]) if cfg.val else [])
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
@@ -167,10 +192,13 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
     start, best = 0, -1.0
     if (out / "last_state.pt").exists():
         state = torch.load(out / "last_state.pt", map_location=device, weights_only=True)
-        net.load_state_dict(VisibilityNetwork.load(out / "last.safetensors", device).state_dict())
+        net.load_state_dict(state["model"] if "model" in state else  # runs from before weights were in it
+                            VisibilityNetwork.load(out / "last.safetensors", device).state_dict())
         opt.load_state_dict(state["optimizer"])
         sched.load_state_dict(state["scheduler"])
         start, best = int(state["step"]), float(state["best"])
+        if rank == 0:
+            _truncate_log(out / "log.jsonl", start)
     elif cfg.init:
         from safetensors.torch import load_file
 
@@ -181,12 +209,11 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
     if world > 1:
         model = torch.nn.parallel.DistributedDataParallel(model, find_unused_parameters=False)
 
-    data = VisibilityDataset(_files(cfg.data), Augmentation(**cfg.augmentation),
+    data = VisibilityDataset(files, Augmentation(**cfg.augmentation),
                              seed=cfg.seed * 1000 + rank, length=cfg.steps * cfg.batch_size)
     items = torch.utils.data.Subset(data, range(start * cfg.batch_size, len(data)))
     loader = torch.utils.data.DataLoader(items, batch_size=cfg.batch_size, collate_fn=collate,
                                          num_workers=cfg.workers)
-    val_files = _files([cfg.val]) if cfg.val else []
     log = open(out / "log.jsonl", "a") if rank == 0 else None
     bar = tqdm(total=cfg.steps, initial=start, disable=not progress or rank != 0, desc="train")
     net.train()
@@ -199,8 +226,9 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
         opt.step()
         sched.step()
         run_loss, run_acc = 0.98 * run_loss + 0.02 * loss.item(), 0.98 * run_acc + 0.02 * acc
+        debias = 1 - 0.98 ** (step - start)  # running means start at zero
         bar.update(1)
-        bar.set_postfix(loss=f"{run_loss:.3f}", acc=f"{run_acc:.3f}")
+        bar.set_postfix(loss=f"{run_loss / debias:.3f}", acc=f"{run_acc / debias:.3f}")
         if rank != 0:
             continue
         if step % cfg.log_every == 0:
@@ -211,14 +239,15 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
             record = {"step": step, "time": time.time() - t0}
             if val_files:
                 record["val_acc"] = validate(net, val_files, cfg.val_points, cfg.val_views)
-                if record["val_acc"] > best:
-                    best = record["val_acc"]
-                    net.save(out / "best.safetensors", {"step": step, "val_acc": best})
-            net.save(out / "last.safetensors", {"step": step})
-            torch.save({"optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-                        "step": step, "best": best}, out / "last_state.pt")
-            log.write(json.dumps(record) + "\n")
+            log.write(json.dumps(record) + "\n")  # before the checkpoint: a resume drops it if need be
             log.flush()
+            if val_files and record["val_acc"] > best:
+                best = record["val_acc"]
+                _atomic(out / "best.safetensors", lambda tmp: net.save(tmp, {"step": step, "val_acc": best}))
+            _atomic(out / "last.safetensors", lambda tmp: net.save(tmp, {"step": step}))
+            _atomic(out / "last_state.pt", lambda tmp: torch.save(
+                {"model": net.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+                 "step": step, "best": best}, tmp))
             bar.write(json.dumps(record))
     bar.close()
     if world > 1:

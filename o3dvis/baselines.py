@@ -218,7 +218,7 @@ def exponential_method(gamma: float) -> Method:
 
 SWEEPS: dict[str, tuple[str, Callable[[float], Method], tuple[float, ...]]] = {
     "hpr": ("k", hpr_method, (1.5, 2.0, 2.5, 3.0, 3.5)),
-    "hpr-exp": ("gamma", exponential_method, (-0.001, -0.003, -0.01, -0.03)),
+    "hpr-exp": ("gamma", exponential_method, (-0.0003, -0.001, -0.003, -0.01)),
 }
 
 

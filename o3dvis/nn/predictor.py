@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 __all__ = ["ViewEmbedding", "VisibilityPredictor"]
@@ -57,5 +58,11 @@ class VisibilityPredictor(nn.Module):
         return self.project_feature(features)
 
     def forward(self, projected: Tensor, dirs: Tensor, cues: Tensor) -> Tensor:
-        """(..., N, E) projected features, (..., N, 3) directions, (..., N, Z) cues -> (..., N, 2)."""
-        return self.mlp(torch.cat([projected * self.embedding(dirs), cues], dim=-1))
+        """(..., N, E) projected features, (..., N, 3) directions, (..., N, Z) cues -> (..., N, 2).
+
+        The first layer sees ``[projected * embedding, cues]``; its weight is
+        applied in two parts so that the concatenation is never built.
+        """
+        first, e = self.mlp[0], self.embedding.dim
+        x = F.linear(projected * self.embedding(dirs), first.weight[:, :e], first.bias)
+        return self.mlp[1:](x + F.linear(cues, first.weight[:, e:]))

@@ -106,7 +106,9 @@ class Timed:
     """Wraps a visibility method and adds up the seconds spent in it."""
 
     def __init__(self, method):
-        self.method, self.seconds = method, 0.0
+        from o3dvis.apps.methods import resolve_method
+
+        self.method, self.seconds = resolve_method(method), 0.0
 
     def __call__(self, points, cameras):
         start = time.perf_counter()

@@ -30,8 +30,8 @@ import time
 import numpy as np
 import open3d as o3d
 
-from mesh_bench import (Timed, add_common_flags, command_line, load_mesh, markdown, mesh_subset,
-                        method_label, open3d_normals, sample, visibility_method)
+from mesh_bench import (Timed, add_common_flags, command_line, emit_report, load_mesh, markdown,
+                        mesh_subset, method_label, open3d_normals, sample, visibility_method)
 from o3dvis.apps.normals import estimate_normals_neural, orient_normals_neural
 from o3dvis.data.groundtruth import sample_viewpoints, visibility_from_mesh
 
@@ -122,12 +122,7 @@ def main() -> int:
                                  vis=vis_seconds)
             records.append(row)
             print(" | ".join(_row(row)), flush=True)
-    report = _report(records, sizes, args)
-    print("\n" + report)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(report + "\n")
-    return 0
+    return emit_report(_report(records, sizes, args), args.out)
 
 
 def _cell(r: dict) -> list[str]:

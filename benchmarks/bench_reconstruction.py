@@ -24,8 +24,8 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from mesh_bench import (Timed, add_common_flags, command_line, load_mesh, markdown, mesh_subset,
-                        method_label, open3d_normals, sample, visibility_method)
+from mesh_bench import (Timed, add_common_flags, command_line, emit_report, load_mesh, markdown,
+                        mesh_subset, method_label, open3d_normals, sample, visibility_method)
 from o3dvis.apps.reconstruction import reconstruct_poisson
 
 EVAL_POINTS = 30_000
@@ -89,12 +89,7 @@ def main() -> int:
             records.append(record)
             rows.append(_row(record))
             print(" | ".join(rows[-1]), flush=True)
-    report = _report(records, rows, sizes, args)
-    print("\n" + report)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(report + "\n")
-    return 0
+    return emit_report(_report(records, rows, sizes, args), args.out)
 
 
 def _cells(result: tuple) -> list[str]:

@@ -102,6 +102,15 @@ def method_label(args: argparse.Namespace) -> str:
     return f"{method}, {args.views} views + {args.refine_views} refinement views"
 
 
+def emit_report(report: str, out) -> int:
+    """Prints a benchmark's report and writes it to ``out`` (a Path) when given; returns 0."""
+    print("\n" + report)
+    if out:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(report + "\n")
+    return 0
+
+
 class Timed:
     """Wraps a visibility method and adds up the seconds spent in it."""
 

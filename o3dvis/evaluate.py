@@ -27,6 +27,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .baselines import Method
+from .data.noise import add_noise, diagonal
 from .data.prepare import Sample, load_sample
 
 __all__ = ["Counts", "list_samples", "category_of", "subsample_indices", "add_noise", "EvalCloud", "eval_cloud",
@@ -111,15 +112,6 @@ def subsample_indices(num_total: int, num_points: int, seed: int, name: str) -> 
     return np.sort(_rng(seed, name, num_points).choice(num_total, num_points, replace=False))
 
 
-def add_noise(points: np.ndarray, level: float, scale: float, rng: np.random.Generator) -> np.ndarray:
-    """Moves each point in a random direction by a distance uniform in [0, level * scale]."""
-    if level < 0:
-        raise ValueError(f"noise level must be >= 0, got {level}")
-    direction = rng.normal(size=points.shape)
-    direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-300)
-    return points + direction * (level * scale * rng.random((len(points), 1)))
-
-
 class EvalCloud(NamedTuple):
     """What a method is scored on: points, cameras, true labels, and the points' normals."""
 
@@ -146,8 +138,8 @@ def eval_cloud(sample: Sample, num_points: int, noise: float, seed: int = 0,
     idx = subsample_indices(len(sample.points), num_points, seed, sample.name)
     points = sample.points[idx].astype(np.float64)
     if noise:
-        diagonal = float(np.linalg.norm(sample.points.max(axis=0) - sample.points.min(axis=0)))
-        points = add_noise(points, noise, diagonal, _rng(seed, sample.name, num_points, round(noise * 1e6)))
+        rng = _rng(seed, sample.name, num_points, round(noise * 1e6))
+        points = add_noise(points, noise, diagonal(sample.points), rng)
     views = len(sample.cameras) if views is None else views
     if not 1 <= views <= len(sample.cameras):
         raise ValueError(f"{sample.name} has {len(sample.cameras)} viewpoints, {views} were asked for")

@@ -98,7 +98,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--min-points", type=int, default=2048, help="smallest subsample per cloud (default 2048)")
     p.add_argument("--max-points", type=int, default=16384, help="largest subsample per cloud (default 16384)")
     p.add_argument("--views", type=int, default=4, help="viewpoints per cloud and step")
-    p.add_argument("--noise", type=float, default=0.02, help="largest noise, share of bbox size")
+    p.add_argument("--noise", type=float, default=0.02, help="largest noise level, share of the bbox diagonal")
     p.add_argument("--noise-prob", type=float, default=0.5, help="share of clouds that get noise (default 0.5)")
     p.add_argument("--normals", action="store_true", help="train a model that takes normals")
     p.add_argument("--depth", type=int, help="octree depth (default: the network's)")

@@ -10,9 +10,10 @@ import torch
 from torch import Tensor
 
 from ..nn.octree import normalize_points
+from .noise import add_noise, diagonal
 from .prepare import Sample, load_sample
 
-__all__ = ["Augmentation", "VisibilityDataset", "random_rotation", "add_noise", "Batch", "collate"]
+__all__ = ["Augmentation", "VisibilityDataset", "random_rotation", "Batch", "collate"]
 
 
 @dataclass
@@ -22,7 +23,7 @@ class Augmentation:
     Args:
         min_points, max_points: range of the subsample size (log-uniform).
         views: viewpoints drawn per cloud.
-        noise: largest noise magnitude, relative to the bounding-box size.
+        noise: largest noise level, a fraction of the bounding-box diagonal (see ``add_noise``).
         noise_prob: share of clouds that get noise.
         rotate: apply a uniform random rotation.
     """
@@ -42,12 +43,6 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     if np.linalg.det(q) < 0:
         q[:, 0] *= -1
     return q
-
-
-def add_noise(points: np.ndarray, magnitude: float, rng: np.random.Generator) -> np.ndarray:
-    """Uniform noise in [-m, m]^3 with m = ``magnitude`` x the largest bounding-box side."""
-    size = float((points.max(axis=0) - points.min(axis=0)).max())
-    return points + rng.uniform(-1, 1, size=points.shape) * magnitude * size
 
 
 @dataclass
@@ -116,7 +111,7 @@ class VisibilityDataset(torch.utils.data.Dataset):
             rot = random_rotation(rng)
             points, normals, cameras = points @ rot.T, normals @ rot.T, cameras @ rot.T
         if a.noise > 0 and rng.random() < a.noise_prob:
-            points = add_noise(points, rng.uniform(0, a.noise), rng)
+            points = add_noise(points, rng.uniform(0, a.noise), diagonal(points), rng)
         pts, center, scale = normalize_points(torch.from_numpy(points))
         cams = (torch.from_numpy(cameras.astype(np.float64)) - center) / scale
         return (pts.float(), torch.from_numpy(np.ascontiguousarray(normals)).float(), cams.float(),

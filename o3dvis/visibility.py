@@ -30,8 +30,8 @@ from .nn.octree import normalize_points
 __all__ = ["NeuralVisibility", "VisibilityField", "hidden_point_removal_neural", "select_visible",
            "register", "DEFAULT_CHUNK"]
 
-DEFAULT_CHUNK = 1 << 18
-"""Rows (views x points) that one MLP call processes at most."""
+DEFAULT_CHUNK = 1 << 15
+"""Rows (views x points) that one predictor call processes at most: small enough for the cache."""
 
 _NORMALS_MODEL = "normals"
 _INSIDE_TOL = 1e-6
@@ -108,9 +108,6 @@ class VisibilityField:
                              "use direction= for a camera at infinity")
         return cameras, None
 
-    def _view_inputs(self, camera: Tensor | None, direction: Tensor | None) -> tuple[Tensor, Tensor]:
-        return self.network.view_inputs(self.points_n, camera, direction, self.normals)
-
     def _off_the_hull(self, views: Views) -> Tensor | None:
         """(V,) bool: the views from off the plane or line of a flat cloud (None for a 3-D cloud)."""
         if self.hull is None:
@@ -133,15 +130,18 @@ class VisibilityField:
         step = min(n, self.chunk_size)
         for start in range(0, total, per_batch):
             batch = slice(start, min(total, start + per_batch))
-            inputs = [self._view_inputs(None if cameras is None else cameras[i],
-                                        None if directions is None else directions[i])
-                      for i in range(batch.start, batch.stop)]
-            dirs = torch.stack([d for d, _ in inputs]) if len(inputs) > 1 else inputs[0][0][None]
-            cues = torch.stack([c for _, c in inputs]) if len(inputs) > 1 else inputs[0][1][None]
-            del inputs
-            logits = torch.cat([self.network.predictor(self.features[a:a + step], dirs[:, a:a + step],
-                                                       cues[:, a:a + step])
-                                for a in range(0, n, step)], dim=1)
+            projections = [self.network.view(self.points_n, None if cameras is None else cameras[i],
+                                       None if directions is None else directions[i])
+                     for i in range(batch.start, batch.stop)]
+            chunks = []
+            for a in range(0, n, step):  # cache-sized chunks of points
+                rows = slice(a, a + step)
+                inputs = [self.network.view_inputs(view, rows, self.normals) for view in projections]
+                dirs, cues = ((inputs[0][0][None], inputs[0][1][None]) if len(inputs) == 1 else
+                              (torch.stack([d for d, _ in inputs]), torch.stack([c for _, c in inputs])))
+                chunks.append(self.network.predictor(self.features[rows], dirs, cues))
+            del projections
+            logits = torch.cat(chunks, dim=1)
             probs = torch.sigmoid(logits[..., 1] - logits[..., 0])
             if clear is not None:  # a flat cloud seen from off its plane or line hides nothing
                 probs = torch.where(clear[batch, None], torch.ones_like(probs), probs)

@@ -6,8 +6,9 @@ import torch
 import torch.nn.functional as F
 
 from o3dvis.nn import (NetworkConfig, Octree, OctreeConv, OctreeDownsample, OctreeUpsample,
-                       VisibilityNetwork, ViewEmbedding, morton_decode, morton_encode,
+                       VisibilityNetwork, ViewEmbedding, VisibilityPredictor, morton_decode, morton_encode,
                        normalize_points, octree_interpolate, view_cues)
+from o3dvis.nn.cues import ViewProjection
 from o3dvis.nn import octree as octree_module
 
 
@@ -121,9 +122,19 @@ def test_interpolation_is_convex_and_exact_at_centres():
 
 def test_embedding_matches_direct_sinusoids():
     d = torch.nn.functional.normalize(torch.randn(100, 3, dtype=torch.float64), dim=1)
-    emb = ViewEmbedding(6)(d)
+    emb = ViewEmbedding(6)(d.T)  # channels first
     ref = [d] + [f(2**k * torch.pi * d) for k in range(6) for f in (torch.sin, torch.cos)]
-    torch.testing.assert_close(emb, torch.cat(ref, dim=1))
+    torch.testing.assert_close(emb, torch.cat(ref, dim=1).T)
+
+
+def test_predictor_equals_the_plain_mlp_on_the_concatenation():
+    torch.manual_seed(0)
+    pred = VisibilityPredictor(8, num_frequencies=3, num_cues=5, hidden=(16, 12)).double()
+    projected = torch.randn(2, 50, pred.embedding.dim, dtype=torch.float64)
+    dirs = torch.nn.functional.normalize(torch.randn(2, 50, 3, dtype=torch.float64), dim=-1)
+    cues = torch.randn(2, 50, 5, dtype=torch.float64)
+    emb = pred.embedding(dirs.transpose(-1, -2)).transpose(-1, -2)
+    torch.testing.assert_close(pred(projected, dirs, cues), pred.mlp(torch.cat([projected * emb, cues], dim=-1)))
 
 
 def test_view_cues_flag_the_far_side_of_a_sphere():
@@ -142,6 +153,20 @@ def test_view_cues_flag_the_far_side_of_a_sphere():
     assert (cues[~visible, 4] == 0).float().mean() > 0.2
     # an empty neighbour pixel is marked as such: the corners of the image are empty
     assert (cues == -5.0).any()
+
+
+def test_view_cues_same_in_chunks_and_with_or_without_autograd():
+    torch.manual_seed(0)
+    p = torch.nn.functional.normalize(torch.randn(5000, 3), dim=1) * torch.rand(5000, 1)
+    cam = torch.tensor([2.0, 1.0, -0.5], requires_grad=True)
+    view = ViewProjection(p, cam)
+    full = view.cues()
+    full.sum().backward()  # the autograd path is differentiable end to end
+    assert torch.isfinite(cam.grad).all()
+    with torch.inference_mode():  # the in-place path
+        fast = ViewProjection(p, cam.detach())
+        chunks = torch.cat([fast.cues(slice(a, a + 1234)) for a in range(0, 5000, 1234)])
+    torch.testing.assert_close(chunks, full.detach(), atol=1e-5, rtol=0)
 
 
 def test_view_cues_orthographic_direction():

@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["view_cues", "num_cues", "DEFAULT_SCALES"]
+__all__ = ["ViewProjection", "view_cues", "num_cues", "DEFAULT_SCALES"]
 
 DEFAULT_SCALES = (1, 2, 4, 8)
 
@@ -31,6 +31,12 @@ def _asinh(x: Tensor) -> Tensor:
     """``asinh`` from vectorised ``log``/``sqrt`` (torch's CPU ``asinh`` is several times slower)."""
     a = x.abs()
     return torch.copysign(torch.log(a + torch.sqrt(a * a + 1)), x)
+
+
+def _asinh_(x: Tensor) -> Tensor:
+    """:func:`_asinh` with in-place steps: no autograd, fewer allocations."""
+    a = x.abs()
+    return torch.mul(a, a).add_(1).sqrt_().add_(a).log_().copysign_(x)
 
 
 def num_cues(scales: Sequence[int] = DEFAULT_SCALES) -> int:
@@ -47,9 +53,13 @@ def _frame(forward: Tensor) -> tuple[Tensor, Tensor]:
     return right, torch.linalg.cross(forward, right)
 
 
-def view_cues(points: Tensor, camera: Tensor | None = None, direction: Tensor | None = None,
-              scales: Sequence[int] = DEFAULT_SCALES) -> tuple[Tensor, Tensor]:
-    """View directions and depth-buffer cues of ``points`` for one viewpoint.
+class ViewProjection:
+    """One viewpoint's projection of a cloud: view directions and multi-scale depth buffers.
+
+    Built once per view in linear time; :meth:`cues` then assembles the cues of
+    any rows of points, so that a caller can stream a large cloud through the
+    predictor in cache-sized chunks. Differentiable in the camera (the pixel
+    assignment itself is piecewise constant).
 
     Args:
         points: (N, 3) points (normalised coordinates).
@@ -58,47 +68,74 @@ def view_cues(points: Tensor, camera: Tensor | None = None, direction: Tensor | 
         scales: pixel sizes of the depth buffers, in multiples of the finest
             one, whose resolution is ``ceil(sqrt(N))`` pixels a side.
 
-    Returns:
-        ``(dirs, cues)``: (N, 3) unit vectors from the camera to the points and
-        (N, 9 * len(scales)) cues: ``asinh`` of the depth residual to each of
-        the 3x3 pixels around the point's own, in pixel footprints, or
-        ``_EMPTY`` where that pixel is empty. Both are differentiable in
-        ``camera`` (the pixel assignment itself is piecewise constant).
+    Attributes:
+        dirs: (N, 3) unit vectors from the camera to the points.
     """
-    if (camera is None) == (direction is None):
-        raise ValueError("give exactly one of camera and direction")
-    if direction is None:
-        offset = points - camera
-        depth = offset.norm(dim=1).clamp_min(1e-12)
-        dirs = offset / depth[:, None]
-        mean_dir = dirs.detach().mean(dim=0)
-        forward = (mean_dir / mean_dir.norm().clamp_min(1e-12)).to(points.dtype)
-        right, up = _frame(forward)
-        a, b, z = dirs @ right, dirs @ up, dirs @ forward
-        s = torch.sqrt(a * a + b * b + 1e-24)
-        k = torch.atan2(s, z) / s
-        u, v = a * k, b * k
-        footprint = depth
-    else:
-        forward = direction / direction.norm()
-        right, up = _frame(forward)
-        dirs = forward.expand_as(points)
-        u, v, depth = points @ right, points @ up, points @ forward
-        footprint = torch.ones_like(depth)
-    half = torch.maximum(u.detach().abs().amax(), v.detach().abs().amax()) * (1 + 1e-6) + 1e-12
-    finest = max(4, math.ceil(math.sqrt(points.shape[0])))
-    cues = depth.new_empty(points.shape[0], 9 * len(scales))
-    for i, scale in enumerate(scales):
-        res = max(2, math.ceil(finest / scale))
-        pixel = 2 * half / res
-        iu = ((u.detach() + half) / pixel).long().clamp_(0, res - 1)
-        iv = ((v.detach() + half) / pixel).long().clamp_(0, res - 1)
-        zbuf = depth.new_full((res * res,), float("inf")).scatter_reduce(0, iu * res + iv, depth, "amin")
-        padded = F.pad(zbuf.view(1, 1, res, res), (1, 1, 1, 1), value=float("inf")).view(-1)
-        patch = torch.tensor([du * (res + 2) + dv for du in (-1, 0, 1) for dv in (-1, 0, 1)],
-                             device=points.device)
-        near = padded[((iu + 1) * (res + 2) + iv + 1)[:, None] + patch]
-        found = torch.isfinite(near)
-        residual = (depth[:, None] - torch.where(found, near, depth[:, None])) / (pixel * footprint)[:, None]
-        cues[:, 9 * i:9 * i + 9] = torch.where(found, _asinh(residual.clamp(-50, 50)), _EMPTY)
-    return dirs, cues
+
+    def __init__(self, points: Tensor, camera: Tensor | None = None, direction: Tensor | None = None,
+                 scales: Sequence[int] = DEFAULT_SCALES):
+        if (camera is None) == (direction is None):
+            raise ValueError("give exactly one of camera and direction")
+        if direction is None:
+            offset = points - camera
+            depth = offset.norm(dim=1).clamp_min(1e-12)
+            dirs = offset / depth[:, None]
+            mean_dir = dirs.detach().mean(dim=0)
+            forward = (mean_dir / mean_dir.norm().clamp_min(1e-12)).to(points.dtype)
+            right, up = _frame(forward)
+            a, b, z = dirs @ right, dirs @ up, dirs @ forward
+            s = torch.sqrt(a * a + b * b + 1e-24)
+            k = torch.atan2(s, z) / s
+            u, v = (a * k).detach(), (b * k).detach()
+            footprint = depth
+        else:
+            forward = direction / direction.norm()
+            right, up = _frame(forward)
+            dirs = forward.expand_as(points)
+            u, v, depth = (points @ right).detach(), (points @ up).detach(), points @ forward
+            footprint = torch.ones_like(depth)
+        half = torch.maximum(u.abs().amax(), v.abs().amax()) * (1 + 1e-6) + 1e-12
+        finest = max(4, math.ceil(math.sqrt(points.shape[0])))
+        self.dirs, self.depth = dirs, depth
+        self.pixels, self.patches = [], []
+        for scale in scales:
+            res = max(2, math.ceil(finest / scale))
+            pixel = 2 * half / res
+            iu = ((u + half) / pixel).long().clamp_(0, res - 1)
+            iv = ((v + half) / pixel).long().clamp_(0, res - 1)
+            self.pixels.append(iu.mul_(res).add_(iv))
+            zbuf = depth.new_full((res * res,), float("inf")).scatter_reduce(0, self.pixels[-1], depth, "amin")
+            zbuf = torch.where(torch.isinf(zbuf), float("nan"), zbuf).view(1, 1, res, res)
+            # the 3x3 neighbourhood of every pixel, NaN where a pixel is empty or off the image
+            padded = F.pad(zbuf, (1, 1, 1, 1), value=float("nan"))
+            self.patches.append(padded.unfold(2, 3, 1).unfold(3, 3, 1).reshape(res * res, 9))
+        # -1 / (pixel size x footprint): the scale of a depth residual, (N, S, 1)
+        pixel_sizes = 2 * half / torch.tensor([max(2, math.ceil(finest / s)) for s in scales],
+                                              dtype=depth.dtype, device=depth.device)
+        self.inv_footprint = (-1 / (footprint[:, None] * pixel_sizes))[:, :, None]
+
+    def cues(self, rows: slice = slice(None)) -> Tensor:
+        """(n, 9 * len(scales)) cues of ``points[rows]``.
+
+        For each scale, ``asinh`` of the point's depth residual to each of the
+        3x3 pixels around its own, in pixel footprints (clamped to +-50), or
+        ``_EMPTY`` where that pixel is empty.
+        """
+        near = torch.stack([patch.index_select(0, pixel[rows])
+                            for patch, pixel in zip(self.patches, self.pixels)], dim=1)
+        depth, inv = self.depth[rows, None, None], self.inv_footprint[rows]
+        if torch.is_grad_enabled():  # out of place, and no NaN through which to back-propagate
+            empty = torch.isnan(near)
+            residual = ((torch.where(empty, depth, near) - depth) * inv).clamp(-50, 50)
+            return torch.where(empty, _EMPTY, _asinh(residual)).flatten(1)
+        return _asinh_(near.sub_(depth).mul_(inv).clamp_(-50, 50)).nan_to_num_(_EMPTY).flatten(1)
+
+
+def view_cues(points: Tensor, camera: Tensor | None = None, direction: Tensor | None = None,
+              scales: Sequence[int] = DEFAULT_SCALES) -> tuple[Tensor, Tensor]:
+    """View directions (N, 3) and depth-buffer cues (N, 9 * len(scales)) of one viewpoint.
+
+    See :class:`ViewProjection`, which this builds and reads in one go.
+    """
+    view = ViewProjection(points, camera, direction, scales)
+    return view.dirs, view.cues()

@@ -10,7 +10,7 @@ import torch
 from torch import Tensor, nn
 
 from .conv import octree_interpolate
-from .cues import DEFAULT_SCALES, num_cues, view_cues
+from .cues import DEFAULT_SCALES, ViewProjection, num_cues
 from .octree import Octree
 from .predictor import VisibilityPredictor
 from .unet import OctreeUNet
@@ -92,21 +92,25 @@ class VisibilityNetwork(nn.Module):
             feature = leaf[octree.point_leaf]
         return self.predictor.project(torch.cat([feature, points], dim=1))
 
-    def view_inputs(self, points: Tensor, camera: Tensor | None = None,
-                    direction: Tensor | None = None, normals: Tensor | None = None
-                    ) -> tuple[Tensor, Tensor]:
-        """(N, 3) view directions and (N, Z) cues of one cloud for one view."""
-        dirs, cues = view_cues(points, camera, direction, self.config.cue_scales)
+    def view(self, points: Tensor, camera: Tensor | None = None,
+             direction: Tensor | None = None) -> ViewProjection:
+        """The projection of one cloud for one camera position or viewing direction."""
+        return ViewProjection(points, camera, direction, self.config.cue_scales)
+
+    def view_inputs(self, view: ViewProjection, rows: slice = slice(None),
+                    normals: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """(n, 3) view directions and (n, Z) cues of ``points[rows]`` for one view."""
+        dirs, cues = view.dirs[rows], view.cues(rows)
         if self.config.use_normals:
             if normals is None:
                 raise ValueError("this model needs normals")
-            cues = torch.cat([cues, -(normals * dirs).sum(dim=1, keepdim=True)], dim=1)
+            cues = torch.cat([cues, -(normals[rows] * dirs).sum(dim=1, keepdim=True)], dim=1)
         return dirs, cues
 
     def predict(self, features: Tensor, points: Tensor, camera: Tensor | None = None,
                 direction: Tensor | None = None, normals: Tensor | None = None) -> Tensor:
         """(N, 2) logits of one cloud for one camera position or viewing direction."""
-        return self.predictor(features, *self.view_inputs(points, camera, direction, normals))
+        return self.predictor(features, *self.view_inputs(self.view(points, camera, direction), normals=normals))
 
     def num_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())

@@ -14,8 +14,10 @@ __all__ = ["ViewEmbedding", "VisibilityPredictor"]
 class ViewEmbedding(nn.Module):
     """NeRF-style embedding ``[d, sin(2^k pi d), cos(2^k pi d)]`` for k < ``num_frequencies``.
 
-    The sines and cosines come from the double-angle recurrence, so one
-    ``sin``/``cos`` pair is evaluated per component instead of one per frequency.
+    Channels first: (..., 3, N) directions -> (..., dim, N), so that every
+    step runs over contiguous rows. The sines and cosines come from the
+    double-angle recurrence, so one ``sin``/``cos`` pair is evaluated per
+    component instead of one per frequency.
     """
 
     def __init__(self, num_frequencies: int = 10):
@@ -32,7 +34,7 @@ class ViewEmbedding(nn.Module):
         for _ in range(self.num_frequencies):
             out += [s, c]
             s, c = 2 * s * c, 1 - 2 * s * s
-        return torch.cat(out, dim=-1)
+        return torch.cat(out, dim=-2)
 
 
 class VisibilityPredictor(nn.Module):
@@ -55,14 +57,19 @@ class VisibilityPredictor(nn.Module):
         self.mlp = nn.Sequential(*layers)
 
     def project(self, features: Tensor) -> Tensor:
-        return self.project_feature(features)
+        """(N, F) point features -> (N, E), stored channels first (as ``forward`` reads them)."""
+        layer = self.project_feature
+        return torch.addmm(layer.bias[:, None], layer.weight, features.transpose(0, 1)).transpose(0, 1)
 
     def forward(self, projected: Tensor, dirs: Tensor, cues: Tensor) -> Tensor:
         """(..., N, E) projected features, (..., N, 3) directions, (..., N, Z) cues -> (..., N, 2).
 
         The first layer sees ``[projected * embedding, cues]``; its weight is
-        applied in two parts so that the concatenation is never built.
+        applied in two parts so that the concatenation is never built. The
+        embedding is computed channels first (contiguous rows, see
+        :class:`ViewEmbedding`) and read transposed by the matrix product.
         """
         first, e = self.mlp[0], self.embedding.dim
-        x = F.linear(projected * self.embedding(dirs), first.weight[:, :e], first.bias)
-        return self.mlp[1:](x + F.linear(cues, first.weight[:, e:]))
+        embedded = projected.transpose(-1, -2) * self.embedding(dirs.transpose(-1, -2))
+        x = F.linear(embedded.transpose(-1, -2), first.weight[:, :e], first.bias)
+        return self.mlp[1:](x.add_(F.linear(cues, first.weight[:, e:])))

@@ -9,7 +9,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from .conv import octree_interpolate
+from .conv import gather_rows, octree_interpolate
 from .cues import DEFAULT_SCALES, ViewProjection, num_cues
 from .octree import Octree
 from .predictor import VisibilityPredictor
@@ -89,7 +89,7 @@ class VisibilityNetwork(nn.Module):
         if self.config.interpolation == "trilinear":
             feature = octree_interpolate(leaf, octree, points, batch)
         else:
-            feature = leaf[octree.point_leaf]
+            feature = gather_rows(leaf, octree.point_leaf)
         return self.predictor.project(torch.cat([feature, points], dim=1))
 
     def view(self, points: Tensor, camera: Tensor | None = None,

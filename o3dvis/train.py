@@ -78,7 +78,11 @@ def warm_start(net: VisibilityNetwork, state: dict[str, torch.Tensor]) -> None:
 
 
 def batch_loss(net: torch.nn.Module, batch: Batch, use_normals: bool) -> tuple[torch.Tensor, float]:
-    """Mean cross-entropy over every point of every view of every cloud, and the accuracy."""
+    """Cross-entropy averaged per view of each cloud, then over them, and the pooled accuracy.
+
+    Each (cloud, view) weighs the same whatever its number of points, so that
+    2k-point clouds still count when the batch also holds 80k-point ones.
+    """
     module = net.module if hasattr(net, "module") else net
     normals = batch.normals if use_normals else None
     features = net(batch.points, batch.batch, normals, len(batch.sizes))
@@ -89,10 +93,10 @@ def batch_loss(net: torch.nn.Module, batch: Batch, use_normals: bool) -> tuple[t
             logits = module.predict(features[sl], batch.points[sl], cam,
                                     normals=normals[sl] if use_normals else None)
             target = label.long()
-            losses.append(F.cross_entropy(logits, target, reduction="sum"))
+            losses.append(F.cross_entropy(logits, target))
             correct += int((logits.argmax(dim=1) == target).sum())
             total += size
-    return torch.stack(losses).sum() / total, correct / total
+    return torch.stack(losses).mean(), correct / total
 
 
 @torch.no_grad()

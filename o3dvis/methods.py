@@ -45,6 +45,17 @@ class NeuralMethod:
         return self.visibility.encode(np.asarray(points, dtype=np.float64),
                                       normals=np.asarray(normals, dtype=np.float64) if self.needs_normals else False)
 
+    def build_octree(self, points: np.ndarray):
+        """The octree that encoding builds for ``points`` (timed alone by the bench)."""
+        import torch
+
+        from .nn import Octree, normalize_points
+
+        network, device = self.visibility.network, self.visibility.device
+        points_n = normalize_points(torch.as_tensor(points, dtype=torch.float64, device=device))[0].float()
+        batch = torch.zeros(len(points_n), dtype=torch.long, device=device)
+        return Octree(points_n, batch, network.config.depth, network.config.full_depth)
+
     def __call__(self, points: np.ndarray, cameras: np.ndarray, normals: np.ndarray | None = None) -> np.ndarray:
         return self.encode(points, normals).query(np.atleast_2d(np.asarray(cameras, dtype=np.float64)))
 

@@ -9,6 +9,8 @@ centre. A method exposing ``encode(points) -> field`` with
 
 from __future__ import annotations
 
+import os
+import threading
 import time
 from collections.abc import Callable
 
@@ -20,7 +22,7 @@ from .data.prepare import sample_surface
 from .data.shapes import random_shape
 from .evaluate import EvalCloud, run_method
 
-__all__ = ["bench_cloud", "open3d_hpr_seconds", "time_method", "benchmark", "markdown_table"]
+__all__ = ["bench_cloud", "PeakMemory", "open3d_hpr_seconds", "time_method", "benchmark", "markdown_table"]
 
 REFERENCE = "Open3D HPR"
 
@@ -48,6 +50,42 @@ def _seconds(fn: Callable[[], object], repeats: int) -> float:
     return best
 
 
+class PeakMemory:
+    """Peak resident memory above the level at entry, sampled every millisecond by a thread.
+
+    ``peak_mib`` is None where ``/proc/self/statm`` does not exist (not Linux).
+    """
+
+    def __init__(self, interval: float = 1e-3):
+        self.interval, self.peak_mib = interval, None
+        self._stop = threading.Event()
+
+    @staticmethod
+    def _rss() -> int | None:
+        try:
+            with open("/proc/self/statm") as f:
+                return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+        except (OSError, ValueError, IndexError):
+            return None
+
+    def _watch(self) -> None:
+        while not self._stop.wait(self.interval):
+            self._peak = max(self._peak, self._rss() or 0)
+
+    def __enter__(self) -> "PeakMemory":
+        self._start = self._rss()
+        self._peak = self._start or 0
+        self._thread = threading.Thread(target=self._watch, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+        if self._start is not None:
+            self.peak_mib = (max(self._peak, self._rss() or 0) - self._start) / 2**20
+
+
 def open3d_hpr_seconds(points: np.ndarray, cameras: np.ndarray, repeats: int = 1) -> float:
     """Seconds Open3D's HPR takes for all views (best of ``repeats``), cloud creation included."""
     import open3d as o3d
@@ -66,22 +104,32 @@ def time_method(method: Method, cloud: EvalCloud, repeats: int = 1) -> dict:
     """Seconds a method takes for all views of ``cloud``; ``encode``/``query`` split when it has them.
 
     Returns:
-        ``{"seconds": total}``, plus ``"encode_s"`` and ``"query_s"`` for two-stage methods.
+        ``{"seconds": total, "peak_mib": resident memory above the start (None off Linux)}``,
+        plus ``"encode_s"`` and ``"query_s"`` for two-stage methods, and ``"octree_s"``
+        (part of encoding) for those that can build their octree alone.
     """
     if not hasattr(method, "encode"):
-        return {"seconds": _seconds(lambda: run_method(method, cloud), repeats)}
+        with PeakMemory() as memory:
+            seconds = _seconds(lambda: run_method(method, cloud), repeats)
+        return {"seconds": seconds, "peak_mib": memory.peak_mib}
     normals = (cloud.normals,) if getattr(method, "needs_normals", False) else ()
     warm = min(len(cloud.points), 2048)  # first call pays allocations and thread start-up
     method.encode(cloud.points[:warm], *(n[:warm] for n in normals)).query(cloud.cameras[:1])
     encode_s, query_s = float("inf"), float("inf")
-    for _ in range(repeats):
-        start = time.perf_counter()
-        field = method.encode(cloud.points, *normals)
-        mid = time.perf_counter()
-        field.query(cloud.cameras)
-        end = time.perf_counter()
-        encode_s, query_s = min(encode_s, mid - start), min(query_s, end - mid)
-    return {"seconds": encode_s + query_s, "encode_s": encode_s, "query_s": query_s}
+    with PeakMemory() as memory:
+        for _ in range(repeats):
+            start = time.perf_counter()
+            field = method.encode(cloud.points, *normals)
+            mid = time.perf_counter()
+            field.query(cloud.cameras)
+            end = time.perf_counter()
+            encode_s, query_s = min(encode_s, mid - start), min(query_s, end - mid)
+            del field
+    timing = {"seconds": encode_s + query_s, "encode_s": encode_s, "query_s": query_s,
+              "peak_mib": memory.peak_mib}
+    if hasattr(method, "build_octree"):
+        timing["octree_s"] = _seconds(lambda: method.build_octree(cloud.points), repeats)
+    return timing
 
 
 def benchmark(methods: dict[str, Method], sizes: list[int], views: list[int], repeats: int = 1,
@@ -121,17 +169,25 @@ def benchmark(methods: dict[str, Method], sizes: list[int], views: list[int], re
                    "speedup": reference / t["seconds"]}
             if "encode_s" in t:
                 row.update(encode_s=t["encode_s"], query_per_view_s=t["query_s"] / v)
+            if "octree_s" in t:
+                row["octree_s"] = t["octree_s"]
+            if t.get("peak_mib") is not None:
+                row["peak_mib"] = t["peak_mib"]
             rows.append(row)
     return rows
 
 
 def markdown_table(rows: list[dict]) -> str:
     """Markdown timing table; speed-up = Open3D HPR time / method time (> 1: faster)."""
-    lines = ["| points | views | method | total (ms) | encode (ms) | query per view (ms) | speed-up vs Open3D HPR |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| points | views | method | total (ms) | octree (ms) | encode (ms) | query per view (ms) | "
+             "peak memory (MiB) | speed-up vs Open3D HPR |",
+             "|---|---|---|---|---|---|---|---|---|"]
+
+    def ms(key: str, digits: int = 1) -> str:
+        return f"{1e3 * r[key]:.{digits}f}" if key in r else ""
+
     for r in rows:
-        enc = f"{1e3 * r['encode_s']:.1f}" if "encode_s" in r else ""
-        per_view = f"{1e3 * r['query_per_view_s']:.2f}" if "query_per_view_s" in r else ""
-        lines.append(f"| {r['points']:,} | {r['views']} | {r['method']} | {1e3 * r['seconds']:.1f} | {enc} | "
-                     f"{per_view} | {r['speedup']:.2f}x |")
+        peak = f"{r['peak_mib']:.0f}" if "peak_mib" in r else ""
+        lines.append(f"| {r['points']:,} | {r['views']} | {r['method']} | {ms('seconds')} | {ms('octree_s')} | "
+                     f"{ms('encode_s')} | {ms('query_per_view_s', 2)} | {peak} | {r['speedup']:.2f}x |")
     return "\n".join(lines) + "\n"

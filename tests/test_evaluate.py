@@ -208,7 +208,7 @@ class _TwoStage:
 def test_benchmark_times_methods_against_open3d(capsys):
     two = _TwoStage()
     t = time_method(two, bench_cloud(10, 4), repeats=2)
-    assert set(t) == {"seconds", "encode_s", "query_s"} and two.encoded == 3  # warm-up + 2 repeats
+    assert set(t) == {"seconds", "encode_s", "query_s", "peak_mib"} and two.encoded == 3  # warm-up + 2 repeats
     rows = benchmark({"hpr": lambda p, c: hidden_point_removal_mask(p, c, 1e3)}, [2048], [1, 3],
                      progress=False)
     assert [(r["method"], r["views"]) for r in rows] == [("Open3D HPR", 1), ("hpr", 1), ("Open3D HPR", 3),
@@ -221,3 +221,17 @@ def test_benchmark_times_methods_against_open3d(capsys):
     text = capsys.readouterr().out
     assert "| 2,048 | 2 | Open3D HPR |" in text and "| 2,048 | 2 | hpr |" in text
     assert "neural: absent" in text
+
+
+def test_peak_memory_sees_a_transient_allocation():
+    import time as _time
+
+    from o3dvis.speed import PeakMemory
+
+    with PeakMemory() as memory:
+        block = np.ones(64 * 2**20 // 8)  # 64 MiB, touched
+        _time.sleep(0.02)
+        del block
+    if memory.peak_mib is None:
+        pytest.skip("no /proc/self/statm here")
+    assert 50 < memory.peak_mib < 200

@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
 from .cameras import real_array
+from .data.noise import diagonal
 
 __all__ = ["hidden_point_removal_mask", "exponential_hpr_mask", "hpr_method", "exponential_method",
            "SWEEPS", "sweep", "Method"]
@@ -201,9 +202,8 @@ def hpr_method(exponent: float) -> Method:
     """Open3D HPR with ``radius = bbox diagonal * 10**exponent`` as a visibility method."""
     def method(points, cameras):
         points, cameras = _check(points, cameras)
-        diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
         # a single distinct point is visible whatever the radius
-        return hidden_point_removal_mask(points, cameras, (diagonal or 1.0) * 10.0 ** exponent)
+        return hidden_point_removal_mask(points, cameras, (diagonal(points) or 1.0) * 10.0 ** exponent)
     method.__name__ = f"hpr(k={exponent:g})"
     return method
 

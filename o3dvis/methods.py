@@ -49,12 +49,10 @@ class NeuralMethod:
         """The octree that encoding builds for ``points`` (timed alone by the bench)."""
         import torch
 
-        from .nn import Octree, normalize_points
+        from .nn import normalize_points
 
-        network, device = self.visibility.network, self.visibility.device
-        points_n = normalize_points(torch.as_tensor(points, dtype=torch.float64, device=device))[0].float()
-        batch = torch.zeros(len(points_n), dtype=torch.long, device=device)
-        return Octree(points_n, batch, network.config.depth, network.config.full_depth)
+        points = torch.as_tensor(points, dtype=torch.float64, device=self.visibility.device)
+        return self.visibility.network.octree(normalize_points(points)[0].float())
 
     def __call__(self, points: np.ndarray, cameras: np.ndarray, normals: np.ndarray | None = None) -> np.ndarray:
         return self.encode(points, normals).query(np.atleast_2d(np.asarray(cameras, dtype=np.float64)))

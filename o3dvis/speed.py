@@ -18,6 +18,7 @@ import numpy as np
 
 from .baselines import Method
 from .data.groundtruth import sample_viewpoints
+from .data.noise import diagonal
 from .data.prepare import sample_surface
 from .data.shapes import random_shape
 from .evaluate import EvalCloud, run_method
@@ -90,7 +91,7 @@ def open3d_hpr_seconds(points: np.ndarray, cameras: np.ndarray, repeats: int = 1
     """Seconds Open3D's HPR takes for all views (best of ``repeats``), cloud creation included."""
     import open3d as o3d
 
-    radius = 100.0 * float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    radius = 100.0 * diagonal(points)
 
     def run() -> None:
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))

@@ -97,10 +97,11 @@ class ViewProjection:
         half = torch.maximum(u.abs().amax(), v.abs().amax()) * (1 + 1e-6) + 1e-12
         finest = max(4, math.ceil(math.sqrt(points.shape[0])))
         self.dirs, self.depth = dirs, depth
-        self.pixels, self.patches = [], []
+        self.pixels, self.patches, pixel_sizes = [], [], []
         for scale in scales:
             res = max(2, math.ceil(finest / scale))
             pixel = 2 * half / res
+            pixel_sizes.append(pixel)
             iu = ((u + half) / pixel).long().clamp_(0, res - 1)
             iv = ((v + half) / pixel).long().clamp_(0, res - 1)
             self.pixels.append(iu.mul_(res).add_(iv))
@@ -110,9 +111,7 @@ class ViewProjection:
             padded = F.pad(zbuf, (1, 1, 1, 1), value=float("nan"))
             self.patches.append(padded.unfold(2, 3, 1).unfold(3, 3, 1).reshape(res * res, 9))
         # -1 / (pixel size x footprint): the scale of a depth residual, (N, S, 1)
-        pixel_sizes = 2 * half / torch.tensor([max(2, math.ceil(finest / s)) for s in scales],
-                                              dtype=depth.dtype, device=depth.device)
-        self.inv_footprint = (-1 / (footprint[:, None] * pixel_sizes))[:, :, None]
+        self.inv_footprint = (-1 / (footprint[:, None] * torch.stack(pixel_sizes)))[:, :, None]
 
     def cues(self, rows: slice = slice(None)) -> Tensor:
         """(n, 9 * len(scales)) cues of ``points[rows]``.

@@ -69,6 +69,10 @@ class VisibilityNetwork(nn.Module):
         counts = per_point.new_zeros(n).index_add_(0, octree.point_leaf, torch.ones_like(points[:, 0]))
         return sums / counts[:, None]
 
+    def octree(self, points: Tensor, batch: Tensor | None = None, batch_size: int | None = None) -> Octree:
+        """The octree of normalised points at this network's depths (what :meth:`encode` builds)."""
+        return Octree(points, batch, self.config.depth, self.config.full_depth, batch_size)
+
     def encode(self, points: Tensor, batch: Tensor | None = None, normals: Tensor | None = None,
                batch_size: int | None = None) -> Tensor:
         """Per-point view-independent features, (N, E).
@@ -84,7 +88,7 @@ class VisibilityNetwork(nn.Module):
                              "this model takes no normals")
         if batch is None:
             batch = torch.zeros(points.shape[0], dtype=torch.long, device=points.device)
-        octree = Octree(points, batch, self.config.depth, self.config.full_depth, batch_size)
+        octree = self.octree(points, batch, batch_size)
         leaf = self.unet(self._signal(points, octree, normals), octree)
         if self.config.interpolation == "trilinear":
             feature = octree_interpolate(leaf, octree, points, batch)

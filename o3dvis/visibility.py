@@ -121,11 +121,31 @@ class VisibilityField:
             tol = _INSIDE_TOL * (hi - lo).amax() / 2 / self.scale
         return (offset - (offset @ basis.T) @ basis).norm(dim=1) > tol
 
-    def _batches(self, views: Views) -> Iterator[tuple[slice, Tensor]]:
-        """Yields ``(views slice, (v, N) probabilities)`` with frustum culling applied."""
+    def _rows(self, indices) -> Tensor | None:
+        """``indices`` as a checked (M,) long tensor on the field's device (None: all points)."""
+        if indices is None:
+            return None
+        rows = torch.as_tensor(np.asarray(indices) if not isinstance(indices, Tensor) else indices)
+        if rows.numel() == 0:
+            rows = rows.long()
+        if rows.dtype == torch.bool or rows.ndim != 1 or rows.is_floating_point() or rows.is_complex():
+            raise TypeError(f"indices must be a 1-D sequence of integers, got {tuple(rows.shape)} "
+                            f"{rows.dtype}")
+        rows = rows.to(device=self.device, dtype=torch.long)
+        if len(rows) and (int(rows.min()) < 0 or int(rows.max()) >= self.num_points):
+            raise IndexError(f"indices must lie in [0, {self.num_points}), got "
+                             f"{int(rows.min())} .. {int(rows.max())}")
+        return rows
+
+    def _batches(self, views: Views, rows: Tensor | None = None) -> Iterator[tuple[slice, Tensor]]:
+        """Yields ``(views slice, (v, M) probabilities)`` of the points ``rows`` (None: all),
+        with frustum culling applied. Every point occludes, whichever rows are asked for."""
         cameras, directions = self._normalised(views)
         clear = self._off_the_hull(views)
-        n, total = self.num_points, len(views)
+        n, total = self.num_points if rows is None else len(rows), len(views)
+        if n == 0:
+            yield slice(0, total), self.features.new_zeros(total, 0)
+            return
         per_batch = max(1, self.chunk_size // n)
         step = min(n, self.chunk_size)
         for start in range(0, total, per_batch):
@@ -135,11 +155,11 @@ class VisibilityField:
                      for i in range(batch.start, batch.stop)]
             chunks = []
             for a in range(0, n, step):  # cache-sized chunks of points
-                rows = slice(a, a + step)
-                inputs = [self.network.view_inputs(view, rows, self.normals) for view in projections]
+                chunk = slice(a, a + step) if rows is None else rows[a:a + step]
+                inputs = [self.network.view_inputs(view, chunk, self.normals) for view in projections]
                 dirs, cues = ((inputs[0][0][None], inputs[0][1][None]) if len(inputs) == 1 else
                               (torch.stack([d for d, _ in inputs]), torch.stack([c for _, c in inputs])))
-                chunks.append(self.network.predictor(self.features[rows], dirs, cues))
+                chunks.append(self.network.predictor(self.features[chunk], dirs, cues))
             del projections
             logits = torch.cat(chunks, dim=1)
             probs = torch.sigmoid(logits[..., 1] - logits[..., 0])
@@ -150,11 +170,12 @@ class VisibilityField:
             if masks:
                 keep = torch.ones_like(probs, dtype=torch.bool)
                 for j, mask in masks:
-                    keep[j] = mask
+                    keep[j] = mask if rows is None else mask[rows]
                 probs = probs * keep
             yield batch, probs
 
-    def probabilities(self, cameras=None, direction=None, *, frustum: bool = True) -> Tensor:
+    def probabilities(self, cameras=None, direction=None, *, frustum: bool = True,
+                      indices=None) -> Tensor:
         """Probability that each point is visible from each view.
 
         Differentiable with respect to camera positions (or directions) given
@@ -169,23 +190,27 @@ class VisibilityField:
                 (from the camera into the scene) of orthographic views.
             frustum: for pinhole cameras with an image size, points that project
                 outside the image or lie behind the camera get probability 0.
+            indices: predict only these points (every point still occludes);
+                None: all points. Costs in proportion to their number.
 
         Returns:
-            (V, N) float tensor on the field's device.
+            (V, N) float tensor on the field's device, (V, len(indices)) with ``indices``.
 
         Raises:
             ValueError: a camera inside the cloud's bounding box or on a point,
                 NaN/Inf, bad shapes, both or neither of cameras and direction.
-            TypeError: cameras that are not real numbers.
+            TypeError: cameras that are not real numbers, or indices that are not integers.
+            IndexError: an index out of range.
         """
         views = as_views(cameras, direction, frustum=frustum)
+        rows = self._rows(indices)
         given = views.positions if views.positions is not None else views.directions
         grad = torch.is_grad_enabled() and given.requires_grad
         with contextlib.nullcontext() if grad else torch.inference_mode():
-            return torch.cat([probs for _, probs in self._batches(views)])
+            return torch.cat([probs for _, probs in self._batches(views, rows)])
 
     def query(self, cameras=None, direction=None, threshold: float = 0.5, *,
-              frustum: bool = True) -> np.ndarray:
+              frustum: bool = True, indices=None) -> np.ndarray:
         """Which points each view sees.
 
         Args:
@@ -193,21 +218,24 @@ class VisibilityField:
             direction: instead of ``cameras``, viewing directions of orthographic views.
             threshold: a point is visible when its probability exceeds this, in [0, 1].
             frustum: cull points outside the image of pinhole cameras with an image size.
+            indices: answer only for these points, as in :meth:`probabilities`.
 
         Returns:
-            (V, N) bool numpy array.
+            (V, N) bool numpy array, (V, len(indices)) with ``indices``.
 
         Raises:
             ValueError: as :meth:`probabilities`, or a threshold outside [0, 1].
+            TypeError, IndexError: bad ``indices``, as in :meth:`probabilities`.
         """
         if isinstance(threshold, bool) or not isinstance(threshold, (int, float, np.floating, np.integer)):
             raise TypeError(f"threshold must be a number, got {type(threshold).__name__}")
         if not 0 <= threshold <= 1:
             raise ValueError(f"threshold must be in [0, 1], got {threshold}")
         views = as_views(cameras, direction, frustum=frustum)
-        out = np.empty((len(views), self.num_points), dtype=bool)
+        rows = self._rows(indices)
+        out = np.empty((len(views), self.num_points if rows is None else len(rows)), dtype=bool)
         with torch.inference_mode():
-            for batch, probs in self._batches(views):
+            for batch, probs in self._batches(views, rows):
                 out[batch] = (probs > threshold).cpu().numpy()
         return out
 

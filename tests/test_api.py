@@ -178,6 +178,34 @@ def test_each_camera_form_gives_the_same_answer(vis, points):
                                atol=1e-6, rtol=1e-6)
 
 
+def test_indices_answer_for_those_points_only(network, points):
+    rng = np.random.default_rng(4)
+    cameras = np.stack([_camera(points, d) for d in rng.normal(size=(3, 3))])
+    indices = rng.choice(len(points), 700, replace=False)
+    full = o3dvis.NeuralVisibility(network).encode(points)
+    expected = full.probabilities(cameras)[:, indices]
+    for chunk in (300, 1 << 15):  # several chunks of the subset, and one
+        field = o3dvis.NeuralVisibility(network, chunk_size=chunk).encode(points)
+        torch.testing.assert_close(field.probabilities(cameras, indices=indices), expected)
+        torch.testing.assert_close(field.probabilities(cameras, indices=torch.as_tensor(indices)), expected)
+    threshold = float(expected.median())
+    np.testing.assert_array_equal(full.query(cameras, threshold=threshold, indices=list(indices)),
+                                  expected.numpy() > threshold)
+    params = _pinhole(cameras[0], points.mean(0), width=40, height=30, focal=60.0)
+    np.testing.assert_array_equal(full.query(params, indices=indices), full.query(params)[:, indices])
+    camera = torch.tensor(cameras[0], requires_grad=True)
+    full.probabilities(camera, indices=indices).sum().backward()
+    assert camera.grad is not None and camera.grad.abs().sum() > 0
+    assert full.query(cameras, indices=[]).shape == (3, 0)
+    with pytest.raises(IndexError, match=r"\[0, 3000\)"):
+        full.query(cameras, indices=[0, len(points)])
+    with pytest.raises(IndexError):
+        full.query(cameras, indices=[-1])
+    for bad in ([0.5], np.ones(len(points), bool), [[1, 2]]):
+        with pytest.raises(TypeError, match="1-D sequence of integers"):
+            full.query(cameras, indices=bad)
+
+
 def test_pinhole_frustum_culls_points_outside_the_image(vis, points):
     field = vis.encode(points)
     eye = _camera(points)

@@ -41,8 +41,21 @@ def _field(neural, points: np.ndarray):
     return neural.encode(points)
 
 
+def _shape_checked(result, cameras: np.ndarray, points: np.ndarray) -> np.ndarray:
+    result = np.asarray(result)
+    if result.shape != (len(cameras), len(points)):
+        raise ValueError(f"the visibility method returned shape {result.shape}, expected "
+                         f"({len(cameras)}, {len(points)}) for {len(cameras)} cameras and "
+                         f"{len(points)} points")
+    return result
+
+
 def resolve_method(method) -> VisibilityMethod:
-    """A checked callable ``(points, cameras) -> (V, N) bool`` for ``method``.
+    """A checked callable ``(points, cameras, indices=None) -> (V, N) bool`` for ``method``.
+
+    With ``indices``, the answer is for those points only, (V, len(indices));
+    the neural network then predicts only them (every point still occludes),
+    and it encodes a cloud once for all calls with the same ``points`` array.
 
     Args:
         method: None (the pretrained neural network), an ``o3dvis.NeuralVisibility``,
@@ -55,22 +68,26 @@ def resolve_method(method) -> VisibilityMethod:
     """
     neural = _neural(method)
     if neural is not None:
-        def run(points, cameras):
-            return _field(neural, points).query(cameras)
+        encoded: dict = {}
+
+        def run(points, cameras, indices):
+            if encoded.get("points") is not points:
+                encoded.update(points=points, field=_field(neural, points))
+            return encoded["field"].query(cameras, indices=indices)
     elif callable(method):
-        run = method
+        def run(points, cameras, indices):
+            result = _shape_checked(method(points, cameras), cameras, points)
+            return result if indices is None else result[:, indices]
     else:
         raise TypeError("method must be None, a NeuralVisibility, a VisibilityField or a callable "
                         f"(points, cameras) -> (V, N) bool; got {type(method).__name__}")
 
-    def checked(points: np.ndarray, cameras: np.ndarray) -> np.ndarray:
+    def checked(points: np.ndarray, cameras: np.ndarray, indices: np.ndarray | None = None) -> np.ndarray:
         cameras = np.atleast_2d(np.asarray(cameras, dtype=np.float64))
-        result = np.asarray(run(points, cameras))
-        if result.shape != (len(cameras), len(points)):
-            raise ValueError(f"the visibility method returned shape {result.shape}, expected "
-                             f"({len(cameras)}, {len(points)}) for {len(cameras)} cameras and "
-                             f"{len(points)} points")
-        return result.astype(bool, copy=False)
+        result = run(points, cameras, indices)
+        if indices is not None:
+            return np.asarray(result).astype(bool, copy=False)
+        return _shape_checked(result, cameras, points).astype(bool, copy=False)
 
     return checked
 

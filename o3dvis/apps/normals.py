@@ -8,6 +8,9 @@ give each point an oriented normal, with no tangent-plane propagation.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
@@ -50,19 +53,26 @@ def _fill_from_nearest(points: np.ndarray, values: np.ndarray, known: np.ndarray
 def _add_triangle_normals(total: np.ndarray, points: np.ndarray, cameras: np.ndarray,
                           visibility: np.ndarray, max_edge: np.ndarray, subset: np.ndarray | None,
                           progress: bool, desc: str) -> None:
-    """Adds to ``total`` the unit normals of the triangles each view makes at each point."""
+    """Adds to ``total`` the unit normals of the triangles each view makes at each point.
+
+    The views are triangulated on all cores (Qhull releases the GIL) and added in order.
+    """
     from tqdm import tqdm
 
-    for cam, vis in tqdm(zip(cameras, visibility), total=len(cameras), disable=not progress,
-                         desc=desc, unit="view"):
-        seen = np.flatnonzero(vis if subset is None else vis & subset)
-        triangles = visible_triangles(points, cam, seen, max_edge)
-        normals = triangle_normals(points, triangles)
-        length = np.linalg.norm(normals, axis=1)
-        ok = length > 0
-        unit, corners = normals[ok] / length[ok, None], triangles[ok].ravel()
-        for k in range(3):
-            total[:, k] += np.bincount(corners, np.repeat(unit[:, k], 3), minlength=len(points))
+    def triangulate(view: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        cam, vis = view
+        return visible_triangles(points, cam, np.flatnonzero(vis if subset is None else vis & subset),
+                                 max_edge)
+
+    with ThreadPoolExecutor(max(1, min(len(cameras), os.cpu_count() or 1))) as pool:
+        for triangles in tqdm(pool.map(triangulate, zip(cameras, visibility)), total=len(cameras),
+                              disable=not progress, desc=desc, unit="view"):
+            normals = triangle_normals(points, triangles)
+            length = np.linalg.norm(normals, axis=1)
+            ok = length > 0
+            unit, corners = normals[ok] / length[ok, None], triangles[ok].ravel()
+            for k in range(3):
+                total[:, k] += np.bincount(corners, np.repeat(unit[:, k], 3), minlength=len(points))
 
 
 def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_views: int = 64,
@@ -103,7 +113,9 @@ def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_vi
         around[neighbours.ravel()] = True
         extra = np.zeros_like(total)
         cameras = viewpoints_around(points, refine_views)
-        _add_triangle_normals(extra, points, cameras, method(points, cameras), max_edge, around,
+        visibility = np.zeros((len(cameras), len(points)), dtype=bool)
+        visibility[:, around] = method(points, cameras, np.flatnonzero(around))
+        _add_triangle_normals(extra, points, cameras, visibility, max_edge, around,
                               progress, "refine")
         total[missing] = extra[missing]
     length = np.linalg.norm(total, axis=1)
@@ -130,7 +142,8 @@ def estimate_normals_neural(pcd, num_views: int = 26, method=None, *, refine_vie
         method: the visibility method (default: the pretrained neural network);
             see :func:`o3dvis.apps.methods.resolve_method`.
         refine_views: more cameras for the points the first ``num_views`` leave
-            without a triangle (0: none); those points alone are triangulated again.
+            without a triangle (0: none); those points and their neighbours alone
+            are asked about and triangulated again.
         edge_factor: triangles with an edge longer than this many local point
             spacings are dropped (they bridge gaps or depth jumps).
         progress: show progress bars.
@@ -186,7 +199,7 @@ def orient_normals_neural(pcd, num_views: int = 26, method=None, *, refine_views
         unseen = vote == 0
         cameras = viewpoints_around(points, refine_views)
         vote[unseen] = _vote(points[unseen], normals[unseen], cameras,
-                             method(points, cameras)[:, unseen])
+                             method(points, cameras, np.flatnonzero(unseen)))
     normals[vote < 0] *= -1
     known = vote != 0
     guide = _fill_from_nearest(points, normals, known)

@@ -22,7 +22,7 @@ def local_spacing(points: np.ndarray, k: int = 6) -> np.ndarray:
     if len(points) < 2:
         return np.zeros(len(points))
     k = min(k, len(points) - 1)
-    dist, _ = cKDTree(points).query(points, k=k + 1)
+    dist, _ = cKDTree(points).query(points, k=k + 1, workers=-1)
     dist = dist[:, 1:]
     positive = np.where(dist > 0, dist, np.inf).min(axis=1)
     return np.maximum(dist[:, -1], np.where(np.isfinite(positive), positive, 0))

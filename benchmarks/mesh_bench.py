@@ -119,10 +119,12 @@ class Timed:
 
         self.method, self.seconds = resolve_method(method), 0.0
 
-    def __call__(self, points, cameras):
+    takes_indices = True
+
+    def __call__(self, points, cameras, indices=None):
         start = time.perf_counter()
         try:
-            return self.method(points, cameras)
+            return self.method(points, cameras, indices)
         finally:
             self.seconds += time.perf_counter() - start
 

@@ -338,6 +338,9 @@ def test_methods_answer_for_indices_and_encode_a_cloud_once(sphere):
     full = method(points, cameras)
     np.testing.assert_array_equal(method(points, cameras, indices), full[:, indices])
     assert len(encoded) == 1
+    again = resolve_method(method)  # a resolved method keeps its indices and its encoding
+    np.testing.assert_array_equal(again(points, cameras, indices), full[:, indices])
+    assert len(encoded) == 1
     method(points.copy(), cameras)  # another array: encoded afresh
     assert len(encoded) == 2
 

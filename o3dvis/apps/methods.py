@@ -61,7 +61,8 @@ def resolve_method(method) -> VisibilityMethod:
         method: None (the pretrained neural network), an ``o3dvis.NeuralVisibility``,
             an ``o3dvis.VisibilityField`` of the same points, or a callable
             ``(points, cameras) -> (V, N)`` such as :func:`ground_truth_method`
-            or ``o3dvis.baselines.hpr_method(k)``.
+            or ``o3dvis.baselines.hpr_method(k)``; one with a true attribute
+            ``takes_indices`` (such as what this returns) is passed ``indices=``.
 
     Returns:
         The callable; it raises ``ValueError`` when the method's answer has the wrong shape.
@@ -74,6 +75,9 @@ def resolve_method(method) -> VisibilityMethod:
             if encoded.get("points") is not points:
                 encoded.update(points=points, field=_field(neural, points))
             return encoded["field"].query(cameras, indices=indices)
+    elif getattr(method, "takes_indices", False):
+        def run(points, cameras, indices):
+            return method(points, cameras, indices=indices)
     elif callable(method):
         def run(points, cameras, indices):
             result = _shape_checked(method(points, cameras), cameras, points)
@@ -89,6 +93,7 @@ def resolve_method(method) -> VisibilityMethod:
             return np.asarray(result).astype(bool, copy=False)
         return _shape_checked(result, cameras, points).astype(bool, copy=False)
 
+    checked.takes_indices = True
     return checked
 
 

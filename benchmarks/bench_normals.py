@@ -12,7 +12,9 @@ their face normals, and three pipelines estimate oriented normals:
 Scores: *oriented* = share of points whose normal points to the same side as
 the reference; *angle* = mean unsigned angle to the true normal (degrees).
 The reference side is the outward normal on closed meshes (every edge shared
-by two triangles; winding made consistent, sign from the signed volume).
+by two triangles; winding made consistent, sign from the signed volume, which
+must agree on every connected part: a part inside out, as in one val mug,
+would otherwise count the side every camera sees as wrong).
 Elsewhere mesh winding is arbitrary, so the reference is the side that
 ray-cast visibility from 100 random cameras sees: points seen from both sides
 (open sheets) or from no camera are not scored for orientation (the table
@@ -40,9 +42,12 @@ REFERENCE_VIEWS = 100
 
 
 def outward_mesh(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh | None:
-    """A copy wound consistently with normals pointing out, or None for an open or non-orientable mesh.
+    """A copy wound consistently with normals pointing out, or None where "out" is not defined.
 
     Closed means every edge has exactly two triangles; self-intersections are allowed.
+    Each connected part is wound on its own, so a mesh of several parts has an
+    outside only when one winding gives every part a positive volume; otherwise
+    (a part inside out, or a cavity modelled as a separate shell) None.
     """
     if not (mesh.is_edge_manifold(allow_boundary_edges=False) and mesh.is_orientable()):
         return None
@@ -50,9 +55,14 @@ def outward_mesh(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh |
     if not out.orient_triangles():
         return None
     v, t = np.asarray(out.vertices), np.asarray(out.triangles)
-    if np.einsum("ij,ij->i", v[t[:, 0]], np.cross(v[t[:, 1]], v[t[:, 2]])).sum() < 0:
+    volume = np.einsum("ij,ij->i", v[t[:, 0]], np.cross(v[t[:, 1]], v[t[:, 2]]))
+    part_volume = np.bincount(np.asarray(out.cluster_connected_triangles()[0]), volume)
+    if (part_volume > 0).all():
+        return out
+    if (part_volume < 0).all():
         out.triangles = o3d.utility.Vector3iVector(t[:, [0, 2, 1]])
-    return out
+        return out
+    return None
 
 
 def visibility_reference(mesh, points, normals) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,67 @@
+"""Accuracy of a network against its decision threshold, per density and noise level.
+
+The network says "visible" when its probability exceeds a threshold (0.5 by
+default). This sweep shows where another threshold would score higher, on
+prepared data (run it on training data, so that nothing is tuned on val):
+a network trained on clean and noisy clouds alike cannot tell them apart, and
+a single threshold then trades one against the other.
+
+    python3 benchmarks/threshold_sweep.py --data /work/data/train --limit 30 \\
+        --out benchmarks/results/threshold_train.md
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from mesh_bench import command_line, emit_report, markdown
+from o3dvis.data.prepare import load_sample
+from o3dvis.evaluate import eval_cloud, list_samples
+from o3dvis.visibility import NeuralVisibility
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", required=True, help="folder of prepared .npz files")
+    parser.add_argument("--limit", type=int, default=30, help="files, evenly spread (default 30)")
+    parser.add_argument("--model", default="default", help="shipped model name or .safetensors path")
+    parser.add_argument("--points", default="2048,8192,32768,81920")
+    parser.add_argument("--noise", default="0,0.01,0.02")
+    parser.add_argument("--thresholds", default="0.4,0.45,0.5,0.55,0.6,0.65,0.7")
+    parser.add_argument("--views", type=int, default=8, help="viewpoints per file (default 8)")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--out", type=Path, help="also write the report to this Markdown file")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    vis = NeuralVisibility.pretrained(args.model, use_normals=False)
+    thresholds = np.array([float(t) for t in args.thresholds.split(",")])
+    files = list_samples(args.data, args.limit)
+    rows = []
+    for n in (int(p) for p in args.points.split(",")):
+        for noise in (float(x) for x in args.noise.split(",")):
+            correct, total = np.zeros(len(thresholds)), 0
+            for path in files:
+                cloud = eval_cloud(load_sample(path), n, noise, 0, args.views)
+                probs = vis.encode(cloud.points).probabilities(cloud.cameras).numpy()
+                correct += [((probs > t) == cloud.labels).sum() for t in thresholds]
+                total += cloud.labels.size
+            accuracy = 100 * correct / total
+            best = int(accuracy.argmax())
+            rows.append([f"{n:,}", f"{100 * noise:g} %"] + [f"{a:.2f}" for a in accuracy]
+                        + [f"{thresholds[best]:g} ({accuracy[best] - accuracy[thresholds == 0.5].max():+.2f})"
+                           if (thresholds == 0.5).any() else f"{thresholds[best]:g}"])
+            print(" | ".join(rows[-1]), flush=True)
+    report = "\n".join([command_line(), "",
+                        f"Accuracy (%) of `{args.model}` by decision threshold: {len(files)} files of "
+                        f"{args.data}, {args.views} views each.", "",
+                        markdown(["points", "noise"] + [f"{t:g}" for t in thresholds]
+                                 + ["best (vs 0.5)"], rows)])
+    return emit_report(report, args.out)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

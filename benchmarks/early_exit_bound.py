@@ -1,0 +1,75 @@
+"""What an early exit for points far behind the coarsest depth buffer would skip, and cost.
+
+For each view, a point whose depth lies at least T pixel footprints behind the
+nearest point in its pixel of the coarsest depth buffer could be answered
+"hidden" without its cues and MLP. This counts, on prepared data, the share of
+points such a rule would skip and the accuracy it would change (errors after
+minus errors of the network on those points), for several T.
+
+    python3 benchmarks/early_exit_bound.py --data /work/data/val --limit 16 \\
+        --out benchmarks/results/early_exit_bound.md
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from mesh_bench import command_line, emit_report, markdown
+from o3dvis.cameras import as_views
+from o3dvis.data.prepare import load_sample
+from o3dvis.evaluate import eval_cloud, list_samples
+from o3dvis.visibility import NeuralVisibility
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", required=True, help="folder of prepared .npz files")
+    parser.add_argument("--limit", type=int, default=16, help="files, evenly spread (default 16)")
+    parser.add_argument("--points", default="2048,8192,32768,81920")
+    parser.add_argument("--noise", default="0,0.02")
+    parser.add_argument("--behind", default="5,10,20", help="values of T, in pixel footprints")
+    parser.add_argument("--views", type=int, default=8, help="viewpoints per file (default 8)")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--out", type=Path, help="also write the report to this Markdown file")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    vis = NeuralVisibility.pretrained("default", use_normals=False)
+    net, behind = vis.network, [float(t) for t in args.behind.split(",")]
+    files = list_samples(args.data, args.limit)
+    rows = []
+    for n in (int(p) for p in args.points.split(",")):
+        for noise in (float(x) for x in args.noise.split(",")):
+            skipped, change, total = np.zeros(len(behind)), np.zeros(len(behind)), 0
+            for path in files:
+                cloud = eval_cloud(load_sample(path), n, noise, 0, args.views)
+                field = vis.encode(cloud.points)
+                said = field.query(cloud.cameras)
+                cameras = field._normalised(as_views(cloud.cameras, None))[0]
+                with torch.inference_mode():
+                    for v, camera in enumerate(cameras):
+                        # the centre pixel's cue of the coarsest scale: asinh(residual in footprints)
+                        residual = torch.sinh(net.view(field.points_n, camera).cues()[:, -5]).numpy()
+                        truth, network = cloud.labels[v], said[v]
+                        for i, t in enumerate(behind):
+                            skip = residual >= t
+                            skipped[i] += skip.sum()
+                            change[i] += truth[skip].sum() - (network[skip] != truth[skip]).sum()
+                total += cloud.labels.size
+            rows.append([f"{n:,}", f"{100 * noise:g} %"] + sum(
+                ([f"{100 * s / total:.1f}", f"{-100 * c / total:+.3f}"] for s, c in zip(skipped, change)), []))
+            print(" | ".join(rows[-1]), flush=True)
+    header = ["points", "noise"] + sum(([f"T={t:g}: skipped %", f"T={t:g}: accuracy change (points)"]
+                                        for t in behind), [])
+    report = "\n".join([command_line(), "",
+                        f"Early exit at T pixel footprints behind the coarsest depth buffer: "
+                        f"{len(files)} files of {args.data}, {args.views} views each.", "",
+                        markdown(header, rows)])
+    return emit_report(report, args.out)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

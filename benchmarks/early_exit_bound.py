@@ -13,12 +13,11 @@ minus errors of the network on those points), for several T.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import numpy as np
 import torch
 
-from mesh_bench import command_line, emit_report, markdown
+from mesh_bench import add_data_flags, command_line, emit_report, markdown
 from o3dvis.cameras import as_views
 from o3dvis.data.prepare import load_sample
 from o3dvis.evaluate import eval_cloud, list_samples
@@ -27,14 +26,8 @@ from o3dvis.visibility import NeuralVisibility
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", required=True, help="folder of prepared .npz files")
-    parser.add_argument("--limit", type=int, default=16, help="files, evenly spread (default 16)")
-    parser.add_argument("--points", default="2048,8192,32768,81920")
-    parser.add_argument("--noise", default="0,0.02")
+    add_data_flags(parser, 16, "0,0.02")
     parser.add_argument("--behind", default="5,10,20", help="values of T, in pixel footprints")
-    parser.add_argument("--views", type=int, default=8, help="viewpoints per file (default 8)")
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--out", type=Path, help="also write the report to this Markdown file")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     vis = NeuralVisibility.pretrained("default", use_normals=False)

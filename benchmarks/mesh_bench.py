@@ -30,6 +30,17 @@ from o3dvis.data.prepare import MESH_SUFFIXES, sample_surface  # noqa: E402
 DEFAULT_MESHES = Path("/work/shared/meshes/val")
 
 
+def add_data_flags(parser: argparse.ArgumentParser, limit: int, noise: str) -> None:
+    """Flags of the benchmarks that read prepared (labelled) data rather than meshes."""
+    parser.add_argument("--data", required=True, help="folder of prepared .npz files")
+    parser.add_argument("--limit", type=int, default=limit, help=f"files, evenly spread (default {limit})")
+    parser.add_argument("--points", default="2048,8192,32768,81920", help="comma-separated cloud sizes")
+    parser.add_argument("--noise", default=noise, help=f"comma-separated noise levels (default {noise})")
+    parser.add_argument("--views", type=int, default=8, help="viewpoints per file (default 8)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--out", type=Path, help="also write the report to this Markdown file")
+
+
 def add_common_flags(parser: argparse.ArgumentParser, points: str) -> None:
     """Flags both benchmarks share."""
     parser.add_argument("--meshes", type=Path, default=DEFAULT_MESHES, help=f"mesh folder (default {DEFAULT_MESHES})")

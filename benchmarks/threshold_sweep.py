@@ -13,12 +13,11 @@ a single threshold then trades one against the other.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import numpy as np
 import torch
 
-from mesh_bench import command_line, emit_report, markdown
+from mesh_bench import add_data_flags, command_line, emit_report, markdown
 from o3dvis.data.prepare import load_sample
 from o3dvis.evaluate import eval_cloud, list_samples
 from o3dvis.visibility import NeuralVisibility
@@ -26,15 +25,9 @@ from o3dvis.visibility import NeuralVisibility
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", required=True, help="folder of prepared .npz files")
-    parser.add_argument("--limit", type=int, default=30, help="files, evenly spread (default 30)")
+    add_data_flags(parser, 30, "0,0.01,0.02")
     parser.add_argument("--model", default="default", help="shipped model name or .safetensors path")
-    parser.add_argument("--points", default="2048,8192,32768,81920")
-    parser.add_argument("--noise", default="0,0.01,0.02")
     parser.add_argument("--thresholds", default="0.4,0.45,0.5,0.55,0.6,0.65,0.7")
-    parser.add_argument("--views", type=int, default=8, help="viewpoints per file (default 8)")
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--out", type=Path, help="also write the report to this Markdown file")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     vis = NeuralVisibility.pretrained(args.model, use_normals=False)

@@ -146,6 +146,7 @@ class VisibilityField:
         if n == 0:
             yield slice(0, total), self.features.new_zeros(total, 0)
             return
+        asked = self.points_n if rows is None else self.points_n[rows]
         per_batch = max(1, self.chunk_size // n)
         step = min(n, self.chunk_size)
         for start in range(0, total, per_batch):
@@ -165,12 +166,12 @@ class VisibilityField:
             probs = torch.sigmoid(logits[..., 1] - logits[..., 0])
             if clear is not None:  # a flat cloud seen from off its plane or line hides nothing
                 probs = torch.where(clear[batch, None], torch.ones_like(probs), probs)
-            masks = [(j, f.contains(self.points_n, self.center, self.scale))
+            masks = [(j, f.contains(asked, self.center, self.scale))
                      for j, f in enumerate(views.frustums[batch]) if f is not None]
             if masks:
                 keep = torch.ones_like(probs, dtype=torch.bool)
                 for j, mask in masks:
-                    keep[j] = mask if rows is None else mask[rows]
+                    keep[j] = mask
                 probs = probs * keep
             yield batch, probs
 

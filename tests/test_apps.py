@@ -328,6 +328,12 @@ def test_methods_answer_for_indices_and_encode_a_cloud_once(sphere):
     with pytest.raises(ValueError, match="returned shape"):
         resolve_method(lambda p, c: np.ones((1, 3), bool))(points, cameras, indices)
 
+    def answers_for_all(points, cameras, indices=None):  # claims to take indices, ignores them
+        return truth(points, cameras)
+    answers_for_all.takes_indices = True
+    with pytest.raises(ValueError, match="returned shape"):
+        resolve_method(answers_for_all)(points, cameras, indices)
+
     torch.manual_seed(0)
     network = VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 16), feature_channels=8,
                                               num_frequencies=2, hidden=(16,))).eval()

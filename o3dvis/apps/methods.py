@@ -41,12 +41,13 @@ def _field(neural, points: np.ndarray):
     return neural.encode(points)
 
 
-def _shape_checked(result, cameras: np.ndarray, points: np.ndarray) -> np.ndarray:
+def _shape_checked(result, cameras: np.ndarray, count: int) -> np.ndarray:
+    """``result`` as an array, ValueError unless it is (cameras, count)."""
     result = np.asarray(result)
-    if result.shape != (len(cameras), len(points)):
+    if result.shape != (len(cameras), count):
         raise ValueError(f"the visibility method returned shape {result.shape}, expected "
-                         f"({len(cameras)}, {len(points)}) for {len(cameras)} cameras and "
-                         f"{len(points)} points")
+                         f"({len(cameras)}, {count}) for {len(cameras)} cameras and "
+                         f"{count} points")
     return result
 
 
@@ -80,7 +81,7 @@ def resolve_method(method) -> VisibilityMethod:
             return method(points, cameras, indices=indices)
     elif callable(method):
         def run(points, cameras, indices):
-            result = _shape_checked(method(points, cameras), cameras, points)
+            result = _shape_checked(method(points, cameras), cameras, len(points))
             return result if indices is None else result[:, indices]
     else:
         raise TypeError("method must be None, a NeuralVisibility, a VisibilityField or a callable "
@@ -88,10 +89,8 @@ def resolve_method(method) -> VisibilityMethod:
 
     def checked(points: np.ndarray, cameras: np.ndarray, indices: np.ndarray | None = None) -> np.ndarray:
         cameras = np.atleast_2d(np.asarray(cameras, dtype=np.float64))
-        result = run(points, cameras, indices)
-        if indices is not None:
-            return np.asarray(result).astype(bool, copy=False)
-        return _shape_checked(result, cameras, points).astype(bool, copy=False)
+        count = len(points) if indices is None else len(indices)
+        return _shape_checked(run(points, cameras, indices), cameras, count).astype(bool, copy=False)
 
     checked.takes_indices = True
     return checked

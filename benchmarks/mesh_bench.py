@@ -93,7 +93,7 @@ def sample(mesh: o3d.geometry.TriangleMesh, count: int, name: str, seed: int
 def visibility_method(args: argparse.Namespace, mesh: o3d.geometry.TriangleMesh):
     """The visibility method ``--method`` names, for clouds sampled on ``mesh``."""
     if args.method == "gt":
-        from o3dvis.apps.methods import ground_truth_method
+        from o3dvis.methods import ground_truth_method
 
         return ground_truth_method(mesh)
     if args.method == "hpr":
@@ -126,7 +126,7 @@ class Timed:
     """Wraps a visibility method and adds up the seconds spent in it."""
 
     def __init__(self, method):
-        from o3dvis.apps.methods import resolve_method
+        from o3dvis.methods import resolve_method
 
         self.method, self.seconds = resolve_method(method), 0.0
 

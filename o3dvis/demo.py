@@ -22,12 +22,12 @@ import numpy as np
 import open3d as o3d
 
 from .apps.camera import View, make_view
-from .apps.methods import ground_truth_method
 from .apps.render import image_from, lambert, splat, splat_size
 from .baselines import SWEEPS, hpr_method
 from .data.prepare import sample_surface
 from .data.shapes import random_shape
 from .evaluate import Counts, EvalCloud
+from .methods import NeuralMethod, ground_truth_method
 from .speed import time_method
 
 __all__ = ["SAMPLE_SEED", "SAMPLE_PARTS", "demo_sample", "default_camera", "observer_location",
@@ -151,7 +151,6 @@ def _visible_colors(mask: np.ndarray, shade: np.ndarray) -> np.ndarray:
 
 
 def _neural(model, device) -> tuple[object, str]:
-    from .methods import NeuralMethod
     from .visibility import NeuralVisibility
 
     name = "default" if model is None else str(model)

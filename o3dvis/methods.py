@@ -1,25 +1,142 @@
-"""Named visibility methods for the bench: baselines with their sweeps, and the network.
+"""Visibility methods: what applications and the bench run on, and how a choice becomes one.
 
 A visibility method is any callable ``method(points (N, 3), cameras (V, 3)) ->
-(V, N) bool``; one with ``needs_normals = True`` also takes ``normals=``.
-:func:`resolve_methods` turns names (``hpr``, ``hpr-exp``, ``neural``,
-``neural-normals``) into parameter sweeps ``{label: method}``; a method that cannot be
-built here (no network code, no weights) is returned as absent with the reason,
-never replaced by something else.
+(V, N) bool``. Applications accept one as ``method=``: ``None`` for the shipped
+neural network, an ``o3dvis.NeuralVisibility``, a ``VisibilityField`` already
+encoded for the same points, or any such callable (:func:`ground_truth_method`,
+the HPR methods of :mod:`o3dvis.baselines`); :func:`resolve_method` checks and
+adapts it. The bench names its methods instead: :func:`resolve_methods` turns
+``hpr``, ``hpr-exp``, ``neural`` and ``neural-normals`` into parameter sweeps
+``{label: method}`` (a network method with ``needs_normals = True`` also takes
+``normals=``); a method that cannot be built here (no network code, no weights)
+is returned as absent with the reason, never replaced by something else.
 """
 
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from .baselines import SWEEPS, Method, sweep
 
-__all__ = ["NeuralMethod", "neural_method", "resolve_methods", "METHOD_NAMES"]
+__all__ = ["resolve_method", "resolve_soft_method", "ground_truth_method", "NeuralMethod",
+           "neural_method", "resolve_methods", "METHOD_NAMES"]
 
 METHOD_NAMES = (*SWEEPS, "neural", "neural-normals")
+
+
+def _neural(method):
+    """``method`` as a NeuralVisibility or VisibilityField when it is one (None: the pretrained
+    network; a :class:`NeuralMethod` gives its NeuralVisibility), else None."""
+    from .visibility import NeuralVisibility, VisibilityField
+
+    if method is None:
+        return NeuralVisibility.pretrained()
+    inner = getattr(method, "visibility", None)
+    if isinstance(inner, NeuralVisibility):
+        return inner
+    return method if isinstance(method, (NeuralVisibility, VisibilityField)) else None
+
+
+def _field(neural, points: np.ndarray):
+    """The VisibilityField of ``points``: encoded here, or checked to hold as many points."""
+    if not hasattr(neural, "encode"):
+        if neural.num_points != len(points):
+            raise ValueError(f"the VisibilityField holds {neural.num_points} points, the cloud "
+                             f"{len(points)}: encode this cloud")
+        return neural
+    return neural.encode(points)
+
+
+def _shape_checked(result, cameras: np.ndarray, count: int) -> np.ndarray:
+    """``result`` as an array, ValueError unless it is (cameras, count)."""
+    result = np.asarray(result)
+    if result.shape != (len(cameras), count):
+        raise ValueError(f"the visibility method returned shape {result.shape}, expected "
+                         f"({len(cameras)}, {count}) for {len(cameras)} cameras and "
+                         f"{count} points")
+    return result
+
+
+def resolve_method(method) -> Method:
+    """A checked callable ``(points, cameras, indices=None) -> (V, N) bool`` for ``method``.
+
+    With ``indices``, the answer is for those points only, (V, len(indices));
+    the neural network then predicts only them (every point still occludes),
+    and it encodes a cloud once for all calls with the same ``points`` array.
+
+    Args:
+        method: None (the pretrained neural network), an ``o3dvis.NeuralVisibility``,
+            an ``o3dvis.VisibilityField`` of the same points, or a callable
+            ``(points, cameras) -> (V, N)`` such as :func:`ground_truth_method`
+            or ``o3dvis.baselines.hpr_method(k)``; one with a true attribute
+            ``takes_indices`` (such as what this returns) is passed ``indices=``.
+
+    Returns:
+        The callable; it raises ``ValueError`` when the method's answer has the wrong shape.
+    """
+    neural = _neural(method)
+    if neural is not None:
+        encoded: dict = {}
+
+        def run(points, cameras, indices):
+            if encoded.get("points") is not points:
+                encoded.update(points=points, field=_field(neural, points))
+            return encoded["field"].query(cameras, indices=indices)
+    elif getattr(method, "takes_indices", False):
+        def run(points, cameras, indices):
+            return method(points, cameras, indices=indices)
+    elif callable(method):
+        def run(points, cameras, indices):
+            result = _shape_checked(method(points, cameras), cameras, len(points))
+            return result if indices is None else result[:, indices]
+    else:
+        raise TypeError("method must be None, a NeuralVisibility, a VisibilityField or a callable "
+                        f"(points, cameras) -> (V, N) bool; got {type(method).__name__}")
+
+    def checked(points: np.ndarray, cameras: np.ndarray, indices: np.ndarray | None = None) -> np.ndarray:
+        cameras = np.atleast_2d(np.asarray(cameras, dtype=np.float64))
+        count = len(points) if indices is None else len(indices)
+        return _shape_checked(run(points, cameras, indices), cameras, count).astype(bool, copy=False)
+
+    checked.takes_indices = True
+    return checked
+
+
+def resolve_soft_method(method, points: np.ndarray) -> Callable:
+    """A differentiable ``cameras (V, 3) tensor -> (V, N) probabilities`` for ``points``.
+
+    Args:
+        method: None (the pretrained network), a ``NeuralVisibility`` (encoded
+            here), a ``VisibilityField`` of these points, or a callable mapping a
+            torch camera tensor to probabilities.
+        points: (N, 3) points.
+    """
+    neural = _neural(method)
+    if neural is not None:
+        return _field(neural, points).probabilities
+    if callable(method):
+        return method
+    raise TypeError("method must be None, a NeuralVisibility, a VisibilityField or a callable "
+                    f"mapping a camera tensor to visibility probabilities; got {type(method).__name__}")
+
+
+def ground_truth_method(mesh) -> Method:
+    """Exact visibility by ray casting against ``mesh`` (points must lie on its surface).
+
+    Args:
+        mesh: ``o3d.geometry.TriangleMesh`` (legacy or tensor) or ``(vertices, triangles)``.
+
+    Returns:
+        A visibility method.
+    """
+    from .data.groundtruth import as_legacy_mesh, visibility_from_mesh
+
+    mesh = as_legacy_mesh(mesh)
+    return lambda points, cameras: visibility_from_mesh(mesh, points, cameras)
 
 
 class NeuralMethod:

@@ -1,10 +1,10 @@
 """Applications of point visibility on Open3D geometry: oriented normals, reconstruction,
 shadows, best views and headless renders. Each takes the visibility method as ``method=``
-(default: the pretrained neural network; see :mod:`o3dvis.apps.methods`).
+(default: the pretrained neural network; see :mod:`o3dvis.methods`).
 """
 
 from .camera import View, fibonacci_sphere, make_view
-from .methods import ground_truth_method, resolve_method
+from ..methods import ground_truth_method, resolve_method
 from .normals import estimate_normals_neural, orient_normals_neural
 from .reconstruction import reconstruct_poisson, reconstruct_view_dependent
 from .render import depth_image, render_points

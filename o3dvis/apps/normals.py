@@ -16,7 +16,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 from .camera import cloud_points, viewpoints_around
-from .methods import resolve_method
+from ..methods import resolve_method
 from .triangulation import DEFAULT_EDGE_FACTOR, local_spacing, triangle_normals, visible_triangles
 
 __all__ = ["estimate_normals_neural", "orient_normals_neural", "multiview_normals"]
@@ -81,7 +81,7 @@ def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_vi
 
     Args:
         points: (N, 3) points.
-        method: the visibility method (see :func:`o3dvis.apps.methods.resolve_method`).
+        method: the visibility method (see :func:`o3dvis.methods.resolve_method`).
         num_views: cameras on a Fibonacci sphere of radius = bounding-box diagonal.
         refine_views: more cameras for the points that no triangle of the first
             ones covers (in concavities few directions see); only those points
@@ -140,7 +140,7 @@ def estimate_normals_neural(pcd, num_views: int = 26, method=None, *, refine_vie
         pcd: ``o3d.geometry.PointCloud`` (legacy or tensor); its normals are replaced.
         num_views: number of cameras.
         method: the visibility method (default: the pretrained neural network);
-            see :func:`o3dvis.apps.methods.resolve_method`.
+            see :func:`o3dvis.methods.resolve_method`.
         refine_views: more cameras for the points the first ``num_views`` leave
             without a triangle (0: none); those points and their neighbours alone
             are asked about and triangulated again.

@@ -11,7 +11,7 @@ import numpy as np
 import open3d as o3d
 
 from .camera import View, cloud_points, legacy_cloud, make_view
-from .methods import resolve_method
+from ..methods import resolve_method
 from .triangulation import local_spacing
 
 __all__ = ["render_points", "depth_image", "splat", "rasterize", "point_colors", "lambert"]

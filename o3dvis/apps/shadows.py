@@ -12,7 +12,7 @@ import numpy as np
 import open3d as o3d
 
 from .camera import as_camera_location, cloud_points, legacy_cloud, make_view
-from .methods import resolve_method
+from ..methods import resolve_method
 from .render import image_from, lambert, rasterize, splat, splat_size
 from .triangulation import DEFAULT_EDGE_FACTOR, local_spacing, visible_triangles
 

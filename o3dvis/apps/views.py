@@ -6,7 +6,7 @@ import numpy as np
 import torch
 
 from .camera import cloud_points, fibonacci_sphere
-from .methods import resolve_soft_method
+from ..methods import resolve_soft_method
 
 __all__ = ["best_view"]
 

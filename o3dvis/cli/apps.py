@@ -45,7 +45,7 @@ def _method(args: argparse.Namespace):
         return hpr_method(args.hpr_k)
     import open3d as o3d
 
-    from ..apps.methods import ground_truth_method
+    from ..methods import ground_truth_method
 
     if args.mesh is None:
         raise ValueError("--method gt needs --mesh, the mesh the points lie on")

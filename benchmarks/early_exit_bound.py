@@ -44,8 +44,10 @@ def main() -> int:
                 cameras = field._normalised(as_views(cloud.cameras, None))[0]
                 with torch.inference_mode():
                     for v, camera in enumerate(cameras):
-                        # the centre pixel's cue of the coarsest scale: asinh(residual in footprints)
-                        residual = torch.sinh(net.view(field.points_n, camera).cues()[:, -5]).numpy()
+                        # the centre pixel's cue of the coarsest scale: asinh(residual in footprints),
+                        # of the field's rows, put back in the cloud's order
+                        cues = net.view(field.points_n, camera).cues(field.rank)
+                        residual = torch.sinh(cues[:, -5]).numpy()
                         truth, network = cloud.labels[v], said[v]
                         for i, t in enumerate(behind):
                             skip = residual >= t

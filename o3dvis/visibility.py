@@ -25,7 +25,7 @@ from .cameras import Views, as_vectors, as_views
 from .clouds import cloud_arrays, cloud_device, unit_normals
 from .models import available_models, load_model, torch_device
 from .nn.network import VisibilityNetwork
-from .nn.octree import normalize_points
+from .nn.octree import morton_order, normalize_points
 
 __all__ = ["NeuralVisibility", "VisibilityField", "hidden_point_removal_neural", "select_visible",
            "register", "DEFAULT_CHUNK"]
@@ -62,11 +62,18 @@ class VisibilityField:
     batches of views and chunks of points of at most ``chunk_size`` rows.
     For a flat cloud (``hull``: centre and basis of its plane or line, in the
     normalised frame), views from off that plane or line see every point.
+
+    The rows of ``features``, ``points_n`` and ``normals`` may be stored in
+    another order than the cloud's (:meth:`NeuralVisibility.encode` sorts them
+    along a Morton curve, which makes the per-view gathers cache-friendly):
+    ``rank[i]`` is then the row of the cloud's point ``i``; None: the same order.
+    Answers always come in the cloud's order.
     """
 
     def __init__(self, network: VisibilityNetwork, features: Tensor, points_n: Tensor,
                  normals: Tensor | None, center: Tensor, scale: Tensor, bounds: tuple[Tensor, Tensor],
-                 chunk_size: int = DEFAULT_CHUNK, hull: tuple[Tensor, Tensor] | None = None):
+                 chunk_size: int = DEFAULT_CHUNK, hull: tuple[Tensor, Tensor] | None = None,
+                 rank: Tensor | None = None):
         self.network = network
         self.features = features
         self.points_n = points_n
@@ -75,6 +82,7 @@ class VisibilityField:
         self.bounds = bounds
         self.chunk_size = chunk_size
         self.hull = hull
+        self.rank = rank
 
     @property
     def num_points(self) -> int:
@@ -143,6 +151,12 @@ class VisibilityField:
         cameras, directions = self._normalised(views)
         clear = self._off_the_hull(views)
         n, total = self.num_points if rows is None else len(rows), len(views)
+        unsort = None  # the columns, in the cloud's order, of an answer for all stored rows
+        if self.rank is not None:
+            if rows is None:
+                unsort = self.rank
+            else:
+                rows = self.rank[rows]
         if n == 0:
             yield slice(0, total), self.features.new_zeros(total, 0)
             return
@@ -173,7 +187,7 @@ class VisibilityField:
                 for j, mask in masks:
                     keep[j] = mask
                 probs = probs * keep
-            yield batch, probs
+            yield batch, probs if unsort is None else probs[:, unsort]
 
     def probabilities(self, cameras=None, direction=None, *, frustum: bool = True,
                       indices=None) -> Tensor:
@@ -371,12 +385,15 @@ class NeuralVisibility:
             center, scale = lo, torch.ones((), dtype=points.dtype, device=points.device)
             points_n = points - center
         hull = _flat_hull(points_n)  # in float64, where a flat cloud is flat to the last bits
-        points_n = points_n.float()
-        unit = None if unit is None else unit.to(self.device).float()
+        order = morton_order(points_n)
+        rank = torch.empty_like(order)
+        rank[order] = torch.arange(len(order), device=order.device)
+        points_n = points_n[order].float()
+        unit = None if unit is None else unit.to(self.device)[order].float()
         with torch.no_grad():
             features = network.encode(points_n, normals=unit)
         return VisibilityField(network, features, points_n, unit, center, scale, (lo, hi), self.chunk_size,
-                               hull)
+                               hull, rank)
 
 
 _CACHE: dict[tuple[str, str], NeuralVisibility] = {}

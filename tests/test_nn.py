@@ -7,7 +7,7 @@ import torch.nn.functional as F
 
 from o3dvis.nn import (NetworkConfig, Octree, OctreeConv, OctreeDownsample, OctreeUpsample,
                        VisibilityNetwork, ViewEmbedding, VisibilityPredictor, morton_decode, morton_encode,
-                       normalize_points, octree_interpolate, view_cues)
+                       morton_order, normalize_points, octree_interpolate, view_cues)
 from o3dvis.nn.cues import ViewProjection
 from o3dvis.nn import octree as octree_module
 
@@ -32,6 +32,14 @@ def test_morton_roundtrip_and_order():
     assert torch.equal(morton_decode(key, 10), xyz)
     # the child slot (lowest 3 bits) is x<<2 | y<<1 | z
     assert torch.equal(key & 7, ((xyz[:, 0] & 1) << 2) | ((xyz[:, 1] & 1) << 1) | (xyz[:, 2] & 1))
+
+
+def test_morton_order_sorts_points_along_the_curve():
+    pts = torch.rand(2000, 3) * 2 - 1
+    order = morton_order(pts, depth=6)
+    assert torch.equal(order.sort().values, torch.arange(2000))
+    keys = morton_encode(((pts[order] + 1) * 32).floor().long(), 6)
+    assert (keys[1:] >= keys[:-1]).all() and not (keys[1:] == keys[:-1]).all()
 
 
 def test_octree_parents_children_consistent():

@@ -6,11 +6,11 @@ Nothing in this package imports Open3D.
 from .conv import OctreeConv, OctreeDownsample, OctreeUpsample, octree_interpolate
 from .cues import view_cues
 from .network import NetworkConfig, VisibilityNetwork
-from .octree import Octree, morton_decode, morton_encode, normalize_points
+from .octree import Octree, morton_decode, morton_encode, morton_order, normalize_points
 from .predictor import ViewEmbedding, VisibilityPredictor
 from .unet import OctreeUNet
 
-__all__ = ["Octree", "morton_encode", "morton_decode", "normalize_points", "OctreeConv",
+__all__ = ["Octree", "morton_encode", "morton_decode", "morton_order", "normalize_points", "OctreeConv",
            "OctreeDownsample", "OctreeUpsample", "octree_interpolate", "OctreeUNet",
            "ViewEmbedding", "VisibilityPredictor", "view_cues", "NetworkConfig",
            "VisibilityNetwork"]

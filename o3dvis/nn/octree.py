@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["Octree", "morton_encode", "morton_decode", "normalize_points"]
+__all__ = ["Octree", "morton_encode", "morton_decode", "morton_order", "normalize_points"]
 
 # The 27 neighbour offsets of a 3x3x3 kernel, ordered like the (kx, ky, kz)
 # axes of a ``conv3d`` weight: index = (dx + 1) * 9 + (dy + 1) * 3 + (dz + 1).
@@ -70,6 +70,21 @@ def morton_decode(key: Tensor, depth: int) -> Tensor:
     return torch.stack([_compact(key >> 2), _compact(key >> 1), _compact(key)], dim=1)
 
 
+def _cells(points: Tensor, depth: int) -> Tensor:
+    """(N, 3) integer coordinates of the cells of a ``2^depth`` grid over [-1, 1]^3 holding ``points``."""
+    res = 1 << depth
+    return ((points.detach() + 1) * (res / 2)).floor().long().clamp_(0, res - 1)
+
+
+def morton_order(points: Tensor, depth: int = 10) -> Tensor:
+    """The permutation that sorts normalised points along the Morton curve of a ``2^depth`` grid.
+
+    Points close in space end up close in memory, which keeps the per-view
+    gathers and scatters of a cloud cache-friendly.
+    """
+    return torch.argsort(morton_encode(_cells(points, depth), depth))
+
+
 class Octree:
     """A sparse octree of ``depth`` levels over a batch of clouds in [-1, 1]^3.
 
@@ -93,9 +108,7 @@ class Octree:
         self.batch_size = int(batch.max().item()) + 1 if batch_size is None else batch_size
         self.device = device
 
-        res = 1 << depth
-        xyz = ((points.detach() + 1) * (res / 2)).floor().long().clamp_(0, res - 1)
-        leaf_keys = (batch.long() << (3 * depth)) | morton_encode(xyz, depth)
+        leaf_keys = (batch.long() << (3 * depth)) | morton_encode(_cells(points, depth), depth)
         keys: list[Tensor] = [torch.empty(0)] * (depth + 1)
         keys[depth], self.point_leaf = torch.unique(leaf_keys, sorted=True, return_inverse=True)
         for level in range(depth - 1, full_depth, -1):

@@ -385,10 +385,11 @@ class NeuralVisibility:
             center, scale = lo, torch.ones((), dtype=points.dtype, device=points.device)
             points_n = points - center
         hull = _flat_hull(points_n)  # in float64, where a flat cloud is flat to the last bits
+        points_n = points_n.float()
         order = morton_order(points_n)
         rank = torch.empty_like(order)
         rank[order] = torch.arange(len(order), device=order.device)
-        points_n = points_n[order].float()
+        points_n = points_n[order]
         unit = None if unit is None else unit.to(self.device)[order].float()
         with torch.no_grad():
             features = network.encode(points_n, normals=unit)

@@ -73,7 +73,7 @@ def morton_decode(key: Tensor, depth: int) -> Tensor:
 def _cells(points: Tensor, depth: int) -> Tensor:
     """(N, 3) integer coordinates of the cells of a ``2^depth`` grid over [-1, 1]^3 holding ``points``."""
     res = 1 << depth
-    return ((points.detach() + 1) * (res / 2)).floor().long().clamp_(0, res - 1)
+    return (points.detach() + 1).mul_(res / 2).long().clamp_(0, res - 1)  # truncation = floor here
 
 
 def morton_order(points: Tensor, depth: int = 10) -> Tensor:

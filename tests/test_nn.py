@@ -26,10 +26,11 @@ def _to_grid(x, xyz, res):
     return grid
 
 
-def test_morton_roundtrip_and_order():
-    xyz = torch.randint(0, 1 << 10, (500, 3))
-    key = morton_encode(xyz, 10)
-    assert torch.equal(morton_decode(key, 10), xyz)
+@pytest.mark.parametrize("depth", [3, 10, 11, 21])  # table lookup up to depth 10, bit twiddling above
+def test_morton_roundtrip_and_order(depth):
+    xyz = torch.randint(0, 1 << depth, (500, 3))
+    key = morton_encode(xyz, depth)
+    assert torch.equal(morton_decode(key, depth), xyz)
     # the child slot (lowest 3 bits) is x<<2 | y<<1 | z
     assert torch.equal(key & 7, ((xyz[:, 0] & 1) << 2) | ((xyz[:, 1] & 1) << 1) | (xyz[:, 2] & 1))
 

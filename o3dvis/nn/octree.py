@@ -58,9 +58,16 @@ def _compact(v: Tensor) -> Tensor:
     return v
 
 
+_TABLE_DEPTH = 10
+_SPREAD_TABLE = _spread(torch.arange(1 << _TABLE_DEPTH))
+
+
 def morton_encode(xyz: Tensor, depth: int) -> Tensor:
     """Interleaves the bits of integer coordinates (x highest, z lowest), ``depth`` <= 21."""
     xyz = xyz.long()
+    if depth <= _TABLE_DEPTH:  # one table lookup per coordinate instead of five shift-and-mask passes
+        spread = torch.take(_SPREAD_TABLE.to(xyz.device), xyz)
+        return (spread[:, 0] << 2) | (spread[:, 1] << 1) | spread[:, 2]
     return (_spread(xyz[:, 0]) << 2) | (_spread(xyz[:, 1]) << 1) | _spread(xyz[:, 2])
 
 

@@ -187,7 +187,7 @@ class VisibilityField:
                 for j, mask in masks:
                     keep[j] = mask
                 probs = probs * keep
-            yield batch, probs if unsort is None else probs[:, unsort]
+            yield batch, probs if unsort is None else probs.index_select(1, unsort)
 
     def probabilities(self, cameras=None, direction=None, *, frustum: bool = True,
                       indices=None) -> Tensor:
@@ -389,8 +389,8 @@ class NeuralVisibility:
         order = morton_order(points_n)
         rank = torch.empty_like(order)
         rank[order] = torch.arange(len(order), device=order.device)
-        points_n = points_n[order]
-        unit = None if unit is None else unit.to(self.device)[order].float()
+        points_n = points_n.index_select(0, order)
+        unit = None if unit is None else unit.to(self.device).index_select(0, order).float()
         with torch.no_grad():
             features = network.encode(points_n, normals=unit)
         return VisibilityField(network, features, points_n, unit, center, scale, (lo, hi), self.chunk_size,

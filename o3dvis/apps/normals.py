@@ -71,8 +71,9 @@ def _add_triangle_normals(total: np.ndarray, points: np.ndarray, cameras: np.nda
             length = np.linalg.norm(normals, axis=1)
             ok = length > 0
             unit, corners = normals[ok] / length[ok, None], triangles[ok].ravel()
-            for k in range(3):
-                total[:, k] += np.bincount(corners, np.repeat(unit[:, k], 3), minlength=len(points))
+            slots = (3 * corners[:, None] + np.arange(3)).ravel()  # (corner, component) pairs
+            total += np.bincount(slots, np.repeat(unit, 3, axis=0).ravel(),
+                                 minlength=total.size).reshape(total.shape)
 
 
 def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_views: int = 64,

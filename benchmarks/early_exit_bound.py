@@ -6,7 +6,7 @@ nearest point in its pixel of the coarsest depth buffer could be answered
 points such a rule would skip and the accuracy it would change (errors after
 minus errors of the network on those points), for several T.
 
-    python3 benchmarks/early_exit_bound.py --data /work/data/val --limit 16 \\
+    python3 benchmarks/early_exit_bound.py --data data/val --limit 16 \\
         --out benchmarks/results/early_exit_bound.md
 """
 

@@ -1,6 +1,6 @@
 """Accuracy of visibility methods on labelled data: the same as ``o3dvis eval``.
 
-    python3 benchmarks/eval_accuracy.py --data /work/data/val --points 2048,8192,32768,81920 \\
+    python3 benchmarks/eval_accuracy.py --data data/val --points 2048,8192,32768,81920 \\
         --noise 0,0.01,0.02 --methods hpr,hpr-exp --views 16 --out benchmarks/results/val.json
 """
 

@@ -27,7 +27,7 @@ import open3d as o3d  # noqa: E402
 
 from o3dvis.data.prepare import MESH_SUFFIXES, sample_surface  # noqa: E402
 
-DEFAULT_MESHES = Path("/work/shared/meshes/val")
+DEFAULT_MESHES = Path(__file__).resolve().parents[2] / "shared" / "meshes" / "val"  # ../shared beside the project
 
 
 def add_data_flags(parser: argparse.ArgumentParser, limit: int, noise: str) -> None:

@@ -6,7 +6,7 @@ prepared data (run it on training data, so that nothing is tuned on val):
 a network trained on clean and noisy clouds alike cannot tell them apart, and
 a single threshold then trades one against the other.
 
-    python3 benchmarks/threshold_sweep.py --data /work/data/train --limit 30 \\
+    python3 benchmarks/threshold_sweep.py --data data/train --limit 30 \\
         --out benchmarks/results/threshold_train.md
 """
 

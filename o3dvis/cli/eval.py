@@ -11,7 +11,7 @@ from pathlib import Path
 __all__ = ["register", "run_eval", "run_bench", "main"]
 
 _EVAL_EXAMPLE = """example:
-  o3dvis eval --data /work/data/val --points 2048,8192,32768,81920 --noise 0,0.01,0.02 \\
+  o3dvis eval --data data/val --points 2048,8192,32768,81920 --noise 0,0.01,0.02 \\
       --methods hpr,hpr-exp --views 16 --out benchmarks/results/val.json --cache ~/.cache/o3dvis-eval
 
 Baselines are scored at every value of their sweep (--hpr-k, --gamma) and the best

@@ -17,10 +17,9 @@ import argparse
 import numpy as np
 import torch
 
-from mesh_bench import add_data_flags, command_line, emit_report, markdown
+from mesh_bench import add_data_flags, command_line, data_settings, emit_report, markdown
 from o3dvis.cameras import as_views
-from o3dvis.data.prepare import load_sample
-from o3dvis.evaluate import eval_cloud, list_samples
+from o3dvis.evaluate import list_samples
 from o3dvis.visibility import NeuralVisibility
 
 
@@ -29,34 +28,31 @@ def main() -> int:
     add_data_flags(parser, 16, "0,0.02")
     parser.add_argument("--behind", default="5,10,20", help="values of T, in pixel footprints")
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
     vis = NeuralVisibility.pretrained("default", use_normals=False)
     net, behind = vis.network, [float(t) for t in args.behind.split(",")]
-    files = list_samples(args.data, args.limit)
     rows = []
-    for n in (int(p) for p in args.points.split(",")):
-        for noise in (float(x) for x in args.noise.split(",")):
-            skipped, change, total = np.zeros(len(behind)), np.zeros(len(behind)), 0
-            for path in files:
-                cloud = eval_cloud(load_sample(path), n, noise, 0, args.views)
-                field = vis.encode(cloud.points)
-                said = field.query(cloud.cameras)
-                cameras = field._normalised(as_views(cloud.cameras, None))[0]
-                with torch.inference_mode():
-                    for v, camera in enumerate(cameras):
-                        # the centre pixel's cue of the coarsest scale: asinh(residual in footprints),
-                        # of the field's rows, put back in the cloud's order
-                        cues = net.view(field.points_n, camera).cues(field.rank)
-                        residual = torch.sinh(cues[:, -5]).numpy()
-                        truth, network = cloud.labels[v], said[v]
-                        for i, t in enumerate(behind):
-                            skip = residual >= t
-                            skipped[i] += skip.sum()
-                            change[i] += truth[skip].sum() - (network[skip] != truth[skip]).sum()
-                total += cloud.labels.size
-            rows.append([f"{n:,}", f"{100 * noise:g} %"] + sum(
-                ([f"{100 * s / total:.1f}", f"{-100 * c / total:+.3f}"] for s, c in zip(skipped, change)), []))
-            print(" | ".join(rows[-1]), flush=True)
+    for n, noise, clouds in data_settings(args):
+        skipped, change, total = np.zeros(len(behind)), np.zeros(len(behind)), 0
+        for cloud in clouds:
+            field = vis.encode(cloud.points)
+            said = field.query(cloud.cameras)
+            cameras = field._normalised(as_views(cloud.cameras, None))[0]
+            with torch.inference_mode():
+                for v, camera in enumerate(cameras):
+                    # the centre pixel's cue of the coarsest scale: asinh(residual in footprints),
+                    # of the field's rows, put back in the cloud's order
+                    cues = net.view(field.points_n, camera).cues(field.rank)
+                    residual = torch.sinh(cues[:, -5]).numpy()
+                    truth, network = cloud.labels[v], said[v]
+                    for i, t in enumerate(behind):
+                        skip = residual >= t
+                        skipped[i] += skip.sum()
+                        change[i] += truth[skip].sum() - (network[skip] != truth[skip]).sum()
+            total += cloud.labels.size
+        rows.append([f"{n:,}", f"{100 * noise:g} %"] + sum(
+            ([f"{100 * s / total:.1f}", f"{-100 * c / total:+.3f}"] for s, c in zip(skipped, change)), []))
+        print(" | ".join(rows[-1]), flush=True)
+    files = list_samples(args.data, args.limit)
     header = ["points", "noise"] + sum(([f"T={t:g}: skipped %", f"T={t:g}: accuracy change (points)"]
                                         for t in behind), [])
     report = "\n".join([command_line(), "",

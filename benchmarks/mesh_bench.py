@@ -41,6 +41,24 @@ def add_data_flags(parser: argparse.ArgumentParser, limit: int, noise: str) -> N
     parser.add_argument("--out", type=Path, help="also write the report to this Markdown file")
 
 
+def data_settings(args: argparse.Namespace):
+    """Each (points, noise) setting of the data flags with its clouds, one per prepared file.
+
+    Sets the torch threads from ``--threads``. Yields ``(points, noise, clouds)``, ``clouds``
+    an iterator of ``o3dvis.evaluate.EvalCloud`` (subsampled, noised, ``--views`` views).
+    """
+    import torch
+
+    from o3dvis.data.prepare import load_sample
+    from o3dvis.evaluate import eval_cloud, list_samples
+
+    torch.set_num_threads(args.threads)
+    files = list_samples(args.data, args.limit)
+    for n in (int(p) for p in args.points.split(",")):
+        for noise in (float(x) for x in args.noise.split(",")):
+            yield n, noise, (eval_cloud(load_sample(path), n, noise, 0, args.views) for path in files)
+
+
 def add_common_flags(parser: argparse.ArgumentParser, points: str) -> None:
     """Flags both benchmarks share."""
     parser.add_argument("--meshes", type=Path, default=DEFAULT_MESHES, help=f"mesh folder (default {DEFAULT_MESHES})")

@@ -15,11 +15,9 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-import torch
 
-from mesh_bench import add_data_flags, command_line, emit_report, markdown
-from o3dvis.data.prepare import load_sample
-from o3dvis.evaluate import eval_cloud, list_samples
+from mesh_bench import add_data_flags, command_line, data_settings, emit_report, markdown
+from o3dvis.evaluate import list_samples
 from o3dvis.visibility import NeuralVisibility
 
 
@@ -29,25 +27,22 @@ def main() -> int:
     parser.add_argument("--model", default="default", help="shipped model name or .safetensors path")
     parser.add_argument("--thresholds", default="0.4,0.45,0.5,0.55,0.6,0.65,0.7")
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
     vis = NeuralVisibility.pretrained(args.model, use_normals=False)
     thresholds = np.array([float(t) for t in args.thresholds.split(",")])
-    files = list_samples(args.data, args.limit)
     rows = []
-    for n in (int(p) for p in args.points.split(",")):
-        for noise in (float(x) for x in args.noise.split(",")):
-            correct, total = np.zeros(len(thresholds)), 0
-            for path in files:
-                cloud = eval_cloud(load_sample(path), n, noise, 0, args.views)
-                probs = vis.encode(cloud.points).probabilities(cloud.cameras).numpy()
-                correct += [((probs > t) == cloud.labels).sum() for t in thresholds]
-                total += cloud.labels.size
-            accuracy = 100 * correct / total
-            best = int(accuracy.argmax())
-            rows.append([f"{n:,}", f"{100 * noise:g} %"] + [f"{a:.2f}" for a in accuracy]
-                        + [f"{thresholds[best]:g} ({accuracy[best] - accuracy[thresholds == 0.5].max():+.2f})"
-                           if (thresholds == 0.5).any() else f"{thresholds[best]:g}"])
-            print(" | ".join(rows[-1]), flush=True)
+    for n, noise, clouds in data_settings(args):
+        correct, total = np.zeros(len(thresholds)), 0
+        for cloud in clouds:
+            probs = vis.encode(cloud.points).probabilities(cloud.cameras).numpy()
+            correct += [((probs > t) == cloud.labels).sum() for t in thresholds]
+            total += cloud.labels.size
+        accuracy = 100 * correct / total
+        best = int(accuracy.argmax())
+        rows.append([f"{n:,}", f"{100 * noise:g} %"] + [f"{a:.2f}" for a in accuracy]
+                    + [f"{thresholds[best]:g} ({accuracy[best] - accuracy[thresholds == 0.5].max():+.2f})"
+                       if (thresholds == 0.5).any() else f"{thresholds[best]:g}"])
+        print(" | ".join(rows[-1]), flush=True)
+    files = list_samples(args.data, args.limit)
     report = "\n".join([command_line(), "",
                         f"Accuracy (%) of `{args.model}` by decision threshold: {len(files)} files of "
                         f"{args.data}, {args.views} views each.", "",

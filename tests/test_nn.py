@@ -146,6 +146,21 @@ def test_predictor_equals_the_plain_mlp_on_the_concatenation():
     torch.testing.assert_close(pred(projected, dirs, cues), pred.mlp(torch.cat([projected * emb, cues], dim=-1)))
 
 
+@pytest.mark.parametrize("interpolation", ["nearest", "trilinear"])
+def test_encode_projects_per_leaf_as_the_linear_layer_does_per_point(interpolation):
+    torch.manual_seed(0)
+    net = VisibilityNetwork(NetworkConfig(depth=6, interpolation=interpolation)).double().eval()
+    pn, _, _ = normalize_points(_sphere_with_bump().double())
+    with torch.no_grad():
+        octree = net.octree(pn)
+        leaf = net.unet(net._signal(pn, octree, None), octree)
+        batch = torch.zeros(len(pn), dtype=torch.long)
+        per_point = (octree_interpolate(leaf, octree, pn, batch) if interpolation == "trilinear"
+                     else leaf[octree.point_leaf])
+        expected = net.predictor.project_feature(torch.cat([per_point, pn], dim=1))
+        torch.testing.assert_close(net.encode(pn), expected)
+
+
 def test_view_cues_flag_the_far_side_of_a_sphere():
     torch.manual_seed(0)
     p = torch.nn.functional.normalize(torch.randn(20000, 3), dim=1)

@@ -9,7 +9,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from .conv import gather_rows, octree_interpolate
+from .conv import octree_interpolate
 from .cues import DEFAULT_SCALES, ViewProjection, num_cues
 from .octree import Octree
 from .predictor import VisibilityPredictor
@@ -91,10 +91,12 @@ class VisibilityNetwork(nn.Module):
         octree = self.octree(points, batch, batch_size)
         leaf = self.unet(self._signal(points, octree, normals), octree)
         if self.config.interpolation == "trilinear":
-            feature = octree_interpolate(leaf, octree, points, batch)
+            def carry(x: Tensor) -> Tensor:
+                return octree_interpolate(x.transpose(0, 1), octree, points, batch).transpose(0, 1)
         else:
-            feature = gather_rows(leaf, octree.point_leaf)
-        return self.predictor.project(torch.cat([feature, points], dim=1))
+            def carry(x: Tensor) -> Tensor:
+                return x.index_select(1, octree.point_leaf)
+        return self.predictor.project(leaf, points, carry)
 
     def view(self, points: Tensor, camera: Tensor | None = None,
              direction: Tensor | None = None) -> ViewProjection:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -56,10 +56,22 @@ class VisibilityPredictor(nn.Module):
         layers.append(nn.Linear(width, 2))
         self.mlp = nn.Sequential(*layers)
 
-    def project(self, features: Tensor) -> Tensor:
-        """(N, F) point features -> (N, E), stored channels first (as ``forward`` reads them)."""
-        layer = self.project_feature
-        return torch.addmm(layer.bias[:, None], layer.weight, features.transpose(0, 1)).transpose(0, 1)
+    def project(self, features: Tensor, points: Tensor, carry: Callable[[Tensor], Tensor]) -> Tensor:
+        """Projects ``[feature, point]`` to the embedding's width, (N, E), stored channels first.
+
+        The projection is linear, so the features are projected where they are
+        computed, once per octree leaf, and ``carry`` then takes the (E, L)
+        projected leaf features to the (E, N) points (a gather, or an
+        interpolation whose weights sum to 1, which keeps the bias exact).
+
+        Args:
+            features: (L, F - 3) features of the octree leaves.
+            points: (N, 3) normalised points.
+            carry: (E, L) -> (E, N) leaf values at the points.
+        """
+        layer, c = self.project_feature, features.shape[1]
+        per_leaf = torch.addmm(layer.bias[:, None], layer.weight[:, :c], features.transpose(0, 1))
+        return carry(per_leaf).addmm_(layer.weight[:, c:], points.transpose(0, 1)).transpose(0, 1)
 
     def forward(self, projected: Tensor, dirs: Tensor, cues: Tensor) -> Tensor:
         """(..., N, E) projected features, (..., N, 3) directions, (..., N, Z) cues -> (..., N, 2).

@@ -65,8 +65,8 @@ class VisibilityPredictor(nn.Module):
         interpolation whose weights sum to 1, which keeps the bias exact).
 
         Args:
-            features: (L, F - 3) features of the octree leaves.
-            points: (N, 3) normalised points.
+            features: (L, C) features of the octree leaves (the layer takes C + 3 inputs).
+            points: (N, 3) normalised points, the layer's last 3 inputs.
             carry: (E, L) -> (E, N) leaf values at the points.
         """
         layer, c = self.project_feature, features.shape[1]

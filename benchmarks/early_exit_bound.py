@@ -12,20 +12,17 @@ minus errors of the network on those points), for several T.
 
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
 import torch
 
-from mesh_bench import add_data_flags, command_line, data_settings, emit_report, markdown
+from mesh_bench import command_line, data_parser, data_settings, emit_report, markdown
 from o3dvis.cameras import as_views
 from o3dvis.evaluate import list_samples
 from o3dvis.visibility import NeuralVisibility
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_data_flags(parser, 16, "0,0.02")
+    parser = data_parser(__doc__, 16, "0,0.02")
     parser.add_argument("--behind", default="5,10,20", help="values of T, in pixel footprints")
     args = parser.parse_args()
     vis = NeuralVisibility.pretrained("default", use_normals=False)

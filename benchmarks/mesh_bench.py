@@ -30,8 +30,14 @@ from o3dvis.data.prepare import MESH_SUFFIXES, sample_surface  # noqa: E402
 DEFAULT_MESHES = Path(__file__).resolve().parents[2] / "shared" / "meshes" / "val"  # ../shared beside the project
 
 
-def add_data_flags(parser: argparse.ArgumentParser, limit: int, noise: str) -> None:
-    """Flags of the benchmarks that read prepared (labelled) data rather than meshes."""
+def data_parser(doc: str, limit: int, noise: str) -> argparse.ArgumentParser:
+    """The parser of a benchmark that reads prepared (labelled) data rather than meshes.
+
+    Args:
+        doc: the benchmark's docstring (its help text).
+        limit, noise: defaults of ``--limit`` and ``--noise``.
+    """
+    parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", required=True, help="folder of prepared .npz files")
     parser.add_argument("--limit", type=int, default=limit, help=f"files, evenly spread (default {limit})")
     parser.add_argument("--points", default="2048,8192,32768,81920", help="comma-separated cloud sizes")
@@ -39,6 +45,7 @@ def add_data_flags(parser: argparse.ArgumentParser, limit: int, noise: str) -> N
     parser.add_argument("--views", type=int, default=8, help="viewpoints per file (default 8)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--out", type=Path, help="also write the report to this Markdown file")
+    return parser
 
 
 def data_settings(args: argparse.Namespace):

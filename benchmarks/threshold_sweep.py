@@ -4,7 +4,8 @@ The network says "visible" when its probability exceeds a threshold (0.5 by
 default). This sweep shows where another threshold would score higher, on
 prepared data (run it on training data, so that nothing is tuned on val):
 a network trained on clean and noisy clouds alike cannot tell them apart, and
-a single threshold then trades one against the other.
+a single threshold then trades one against the other (clean clouds want
+about 0.6, dense noisy ones 0.1-0.3).
 
     python3 benchmarks/threshold_sweep.py --data data/train --limit 30 \\
         --out benchmarks/results/threshold_train.md
@@ -12,20 +13,17 @@ a single threshold then trades one against the other.
 
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
 
-from mesh_bench import add_data_flags, command_line, data_settings, emit_report, markdown
+from mesh_bench import command_line, data_parser, data_settings, emit_report, markdown
 from o3dvis.evaluate import list_samples
 from o3dvis.visibility import NeuralVisibility
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_data_flags(parser, 30, "0,0.01,0.02")
+    parser = data_parser(__doc__, 30, "0,0.01,0.02")
     parser.add_argument("--model", default="default", help="shipped model name or .safetensors path")
-    parser.add_argument("--thresholds", default="0.4,0.45,0.5,0.55,0.6,0.65,0.7")
+    parser.add_argument("--thresholds", default="0.1,0.2,0.3,0.4,0.5,0.6,0.7")
     args = parser.parse_args()
     vis = NeuralVisibility.pretrained(args.model, use_normals=False)
     thresholds = np.array([float(t) for t in args.thresholds.split(",")])

@@ -7,7 +7,7 @@ import torch.nn.functional as F
 
 from o3dvis.nn import (NetworkConfig, Octree, OctreeConv, OctreeDownsample, OctreeUpsample,
                        VisibilityNetwork, ViewEmbedding, VisibilityPredictor, morton_decode, morton_encode,
-                       morton_order, normalize_points, octree_interpolate, view_cues)
+                       morton_order, noise_cues, normalize_points, octree_interpolate, view_cues)
 from o3dvis.nn.cues import ViewProjection
 from o3dvis.nn import octree as octree_module
 
@@ -153,8 +153,8 @@ def test_encode_projects_per_leaf_as_the_linear_layer_does_per_point(interpolati
     pn, _, _ = normalize_points(_sphere_with_bump().double())
     with torch.no_grad():
         octree = net.octree(pn)
-        leaf = net.unet(net._signal(pn, octree, None), octree)
         batch = torch.zeros(len(pn), dtype=torch.long)
+        leaf = net.unet(net._signal(pn, batch, octree, None), octree)
         per_point = (octree_interpolate(leaf, octree, pn, batch) if interpolation == "trilinear"
                      else leaf[octree.point_leaf])
         expected = net.predictor.project_feature(torch.cat([per_point, pn], dim=1))
@@ -208,10 +208,10 @@ def _sphere_with_bump(n=3000, seed=0):
     return p * (1 + 0.3 * (p[:, :1] > 0.7))
 
 
-@pytest.mark.parametrize("use_normals", [False, True])
-def test_network_invariant_to_order_translation_and_scale(use_normals):
+@pytest.mark.parametrize("use_normals, with_noise_cues", [(False, False), (True, False), (False, True)])
+def test_network_invariant_to_order_translation_and_scale(use_normals, with_noise_cues):
     torch.manual_seed(0)
-    net = VisibilityNetwork(NetworkConfig(depth=6, use_normals=use_normals)).eval()
+    net = VisibilityNetwork(NetworkConfig(depth=6, use_normals=use_normals, noise_cues=with_noise_cues)).eval()
     pts = _sphere_with_bump().double()
     normals = torch.nn.functional.normalize(pts, dim=1).float() if use_normals else None
     cam = torch.tensor([2.5, 1.0, 0.5], dtype=torch.float64)
@@ -273,7 +273,8 @@ def test_training_smoke_loss_falls(tmp_path):
     assert len(losses) == 8 and np.mean(losses[-2:]) < 0.8 * np.mean(losses[:2])
 
 
-def test_warm_start_into_a_normals_model_keeps_the_function():
+@pytest.mark.parametrize("added", [{"use_normals": True}, {"noise_cues": True}])
+def test_warm_start_with_added_inputs_keeps_the_function(added):
     from o3dvis.train import warm_start
 
     torch.manual_seed(0)
@@ -285,13 +286,42 @@ def test_warm_start_into_a_normals_model_keeps_the_function():
         if isinstance(m, torch.nn.BatchNorm1d):
             m.running_mean.normal_()
             m.running_var.uniform_(0.5, 2)
-    target = VisibilityNetwork(NetworkConfig(**small, use_normals=True))
+    target = VisibilityNetwork(NetworkConfig(**small, **added))
     warm_start(target, source.state_dict())
     source.eval(), target.eval()
     pn, _, _ = normalize_points(_sphere_with_bump())
-    normals = torch.nn.functional.normalize(torch.randn_like(pn), dim=1)
+    normals = torch.nn.functional.normalize(torch.randn_like(pn), dim=1) if target.config.use_normals else None
     cam = torch.tensor([2.0, 0.5, 0.3])
     with torch.no_grad():
         a = source.predict(source.encode(pn), pn, cam)
         b = target.predict(target.encode(pn, normals=normals), pn, cam, normals=normals)
     torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)
+
+
+def _noisy_sphere(n, noise, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    p = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=torch.float64), dim=1)
+    return normalize_points(p + noise * torch.randn(n, 3, generator=g, dtype=torch.float64))[0]
+
+
+def test_noise_cues_grow_with_noise_and_ignore_order():
+    cues = torch.stack([noise_cues(_noisy_sphere(40_000, s)) for s in (0.0, 0.003, 0.01)])
+    assert (cues[1:] > cues[:-1]).all(), cues
+    assert cues[0].max() < 0.05  # a smooth surface is thin and flat at this density
+    p = _noisy_sphere(40_000, 0.003)
+    torch.testing.assert_close(noise_cues(p[torch.randperm(len(p))]), noise_cues(p), atol=1e-6, rtol=0)
+
+
+def test_noise_cues_of_clouds_too_small_to_measure_are_zero():
+    assert torch.equal(noise_cues(_noisy_sphere(10, 0.01)), torch.zeros(2, dtype=torch.float64))
+
+
+def test_noise_cues_are_per_cloud_in_a_batch():
+    torch.manual_seed(0)
+    net = VisibilityNetwork(NetworkConfig(depth=6, noise_cues=True)).double().eval()
+    clouds = [_noisy_sphere(3000, 0.0, seed=1), _noisy_sphere(5000, 0.01, seed=2)]
+    batch = torch.cat([torch.full((len(c),), i) for i, c in enumerate(clouds)])
+    with torch.no_grad():
+        together = net.encode(torch.cat(clouds), batch, batch_size=2)
+        alone = torch.cat([net.encode(c) for c in clouds])
+    torch.testing.assert_close(together, alone)

@@ -36,7 +36,7 @@ def _train(args) -> int:
 
     if args.threads:
         torch.set_num_threads(args.threads)
-    network = {"use_normals": args.normals}
+    network = {"use_normals": args.normals, "noise_cues": args.noise_cues}
     if args.depth:
         network["depth"] = args.depth
     if args.channels:
@@ -101,6 +101,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--noise", type=float, default=0.02, help="largest noise level, share of the bbox diagonal")
     p.add_argument("--noise-prob", type=float, default=0.5, help="share of clouds that get noise (default 0.5)")
     p.add_argument("--normals", action="store_true", help="train a model that takes normals")
+    p.add_argument("--noise-cues", action="store_true",
+                   help="the U-Net also reads two per-cloud noise statistics (o3dvis.nn.noise)")
     p.add_argument("--depth", type=int, help="octree depth (default: the network's)")
     p.add_argument("--channels", help="comma-separated stage widths")
     p.add_argument("--frequencies", type=int, help="view-embedding frequencies (default: the network's)")

@@ -11,6 +11,7 @@ from torch import Tensor, nn
 
 from .conv import octree_interpolate
 from .cues import DEFAULT_SCALES, ViewProjection, num_cues
+from .noise import NUM_NOISE_CUES, noise_cues
 from .octree import Octree
 from .predictor import VisibilityPredictor
 from .unet import OctreeUNet
@@ -32,6 +33,7 @@ class NetworkConfig:
     interpolation: str = "nearest"
     cue_scales: tuple[int, ...] = DEFAULT_SCALES
     use_normals: bool = False
+    noise_cues: bool = False
     extra: dict = field(default_factory=dict)
 
     @classmethod
@@ -53,13 +55,15 @@ class VisibilityNetwork(nn.Module):
     def __init__(self, config: NetworkConfig | None = None):
         super().__init__()
         self.config = config = config or NetworkConfig()
-        in_channels = 6 + (3 if config.use_normals else 0)
+        in_channels = 6 + (3 if config.use_normals else 0) + (NUM_NOISE_CUES if config.noise_cues else 0)
         self.unet = OctreeUNet(in_channels, config.channels, config.blocks, config.feature_channels)
         self.predictor = VisibilityPredictor(
             config.feature_channels + 3, config.num_frequencies,
             num_cues(config.cue_scales) + (1 if config.use_normals else 0), config.hidden)
 
-    def _signal(self, points: Tensor, octree: Octree, normals: Tensor | None) -> Tensor:
+    def _signal(self, points: Tensor, batch: Tensor, octree: Octree, normals: Tensor | None) -> Tensor:
+        """(L, C) input of the U-Net per leaf: mean local and global coordinates (and normals),
+        then the cloud's noise cues when the network reads them."""
         res = 1 << octree.depth
         local = ((points + 1) * (res / 2)).frac() * 2 - 1
         per_point = [local, points] + ([normals] if normals is not None else [])
@@ -67,7 +71,14 @@ class VisibilityNetwork(nn.Module):
         n = octree.num_nodes(octree.depth)
         sums = per_point.new_zeros(n, per_point.shape[1]).index_add_(0, octree.point_leaf, per_point)
         counts = per_point.new_zeros(n).index_add_(0, octree.point_leaf, torch.ones_like(points[:, 0]))
-        return sums / counts[:, None]
+        signal = sums / counts[:, None]
+        if not self.config.noise_cues:
+            return signal
+        if octree.batch_size == 1:
+            cloud = noise_cues(points)[None]
+        else:
+            cloud = torch.stack([noise_cues(points[batch == b]) for b in range(octree.batch_size)])
+        return torch.cat([signal, cloud.index_select(0, octree.batch_of(octree.depth))], dim=1)
 
     def octree(self, points: Tensor, batch: Tensor | None = None, batch_size: int | None = None) -> Octree:
         """The octree of normalised points at this network's depths (what :meth:`encode` builds)."""
@@ -89,7 +100,7 @@ class VisibilityNetwork(nn.Module):
         if batch is None:
             batch = torch.zeros(points.shape[0], dtype=torch.long, device=points.device)
         octree = self.octree(points, batch, batch_size)
-        leaf = self.unet(self._signal(points, octree, normals), octree)
+        leaf = self.unet(self._signal(points, batch, octree, normals), octree)
         if self.config.interpolation == "trilinear":
             def carry(x: Tensor) -> Tensor:
                 return octree_interpolate(x.transpose(0, 1), octree, points, batch).transpose(0, 1)

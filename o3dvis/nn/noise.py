@@ -1,0 +1,92 @@
+"""How noisy a cloud is next to its point spacing: two numbers per cloud for the network.
+
+Noise of a few point spacings puts visible points behind the nearest depth in
+the finest depth buffers, where they look hidden; fine detail (thin parts,
+small features) can look the same to a single point. Over the whole cloud the
+two differ: noise thickens every patch of surface, detail only some. Both cues
+are the lower quartile over many small patches, so detail in some of them does
+not move it:
+
+* cells of a 32^3 grid with at least 8 points: the patch's thickness (square
+  root of the smallest eigenvalue of its covariance) in point spacings (cell
+  size / sqrt(count));
+* runs of 16 points along a fine Morton curve (at most 2048 runs, evenly
+  spread along it): thickness / width (square root of the smallest over the
+  middle eigenvalue).
+
+Invariant to the order of the points (up to coincident points), translation and
+scale (of normalised points); linear in the number of points but for one sort.
+"""
+
+from __future__ import annotations
+
+from itertools import chain
+
+import torch
+from torch import Tensor
+
+from .octree import _cells, morton_order
+
+__all__ = ["noise_cues", "NUM_NOISE_CUES"]
+
+NUM_NOISE_CUES = 2
+_LEVEL, _MIN_COUNT, _RUN, _MAX_RUNS, _QUANTILE = 5, 8, 16, 2048, 0.25
+
+
+def _lower_quartile(x: Tensor) -> Tensor:
+    return torch.quantile(x, _QUANTILE) if x.numel() else x.new_zeros(())
+
+
+def _eigenvalues(cov: Tensor) -> Tensor:
+    """(..., 3) ascending eigenvalues of symmetric (..., 3, 3) matrices (upper triangles read), >= 0."""
+    return torch.linalg.eigvalsh(cov, UPLO="U").clamp_min(0)
+
+
+def _cell_thickness(points: Tensor) -> Tensor:
+    """Lower quartile of the cells' thickness in point spacings."""
+    res = 1 << _LEVEL
+    c = _cells(points, _LEVEL)
+    cell = (c[:, 0] * res + c[:, 1]) * res + c[:, 2]
+    count = torch.bincount(cell, minlength=res ** 3)
+    full = torch.nonzero(count >= _MIN_COUNT).squeeze(1)
+    if full.numel() == 0:
+        return torch.zeros((), dtype=torch.float64, device=points.device)
+    # moments about each cell's centre (small numbers, which float32 sums hold), by weighted bincounts
+    q = points.detach().float() - ((c + 0.5) * (2 / res) - 1)
+    pairs = [(i, j) for i in range(3) for j in range(i, 3)]
+    moments = chain((q[:, i] * q[:, j] for i, j in pairs), q.unbind(1))  # one (N,) column at a time
+    m = torch.stack([torch.bincount(cell, w, minlength=res ** 3).index_select(0, full)
+                     for w in moments]).double()
+    n = count.index_select(0, full).double()
+    mean, second = m[6:] / n, m[:6] / n
+    cov = m.new_zeros(len(full), 3, 3)
+    for k, (i, j) in enumerate(pairs):
+        cov[:, i, j] = second[k] - mean[i] * mean[j]
+    thickness = _eigenvalues(cov)[:, 0].sqrt()
+    return _lower_quartile(thickness * n.sqrt() * (res / 2))
+
+
+def _run_flatness(points: Tensor) -> Tensor:
+    """Lower quartile of thickness / width of runs of points along the Morton curve."""
+    num_runs = len(points) // _RUN
+    if num_runs == 0:
+        return torch.zeros((), dtype=torch.float64, device=points.device)
+    order = morton_order(points, depth=21)
+    runs = torch.linspace(0, num_runs - 1, min(num_runs, _MAX_RUNS), device=points.device).long()
+    index = (runs[:, None] * _RUN + torch.arange(_RUN, device=points.device)).flatten()
+    x = points.detach().index_select(0, order.index_select(0, index)).double().view(-1, _RUN, 3)
+    x = x - x.mean(dim=1, keepdim=True)
+    eig = _eigenvalues(torch.einsum("rki,rkj->rij", x, x))
+    return _lower_quartile((eig[:, 0] / eig[:, 1].clamp_min(torch.finfo(x.dtype).tiny)).sqrt())
+
+
+def noise_cues(points: Tensor) -> Tensor:
+    """(2,) noise cues of one cloud of normalised points (see the module's docstring).
+
+    Args:
+        points: (N, 3) points in [-1, 1]^3.
+
+    Returns:
+        (cell thickness in spacings, run thickness over width), in the points' dtype and device.
+    """
+    return torch.stack([_cell_thickness(points), _run_flatness(points)]).to(points.dtype)

@@ -58,17 +58,23 @@ def _compact(v: Tensor) -> Tensor:
     return v
 
 
-_TABLE_DEPTH = 10
+_TABLE_DEPTH = 11
 _SPREAD_TABLE = _spread(torch.arange(1 << _TABLE_DEPTH))
 
 
 def morton_encode(xyz: Tensor, depth: int) -> Tensor:
-    """Interleaves the bits of integer coordinates (x highest, z lowest), ``depth`` <= 21."""
+    """Interleaves the bits of integer coordinates (x highest, z lowest), ``depth`` <= 21.
+
+    Bits are spread by table lookups (one per coordinate up to depth 11, two above: the low 10
+    bits and the rest) instead of five shift-and-mask passes.
+    """
     xyz = xyz.long()
-    if depth <= _TABLE_DEPTH:  # one table lookup per coordinate instead of five shift-and-mask passes
-        spread = torch.take(_SPREAD_TABLE.to(xyz.device), xyz)
-        return (spread[:, 0] << 2) | (spread[:, 1] << 1) | spread[:, 2]
-    return (_spread(xyz[:, 0]) << 2) | (_spread(xyz[:, 1]) << 1) | _spread(xyz[:, 2])
+    table = _SPREAD_TABLE.to(xyz.device)
+    if depth <= _TABLE_DEPTH:
+        spread = torch.take(table, xyz)
+    else:
+        spread = (torch.take(table, xyz >> 10) << 30) | torch.take(table, xyz & 1023)
+    return (spread[:, 0] << 2) | (spread[:, 1] << 1) | spread[:, 2]
 
 
 def morton_decode(key: Tensor, depth: int) -> Tensor:

@@ -14,8 +14,10 @@ not move it:
   spread along it): thickness / width (square root of the smallest over the
   middle eigenvalue).
 
-Invariant to the order of the points (up to coincident points), translation and
-scale (of normalised points); linear in the number of points but for one sort.
+Invariant to the order of the points (up to float32 rounding of the cell sums and
+the order of coincident points), to translation and to scale (of normalised
+points); linear in the number of points but for one sort. A cloud too small for
+a full cell or a run gets 0 for that cue.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ _LEVEL, _MIN_COUNT, _RUN, _MAX_RUNS, _QUANTILE = 5, 8, 16, 2048, 0.25
 
 
 def _lower_quartile(x: Tensor) -> Tensor:
-    return torch.quantile(x, _QUANTILE) if x.numel() else x.new_zeros(())
+    return torch.quantile(x, _QUANTILE)
 
 
 def _eigenvalues(cov: Tensor) -> Tensor:

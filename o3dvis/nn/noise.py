@@ -35,10 +35,6 @@ NUM_NOISE_CUES = 2
 _LEVEL, _MIN_COUNT, _RUN, _MAX_RUNS, _QUANTILE = 5, 8, 16, 2048, 0.25
 
 
-def _lower_quartile(x: Tensor) -> Tensor:
-    return torch.quantile(x, _QUANTILE)
-
-
 def _eigenvalues(cov: Tensor) -> Tensor:
     """(..., 3) ascending eigenvalues of symmetric (..., 3, 3) matrices (upper triangles read), >= 0."""
     return torch.linalg.eigvalsh(cov, UPLO="U").clamp_min(0)
@@ -65,7 +61,7 @@ def _cell_thickness(points: Tensor) -> Tensor:
     for k, (i, j) in enumerate(pairs):
         cov[:, i, j] = second[k] - mean[i] * mean[j]
     thickness = _eigenvalues(cov)[:, 0].sqrt()
-    return _lower_quartile(thickness * n.sqrt() * (res / 2))
+    return torch.quantile(thickness * n.sqrt() * (res / 2), _QUANTILE)
 
 
 def _run_flatness(points: Tensor) -> Tensor:
@@ -79,7 +75,7 @@ def _run_flatness(points: Tensor) -> Tensor:
     x = points.detach().index_select(0, order.index_select(0, index)).double().view(-1, _RUN, 3)
     x = x - x.mean(dim=1, keepdim=True)
     eig = _eigenvalues(torch.einsum("rki,rkj->rij", x, x))
-    return _lower_quartile((eig[:, 0] / eig[:, 1].clamp_min(torch.finfo(x.dtype).tiny)).sqrt())
+    return torch.quantile((eig[:, 0] / eig[:, 1].clamp_min(torch.finfo(x.dtype).tiny)).sqrt(), _QUANTILE)
 
 
 def noise_cues(points: Tensor) -> Tensor:

@@ -25,7 +25,7 @@ from .cameras import Views, as_vectors, as_views
 from .clouds import cloud_arrays, cloud_device, unit_normals
 from .models import available_models, load_model, torch_device
 from .nn.network import VisibilityNetwork
-from .nn.octree import morton_order, normalize_points
+from .nn.octree import bounding_box, morton_order, normalize_points
 
 __all__ = ["NeuralVisibility", "VisibilityField", "hidden_point_removal_neural", "select_visible",
            "register", "DEFAULT_CHUNK"]
@@ -378,7 +378,7 @@ class NeuralVisibility:
         points, cloud_normals = cloud_arrays(pcd)
         network, unit = self._pick(cloud_normals, normals, points.shape[0])
         points = points.to(self.device)
-        lo, hi = points.amin(dim=0), points.amax(dim=0)
+        lo, hi = bounding_box(points)
         if (hi - lo).amax() > 0:
             points_n, center, scale = normalize_points(points)
         else:  # all points coincide: any scale maps them to the origin

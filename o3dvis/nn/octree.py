@@ -132,9 +132,12 @@ class Octree:
 
         leaf_keys = (batch.long() << (3 * depth)) | morton_encode(_cells(points, depth), depth)
         keys: list[Tensor] = [torch.empty(0)] * (depth + 1)
-        keys[depth], self.point_leaf = torch.unique(leaf_keys, sorted=True, return_inverse=True)
-        for level in range(depth - 1, full_depth, -1):
-            keys[level] = torch.unique(keys[level + 1] >> 3, sorted=True)
+        if bool((leaf_keys[1:] >= leaf_keys[:-1]).all()):  # points in Morton order: no sort needed
+            keys[depth], self.point_leaf = torch.unique_consecutive(leaf_keys, return_inverse=True)
+        else:
+            keys[depth], self.point_leaf = torch.unique(leaf_keys, sorted=True, return_inverse=True)
+        for level in range(depth - 1, full_depth, -1):  # sorted keys stay sorted when shifted
+            keys[level] = torch.unique_consecutive(keys[level + 1] >> 3)
         for level in range(full_depth + 1):
             nodes = torch.arange(8**level, device=device)
             b = torch.arange(self.batch_size, device=device)

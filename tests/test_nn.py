@@ -60,6 +60,17 @@ def test_octree_parents_children_consistent():
     assert torch.equal(o.batch_of(6)[o.point_leaf], batch)
 
 
+def test_octree_of_morton_ordered_points_equals_the_sorted_build():
+    # a Morton-ordered cloud skips the sort (unique_consecutive): same nodes, same leaf per point
+    torch.manual_seed(2)
+    pts = torch.rand(3000, 3) * 2 - 1
+    order = morton_order(pts, depth=6)
+    shuffled, ordered = Octree(pts, depth=6, full_depth=2), Octree(pts[order], depth=6, full_depth=2)
+    for level in range(7):
+        assert torch.equal(shuffled.keys[level], ordered.keys[level])
+    assert torch.equal(shuffled.point_leaf[order], ordered.point_leaf)
+
+
 def test_neighbours_dense_and_sparse_lookup_agree(monkeypatch):
     torch.manual_seed(1)
     pts = torch.rand(2000, 3) * 2 - 1
@@ -191,6 +202,21 @@ def test_view_cues_same_in_chunks_and_with_or_without_autograd():
         fast = ViewProjection(p, cam.detach())
         chunks = torch.cat([fast.cues(slice(a, a + 1234)) for a in range(0, 5000, 1234)])
     torch.testing.assert_close(chunks, full.detach(), atol=1e-5, rtol=0)
+
+
+def test_patch_table_rows_are_the_3x3_depth_neighbourhoods_of_the_pixels():
+    torch.manual_seed(3)
+    p = torch.nn.functional.normalize(torch.randn(700, 3), dim=1)
+    view = ViewProjection(p, torch.tensor([0.5, 3.0, 1.0]))
+    res = 27  # finest side: ceil(sqrt(700))
+    pixel = view.pixels[:, 0]
+    zbuf = torch.full(((res + 2) ** 2,), float("inf"))
+    iu, iv = pixel // res, pixel % res
+    zbuf = zbuf.scatter_reduce(0, (iu + 1) * (res + 2) + iv + 1, view.depth, "amin").view(res + 2, res + 2)
+    zbuf[torch.isinf(zbuf)] = float("nan")  # empty or off the image
+    for k in range(9):
+        du, dv = divmod(k, 3)
+        torch.testing.assert_close(view.patches[pixel, k], zbuf[iu + du, iv + dv], equal_nan=True)
 
 
 def test_view_cues_orthographic_direction():

@@ -380,7 +380,7 @@ class NeuralVisibility:
         points = points.to(self.device)
         lo, hi = bounding_box(points)
         if (hi - lo).amax() > 0:
-            points_n, center, scale = normalize_points(points)
+            points_n, center, scale = normalize_points(points, bounds=(lo, hi))
         else:  # all points coincide: any scale maps them to the origin
             center, scale = lo, torch.ones((), dtype=points.dtype, device=points.device)
             points_n = points - center

@@ -31,17 +31,19 @@ def bounding_box(points: Tensor) -> tuple[Tensor, Tensor]:
     return points.min(dim=0).values, points.max(dim=0).values
 
 
-def normalize_points(points: Tensor, eps: float = 1e-6) -> tuple[Tensor, Tensor, Tensor]:
+def normalize_points(points: Tensor, eps: float = 1e-6,
+                     bounds: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Maps a cloud into the cube [-1, 1]^3 by its bounding box.
 
     Args:
         points: (N, 3) float tensor.
         eps: relative margin that keeps points strictly inside the cube.
+        bounds: the cloud's :func:`bounding_box`, when the caller has it already.
 
     Returns:
         ``(normalised, center, scale)`` with ``normalised = (points - center) / scale``.
     """
-    lo, hi = bounding_box(points)
+    lo, hi = bounding_box(points) if bounds is None else bounds
     center = (lo + hi) / 2
     scale = ((hi - lo).amax() / 2).clamp_min(torch.finfo(points.dtype).tiny) * (1 + eps)
     return (points - center) / scale, center, scale

@@ -17,7 +17,6 @@ import torch
 
 from mesh_bench import command_line, data_parser, data_settings, emit_report, markdown
 from o3dvis.cameras import as_views
-from o3dvis.evaluate import list_samples
 from o3dvis.visibility import NeuralVisibility
 
 
@@ -28,7 +27,8 @@ def main() -> int:
     vis = NeuralVisibility.pretrained("default", use_normals=False)
     net, behind = vis.network, [float(t) for t in args.behind.split(",")]
     rows = []
-    for n, noise, clouds in data_settings(args):
+    files, settings = data_settings(args)
+    for n, noise, clouds in settings:
         skipped, change, total = np.zeros(len(behind)), np.zeros(len(behind)), 0
         for cloud in clouds:
             field = vis.encode(cloud.points)
@@ -49,7 +49,6 @@ def main() -> int:
         rows.append([f"{n:,}", f"{100 * noise:g} %"] + sum(
             ([f"{100 * s / total:.1f}", f"{-100 * c / total:+.3f}"] for s, c in zip(skipped, change)), []))
         print(" | ".join(rows[-1]), flush=True)
-    files = list_samples(args.data, args.limit)
     header = ["points", "noise"] + sum(([f"T={t:g}: skipped %", f"T={t:g}: accuracy change (points)"]
                                         for t in behind), [])
     report = "\n".join([command_line(), "",

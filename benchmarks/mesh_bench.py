@@ -49,10 +49,11 @@ def data_parser(doc: str, limit: int, noise: str) -> argparse.ArgumentParser:
 
 
 def data_settings(args: argparse.Namespace):
-    """Each (points, noise) setting of the data flags with its clouds, one per prepared file.
+    """The prepared files of the data flags, and each (points, noise) setting with its clouds.
 
-    Sets the torch threads from ``--threads``. Yields ``(points, noise, clouds)``, ``clouds``
-    an iterator of ``o3dvis.evaluate.EvalCloud`` (subsampled, noised, ``--views`` views).
+    Sets the torch threads from ``--threads``. Returns ``(files, settings)``: ``settings`` yields
+    ``(points, noise, clouds)``, ``clouds`` an iterator of ``o3dvis.evaluate.EvalCloud``
+    (subsampled, noised, ``--views`` views), one per file.
     """
     import torch
 
@@ -61,9 +62,10 @@ def data_settings(args: argparse.Namespace):
 
     torch.set_num_threads(args.threads)
     files = list_samples(args.data, args.limit)
-    for n in (int(p) for p in args.points.split(",")):
-        for noise in (float(x) for x in args.noise.split(",")):
-            yield n, noise, (eval_cloud(load_sample(path), n, noise, 0, args.views) for path in files)
+    settings = ((n, noise, (eval_cloud(load_sample(path), n, noise, 0, args.views) for path in files))
+                for n in (int(p) for p in args.points.split(","))
+                for noise in (float(x) for x in args.noise.split(",")))
+    return files, settings
 
 
 def add_common_flags(parser: argparse.ArgumentParser, points: str) -> None:

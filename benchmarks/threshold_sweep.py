@@ -16,7 +16,6 @@ from __future__ import annotations
 import numpy as np
 
 from mesh_bench import command_line, data_parser, data_settings, emit_report, markdown
-from o3dvis.evaluate import list_samples
 from o3dvis.visibility import NeuralVisibility
 
 
@@ -28,7 +27,8 @@ def main() -> int:
     vis = NeuralVisibility.pretrained(args.model, use_normals=False)
     thresholds = np.array([float(t) for t in args.thresholds.split(",")])
     rows = []
-    for n, noise, clouds in data_settings(args):
+    files, settings = data_settings(args)
+    for n, noise, clouds in settings:
         correct, total = np.zeros(len(thresholds)), 0
         for cloud in clouds:
             probs = vis.encode(cloud.points).probabilities(cloud.cameras).numpy()
@@ -40,7 +40,6 @@ def main() -> int:
                     + [f"{thresholds[best]:g} ({accuracy[best] - accuracy[thresholds == 0.5].max():+.2f})"
                        if (thresholds == 0.5).any() else f"{thresholds[best]:g}"])
         print(" | ".join(rows[-1]), flush=True)
-    files = list_samples(args.data, args.limit)
     report = "\n".join([command_line(), "",
                         f"Accuracy (%) of `{args.model}` by decision threshold: {len(files)} files of "
                         f"{args.data}, {args.views} views each.", "",

@@ -338,6 +338,16 @@ def test_noise_cues_grow_with_noise_and_ignore_order():
     torch.testing.assert_close(noise_cues(p[torch.randperm(len(p))]), noise_cues(p), atol=1e-6, rtol=0)
 
 
+def test_noise_cues_do_not_depend_on_the_block_size(monkeypatch):
+    """The cell moments are summed over blocks of rows: blocks of 1 000 give the one-block sums."""
+    import o3dvis.nn.noise as noise
+
+    p = _noisy_sphere(40_000, 0.003)
+    whole = noise_cues(p)
+    monkeypatch.setattr(noise, "_BLOCK", 1_000)
+    torch.testing.assert_close(noise_cues(p), whole, atol=1e-6, rtol=0)
+
+
 def test_noise_cues_of_clouds_too_small_to_measure_are_zero():
     assert torch.equal(noise_cues(_noisy_sphere(10, 0.01)), torch.zeros(2, dtype=torch.float64))
 

@@ -254,7 +254,8 @@ def summarize(per_file: dict, methods: dict[str, dict[str, Method]], densities: 
     Returns:
         One row per (method, density, noise): ``method, points, noise, param``
         (best label), ``accuracy, fn_rate, fp_rate, categories`` ({category:
-        accuracy}), ``sweep`` ({label: accuracy}), ``files``.
+        accuracy}), ``sweep`` ({label: accuracy}), ``files`` (their number),
+        ``file_accuracy`` ({file name: accuracy}, with the best parameter).
     """
     rows = []
     for name, sweep in methods.items():
@@ -262,19 +263,22 @@ def summarize(per_file: dict, methods: dict[str, dict[str, Method]], densities: 
             for noise in noises:
                 pooled: dict[str, Counts] = {}
                 by_cat: dict[str, dict[str, Counts]] = {}
-                for entry in per_file.values():
+                by_file: dict[str, dict[str, Counts]] = {}
+                for file, entry in per_file.items():
                     for label in sweep:
                         c = Counts(*entry["counts"][name][label][_key(density)][_key(noise)])
                         pooled[label] = pooled.get(label, Counts()) + c
                         cat = by_cat.setdefault(label, {})
                         cat[entry["category"]] = cat.get(entry["category"], Counts()) + c
+                        by_file.setdefault(label, {})[file] = c
                 best = max(sweep, key=lambda label: pooled[label].accuracy)
                 rows.append({"method": name, "points": density, "noise": noise, "param": best,
                              "accuracy": pooled[best].accuracy, "fn_rate": pooled[best].fn_rate,
                              "fp_rate": pooled[best].fp_rate,
                              "categories": {k: v.accuracy for k, v in sorted(by_cat[best].items())},
                              "sweep": {label: pooled[label].accuracy for label in sweep},
-                             "files": len(per_file)})
+                             "files": len(per_file),
+                             "file_accuracy": {k: v.accuracy for k, v in by_file[best].items()}})
     return rows
 
 
@@ -313,6 +317,32 @@ def markdown_table(rows: list[dict], absent: dict[str, str] | None = None,
                      f"{_pct(r['accuracy'])} | {_pct(r['fn_rate'])} | {_pct(r['fp_rate'])} | "
                      + " | ".join(_pct(r["categories"][c]) if c in r["categories"] else "" for c in categories)
                      + " |")
+    lines += _gap_tables(rows)
     for name, reason in (absent or {}).items():
         lines.append(f"\n{name}: absent ({reason})")
     return "\n".join(lines) + "\n"
+
+
+def _gap_tables(rows: list[dict], baseline: str = "hpr", worst: int = 8) -> list[str]:
+    """Markdown lines: per method, the files where it trails the tuned ``baseline`` most.
+
+    Files are ranked by the mean over the columns (density, noise) of the method's
+    accuracy minus the baseline's (with the baseline's parameter tuned over the
+    whole set, as in the summary); each column's difference is shown, in points.
+    """
+    base = {(r["points"], r["noise"]): r["file_accuracy"] for r in rows
+            if r["method"] == baseline and "file_accuracy" in r}
+    lines = []
+    for method in sorted({r["method"] for r in rows} - {baseline}):
+        mine = [r for r in sorted(rows, key=lambda r: (r["noise"], r["points"]))
+                if r["method"] == method and (r["points"], r["noise"]) in base and "file_accuracy" in r]
+        if not mine:
+            continue
+        gaps = {f: [100 * (r["file_accuracy"][f] - base[r["points"], r["noise"]][f]) for r in mine]
+                for f in mine[0]["file_accuracy"]}
+        ranked = sorted(gaps, key=lambda f: sum(gaps[f]) / len(gaps[f]))[:worst]
+        lines += ["", f"Files where {method} trails {baseline} most (accuracy difference, points):", "",
+                  "| file | " + " | ".join(f"{r['points']:,} / {100 * r['noise']:g} %" for r in mine) + " |",
+                  "|---|" + "---|" * len(mine)]
+        lines += [f"| {f} | " + " | ".join(f"{g:+.1f}" for g in gaps[f]) + " |" for f in ranked]
+    return lines

@@ -12,7 +12,7 @@ from o3dvis.baselines import hidden_point_removal_mask
 from o3dvis.cli.eval import main
 from o3dvis.data import load_sample, prepare, write_shapes
 from o3dvis.evaluate import (Counts, add_noise, category_of, eval_cloud, evaluate, list_samples,
-                             subsample_indices, summarize)
+                             markdown_table, subsample_indices, summarize)
 from o3dvis.speed import bench_cloud, benchmark, time_method
 
 POINTS, VIEWS = 2000, 3
@@ -72,13 +72,20 @@ def test_eval_matches_an_independent_computation(data, tmp_path, capsys):
     assert out.with_suffix(".md").read_text() in text + "\n"
 
 
-def test_fn_fp_rates_and_subsampled_noisy_clouds(data):
+@pytest.fixture(scope="module")
+def all_and_hpr(data):
+    """(files, methods, rows by method) of "all points visible" and HPR on 500 noisy points."""
     files = list_samples(data)
     methods = {"all": {"": lambda p, c: np.ones((len(c), len(p)), dtype=bool)},
                "hpr": {"k=2": lambda p, c: hidden_point_removal_mask(
                    p, c, 100 * np.linalg.norm(p.max(axis=0) - p.min(axis=0)))}}
     per_file = evaluate(files, data, methods, [500], [0.02], seed=1, views=2, progress=False)
     rows = {r["method"]: r for r in summarize(per_file, methods, [500], [0.02])}
+    return files, methods, rows
+
+
+def test_fn_fp_rates_and_subsampled_noisy_clouds(data, all_and_hpr):
+    files, methods, rows = all_and_hpr
     labels = np.concatenate([eval_cloud(load_sample(f), 500, 0.02, seed=1, views=2).labels.ravel() for f in files])
     assert labels.size == 3 * 2 * 500
     assert rows["all"]["accuracy"] == pytest.approx(labels.mean())
@@ -94,6 +101,19 @@ def test_fn_fp_rates_and_subsampled_noisy_clouds(data):
     assert rows["hpr"]["accuracy"] == pytest.approx((tp + tn) / (tp + fp + fn + tn))
     assert rows["hpr"]["fn_rate"] == pytest.approx(fn / (tp + fn))
     assert rows["hpr"]["fp_rate"] == pytest.approx(fp / (fp + tn))
+
+
+def test_per_file_accuracy_and_the_files_a_method_trails_the_baseline_most(all_and_hpr):
+    files, _, rows = all_and_hpr
+    for f in files:
+        labels = eval_cloud(load_sample(f), 500, 0.02, seed=1, views=2).labels
+        assert rows["all"]["file_accuracy"][f.name] == pytest.approx(labels.mean())
+    gaps = {f.name: 100 * (rows["all"]["file_accuracy"][f.name] - rows["hpr"]["file_accuracy"][f.name])
+            for f in files}
+    text = markdown_table(list(rows.values())).splitlines()
+    header = text.index("Files where all trails hpr most (accuracy difference, points):")
+    assert text[header + 2] == "| file | 500 / 2 % |"
+    assert text[header + 4:] == [f"| {f} | {gaps[f]:+.1f} |" for f in sorted(gaps, key=gaps.get)]
 
 
 def test_subsampling_and_noise_are_seeded_and_bounded(data):

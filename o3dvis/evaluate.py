@@ -330,12 +330,11 @@ def _gap_tables(rows: list[dict], baseline: str = "hpr", worst: int = 8) -> list
     accuracy minus the baseline's (with the baseline's parameter tuned over the
     whole set, as in the summary); each column's difference is shown, in points.
     """
-    base = {(r["points"], r["noise"]): r["file_accuracy"] for r in rows
-            if r["method"] == baseline and "file_accuracy" in r}
+    base = {(r["points"], r["noise"]): r["file_accuracy"] for r in rows if r["method"] == baseline}
     lines = []
     for method in sorted({r["method"] for r in rows} - {baseline}):
         mine = [r for r in sorted(rows, key=lambda r: (r["noise"], r["points"]))
-                if r["method"] == method and (r["points"], r["noise"]) in base and "file_accuracy" in r]
+                if r["method"] == method and (r["points"], r["noise"]) in base]
         if not mine:
             continue
         gaps = {f: [100 * (r["file_accuracy"][f] - base[r["points"], r["noise"]][f]) for r in mine]

@@ -49,7 +49,8 @@ def _cell_thickness(points: Tensor) -> Tensor:
     if full.numel() == 0:
         return torch.zeros((), dtype=torch.float64, device=points.device)
     # moments about each cell's centre (small numbers, which float32 sums hold), summed per cell by
-    # one index_add_ of (rows, 9) blocks: 2x faster than nine weighted bincounts, bounded memory
+    # one index_add_ of (rows, 9) blocks (cell thickness at 200 k points ~10 -> 6 ms against nine
+    # weighted bincounts), with a temporary of at most _BLOCK rows
     q = points.detach().float() - ((c + 0.5) * (2 / res) - 1)
     m = q.new_zeros(res ** 3, 9)
     for a in range(0, len(q), _BLOCK):

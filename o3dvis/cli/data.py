@@ -12,9 +12,10 @@ def _ints(text: str) -> tuple[int, ...]:
 
 
 def _shapes(args) -> int:
-    from ..data.shapes import write_shapes
+    from ..data.shapes import PRIMITIVES, write_shapes
 
-    paths = write_shapes(args.out_dir, args.count, args.seed)
+    names = tuple(PRIMITIVES) if args.primitives == "all" else tuple(args.primitives.split(","))
+    paths = write_shapes(args.out_dir, args.count, args.seed, names)
     print(f"wrote {len(paths)} meshes to {args.out_dir}")
     return 0
 
@@ -63,6 +64,8 @@ def _publish(args) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from ..data.shapes import DEFAULT_PRIMITIVES, PRIMITIVES
+
     fmt = argparse.RawDescriptionHelpFormatter
     p = sub.add_parser("shapes", help="write random procedural training meshes", formatter_class=fmt,
                        description="Write random unions of primitives as PLY meshes.\n\n"
@@ -70,6 +73,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("out_dir", metavar="OUT_DIR", help="folder for the meshes (created)")
     p.add_argument("--count", type=int, default=100, help="number of meshes (default 100)")
     p.add_argument("--seed", type=int, default=0, help="seed; mesh i depends on (seed, i) only (default 0)")
+    p.add_argument("--primitives", default=",".join(DEFAULT_PRIMITIVES),
+                   help=f"comma-separated parts to draw from, or 'all' ({','.join(PRIMITIVES)}; "
+                        "default: all but the thick-walled ones)")
     p.set_defaults(func=_shapes)
 
     p = sub.add_parser("prepare", help="label meshes with ray-cast visibility", formatter_class=fmt,

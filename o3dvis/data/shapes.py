@@ -2,17 +2,19 @@
 
 Tori, thin plates, open cups and bowls, nested and interpenetrating parts give
 self-occlusion that the real meshes alone would not cover, so training never
-depends on one mesh set.
+depends on one mesh set. The thick-walled cups, tubs and bowls (opt-in by name)
+put two opposite-facing surfaces closer than the point spacing, as in the
+walls of real cups, bowls and bathtubs.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import open3d as o3d
 
-__all__ = ["random_shape", "PRIMITIVES", "write_shapes"]
+__all__ = ["random_shape", "PRIMITIVES", "DEFAULT_PRIMITIVES", "write_shapes"]
 
 Mesh = o3d.geometry.TriangleMesh
 
@@ -38,6 +40,38 @@ def _bowl(rng: np.random.Generator) -> Mesh:
     return mesh
 
 
+def _lathe(profile: np.ndarray, resolution: int) -> Mesh:
+    """Revolves a closed ``(radius, height)`` polyline from the axis to the axis about z."""
+    angles = np.linspace(0, 2 * np.pi, resolution, endpoint=False)
+    r, z = profile[:, :1], profile[:, 1:]
+    rings = np.stack([r * np.cos(angles), r * np.sin(angles), np.broadcast_to(z, r.shape[:1] + angles.shape)],
+                     axis=-1).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(len(profile) - 1), np.arange(resolution), indexing="ij")
+    a, b = i * resolution + j, i * resolution + (j + 1) % resolution
+    c, d = a + resolution, b + resolution
+    tris = np.concatenate([np.stack([a, b, d], -1), np.stack([a, d, c], -1)]).reshape(-1, 3)
+    mesh = Mesh(o3d.utility.Vector3dVector(rings), o3d.utility.Vector3iVector(tris))
+    mesh.merge_close_vertices(1e-9)  # the rings of radius 0 collapse to one pole each
+    return mesh.remove_degenerate_triangles()
+
+
+def _thick_cup(rng: np.random.Generator) -> Mesh:
+    """A cup (or, with 4-6 sides, a tub) whose wall and bottom are 2-12 % of its radius thick."""
+    r, h = rng.uniform(0.3, 1.0), rng.uniform(0.4, 2.0)
+    t = r * rng.uniform(0.02, 0.12)
+    profile = np.array([[0, 0], [r, 0], [r, h], [r - t, h], [r - t, t], [0, t]])
+    return _lathe(profile, int(rng.choice([4, 6, 32])))
+
+
+def _thick_bowl(rng: np.random.Generator) -> Mesh:
+    """A spherical bowl with a wall 2-12 % of its radius thick and a flat rim."""
+    r = rng.uniform(0.5, 1.0)
+    t = r * rng.uniform(0.02, 0.12)
+    theta = np.linspace(-np.pi / 2, rng.uniform(-0.35, 0.5), 12)
+    arc = np.stack([np.cos(theta), np.sin(theta)], axis=1)
+    return _lathe(np.concatenate([r * arc, (r - t) * arc[::-1]]), 32)
+
+
 PRIMITIVES: dict[str, Callable[[np.random.Generator], Mesh]] = {
     "box": lambda rng: Mesh.create_box(*rng.uniform(0.2, 1.5, 3)),
     "plate": lambda rng: Mesh.create_box(*rng.uniform(0.8, 2.0, 2), rng.uniform(0.01, 0.06)),
@@ -47,7 +81,12 @@ PRIMITIVES: dict[str, Callable[[np.random.Generator], Mesh]] = {
     "torus": lambda rng: Mesh.create_torus(rng.uniform(0.5, 1.0), rng.uniform(0.05, 0.35), 32, 16),
     "cup": _open_cylinder,
     "bowl": _bowl,
+    "thick_cup": _thick_cup,
+    "thick_bowl": _thick_bowl,
 }
+
+DEFAULT_PRIMITIVES = ("box", "plate", "sphere", "cylinder", "cone", "torus", "cup", "bowl")
+"""The parts :func:`random_shape` draws from unless told (the shipped sample and benchmarks use them)."""
 
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -55,21 +94,25 @@ def _random_rotation(rng: np.random.Generator) -> np.ndarray:
     return o3d.geometry.get_rotation_matrix_from_quaternion(q / np.linalg.norm(q))
 
 
-def random_shape(rng: np.random.Generator, parts: int | None = None) -> Mesh:
+def random_shape(rng: np.random.Generator, parts: int | None = None,
+                 primitives: Sequence[str] = DEFAULT_PRIMITIVES) -> Mesh:
     """A union of 1-6 random primitives, each scaled, rotated and placed at random.
 
     Args:
         rng: numpy random generator (the shape is a function of its state).
         parts: number of primitives (default: random in 1..6).
+        primitives: names in :data:`PRIMITIVES` to draw the parts from, uniformly.
 
     Returns:
         A triangle mesh centred near the origin.
     """
+    unknown = sorted(set(primitives) - set(PRIMITIVES))
+    if unknown or not primitives:
+        raise ValueError(f"unknown primitives {unknown}; choose from {sorted(PRIMITIVES)}")
     parts = int(rng.integers(1, 7)) if parts is None else parts
-    names = list(PRIMITIVES)
     mesh = Mesh()
     for _ in range(parts):
-        part = PRIMITIVES[names[rng.integers(len(names))]](rng)
+        part = PRIMITIVES[primitives[rng.integers(len(primitives))]](rng)
         part.translate(-part.get_center())
         part.scale(rng.uniform(0.5, 1.5), center=np.zeros(3))
         part.rotate(_random_rotation(rng), center=np.zeros(3))
@@ -78,7 +121,8 @@ def random_shape(rng: np.random.Generator, parts: int | None = None) -> Mesh:
     return mesh.translate(-mesh.get_axis_aligned_bounding_box().get_center())
 
 
-def write_shapes(out_dir: str, count: int, seed: int = 0) -> list[str]:
+def write_shapes(out_dir: str, count: int, seed: int = 0,
+                 primitives: Sequence[str] = DEFAULT_PRIMITIVES) -> list[str]:
     """Writes ``count`` random shapes as ``procedural__NNNNN.ply`` into ``out_dir``."""
     from pathlib import Path
 
@@ -86,7 +130,7 @@ def write_shapes(out_dir: str, count: int, seed: int = 0) -> list[str]:
     out.mkdir(parents=True, exist_ok=True)
     paths = []
     for i in range(count):
-        mesh = random_shape(np.random.default_rng([seed, i]))
+        mesh = random_shape(np.random.default_rng([seed, i]), primitives=primitives)
         path = out / f"procedural__{i:05d}.ply"
         o3d.io.write_triangle_mesh(str(path), mesh)
         paths.append(str(path))

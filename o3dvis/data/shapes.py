@@ -108,7 +108,8 @@ def random_shape(rng: np.random.Generator, parts: int | None = None,
     """
     unknown = sorted(set(primitives) - set(PRIMITIVES))
     if unknown or not primitives:
-        raise ValueError(f"unknown primitives {unknown}; choose from {sorted(PRIMITIVES)}")
+        what = f"unknown primitives {unknown}" if unknown else "no primitives given"
+        raise ValueError(f"{what}; choose from {sorted(PRIMITIVES)}")
     parts = int(rng.integers(1, 7)) if parts is None else parts
     mesh = Mesh()
     for _ in range(parts):

@@ -25,7 +25,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .octree import _cells, morton_order
+from .octree import grid_cells, morton_order
 
 __all__ = ["noise_cues", "NUM_NOISE_CUES"]
 
@@ -42,7 +42,7 @@ def _eigenvalues(cov: Tensor) -> Tensor:
 def _cell_thickness(points: Tensor) -> Tensor:
     """Lower quartile of the cells' thickness in point spacings."""
     res = 1 << _LEVEL
-    c = _cells(points, _LEVEL)
+    c = grid_cells(points, _LEVEL)
     cell = (c[:, 0] * res + c[:, 1]) * res + c[:, 2]
     count = torch.bincount(cell, minlength=res ** 3)
     full = torch.nonzero(count >= _MIN_COUNT).squeeze(1)

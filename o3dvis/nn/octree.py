@@ -11,7 +11,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["Octree", "bounding_box", "morton_encode", "morton_decode", "morton_order", "normalize_points"]
+__all__ = ["Octree", "bounding_box", "grid_cells", "morton_encode", "morton_decode", "morton_order",
+           "normalize_points"]
 
 # The 27 neighbour offsets of a 3x3x3 kernel, ordered like the (kx, ky, kz)
 # axes of a ``conv3d`` weight: index = (dx + 1) * 9 + (dy + 1) * 3 + (dz + 1).
@@ -94,7 +95,7 @@ def morton_decode(key: Tensor, depth: int) -> Tensor:
     return torch.stack([_compact(key >> 2), _compact(key >> 1), _compact(key)], dim=1)
 
 
-def _cells(points: Tensor, depth: int) -> Tensor:
+def grid_cells(points: Tensor, depth: int) -> Tensor:
     """(N, 3) integer coordinates of the cells of a ``2^depth`` grid over [-1, 1]^3 holding ``points``."""
     res = 1 << depth
     return (points.detach() + 1).mul_(res / 2).long().clamp_(0, res - 1)  # truncation = floor here
@@ -106,7 +107,7 @@ def morton_order(points: Tensor, depth: int = 10) -> Tensor:
     Points close in space end up close in memory, which keeps the per-view
     gathers and scatters of a cloud cache-friendly.
     """
-    return torch.argsort(morton_encode(_cells(points, depth), depth))
+    return torch.argsort(morton_encode(grid_cells(points, depth), depth))
 
 
 class Octree:
@@ -132,7 +133,7 @@ class Octree:
         self.batch_size = int(batch.max().item()) + 1 if batch_size is None else batch_size
         self.device = device
 
-        leaf_keys = (batch.long() << (3 * depth)) | morton_encode(_cells(points, depth), depth)
+        leaf_keys = (batch.long() << (3 * depth)) | morton_encode(grid_cells(points, depth), depth)
         keys: list[Tensor] = [torch.empty(0)] * (depth + 1)
         if bool((leaf_keys[1:] >= leaf_keys[:-1]).all()):  # points in Morton order: no sort needed
             keys[depth], self.point_leaf = torch.unique_consecutive(leaf_keys, return_inverse=True)

@@ -32,6 +32,7 @@ __all__ = ["noise_cues", "NUM_NOISE_CUES"]
 NUM_NOISE_CUES = 2
 _LEVEL, _MIN_COUNT, _RUN, _MAX_RUNS, _QUANTILE = 5, 8, 16, 2048, 0.25
 _BLOCK = 1 << 18  # rows of moments summed at a time
+_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))  # the second moments, in their columns' order
 
 
 def _eigenvalues(cov: Tensor) -> Tensor:
@@ -54,14 +55,14 @@ def _cell_thickness(points: Tensor) -> Tensor:
     q = points.detach().float() - ((c + 0.5) * (2 / res) - 1)
     m = q.new_zeros(res ** 3, 9)
     for a in range(0, len(q), _BLOCK):
-        x, y, z = q[a:a + _BLOCK].unbind(1)
-        moments = torch.stack([x * x, x * y, x * z, y * y, y * z, z * z, x, y, z], dim=1)
+        block = q[a:a + _BLOCK]
+        moments = torch.stack([block[:, i] * block[:, j] for i, j in _PAIRS] + list(block.unbind(1)), dim=1)
         m.index_add_(0, cell[a:a + _BLOCK], moments)
     m = m.index_select(0, full).double().T
     n = count.index_select(0, full).double()
     mean, second = m[6:] / n, m[:6] / n
     cov = m.new_zeros(len(full), 3, 3)
-    for k, (i, j) in enumerate([(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]):  # moments' order
+    for k, (i, j) in enumerate(_PAIRS):
         cov[:, i, j] = second[k] - mean[i] * mean[j]
     thickness = _eigenvalues(cov)[:, 0].sqrt()
     return torch.quantile(thickness * n.sqrt() * (res / 2), _QUANTILE)

@@ -6,7 +6,7 @@ feed them to the predictor? This bounds that idea from above with the shipped
 normals model and three kinds of normals on the validation clouds (16 views):
 
 * ``true``: the mesh normals of the sampled points;
-* ``PCA``: the smallest principal axis of each point's ``k`` nearest neighbours,
+* ``PCA``: Open3D's ``estimate_normals`` over each point's ``k`` nearest neighbours,
   oriented by the true normal (an oracle orientation no network has);
 * ``PCA, f flipped``: the same with a random share ``f`` of them reversed.
 
@@ -20,8 +20,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
 import torch
-from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -31,10 +31,10 @@ from o3dvis.evaluate import Counts, eval_cloud, list_samples
 
 
 def pca_normals(points: np.ndarray, k: int) -> np.ndarray:
-    """Unoriented unit normals: the smallest principal axis of the ``k`` nearest points, (N, 3)."""
-    _, neighbours = cKDTree(points).query(points, k=k)
-    x = points[neighbours] - points[neighbours].mean(axis=1, keepdims=True)
-    return np.linalg.eigh(np.einsum("nki,nkj->nij", x, x))[1][:, :, 0]
+    """Unoriented unit normals from the ``k`` nearest points (Open3D's PCA), (N, 3)."""
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(k))
+    return np.asarray(pcd.normals)
 
 
 def main() -> None:

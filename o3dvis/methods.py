@@ -8,13 +8,16 @@ the HPR methods of :mod:`o3dvis.baselines`); :func:`resolve_method` checks and
 adapts it. The bench names its methods instead: :func:`resolve_methods` turns
 ``hpr``, ``hpr-exp``, ``neural`` and ``neural-normals`` into parameter sweeps
 ``{label: method}`` (a network method with ``needs_normals = True`` also takes
-``normals=``); a method that cannot be built here (no network code, no weights)
-is returned as absent with the reason, never replaced by something else.
+``normals=``; ``neural-x8`` and ``neural-normals-x8`` average the network over
+8 rotations of each cloud, see ``NeuralVisibility(num_rotations=...)``); a
+method that cannot be built here (no network code, no weights) is returned as
+absent with the reason, never replaced by something else.
 """
 
 from __future__ import annotations
 
 import hashlib
+import re
 from collections.abc import Callable
 from pathlib import Path
 
@@ -26,6 +29,7 @@ __all__ = ["resolve_method", "resolve_soft_method", "ground_truth_method", "Neur
            "neural_method", "resolve_methods", "METHOD_NAMES"]
 
 METHOD_NAMES = (*SWEEPS, "neural", "neural-normals")
+_ROTATED = re.compile(r"(neural(?:-normals)?)-x([1-9][0-9]*)")
 
 
 def _neural(method):
@@ -140,7 +144,7 @@ def ground_truth_method(mesh) -> Method:
 
 
 class NeuralMethod:
-    """The network as a visibility method: one U-Net pass per cloud, then all views.
+    """The network as a visibility method: one U-Net pass per cloud (and rotation), then all views.
 
     Args:
         visibility: an ``o3dvis.NeuralVisibility``.
@@ -153,7 +157,9 @@ class NeuralMethod:
         self.visibility = visibility
         self.identity = identity
         self.needs_normals = use_normals
-        self.__name__ = f"neural({identity}{', normals' if use_normals else ''})"
+        turns = len(visibility.rotations)
+        self.__name__ = (f"neural({identity}{', normals' if use_normals else ''}"
+                         f"{f', {turns} rotations' if turns > 1 else ''})")
 
     def encode(self, points: np.ndarray, normals: np.ndarray | None = None):
         """The cloud's visibility field (``field.query(cameras) -> (V, N) bool``)."""
@@ -176,7 +182,7 @@ class NeuralMethod:
 
 
 def neural_method(checkpoint: str | Path | None = None, device: str | None = None,
-                  use_normals: bool = False) -> NeuralMethod:
+                  use_normals: bool = False, num_rotations: int = 1) -> NeuralMethod:
     """The neural method from a checkpoint file or the shipped weights.
 
     Args:
@@ -184,6 +190,7 @@ def neural_method(checkpoint: str | Path | None = None, device: str | None = Non
             None for ``NeuralVisibility.pretrained()``.
         device: torch device (default: the API's choice).
         use_normals: give the network the cloud's normals (a model that takes them is needed).
+        num_rotations: see ``NeuralVisibility``.
 
     Returns:
         A :class:`NeuralMethod`.
@@ -197,7 +204,8 @@ def neural_method(checkpoint: str | Path | None = None, device: str | None = Non
         raise LookupError(f"o3dvis.NeuralVisibility is not available ({e})") from e
     try:
         if checkpoint is None:
-            visibility, identity = NeuralVisibility.pretrained(device=device), "pretrained"
+            visibility = NeuralVisibility.pretrained(device=device, num_rotations=num_rotations)
+            identity = "pretrained"
         else:
             from .nn import VisibilityNetwork
 
@@ -205,7 +213,8 @@ def neural_method(checkpoint: str | Path | None = None, device: str | None = Non
             if not path.is_file():
                 raise FileNotFoundError(f"checkpoint {path} not found")
             digest = hashlib.sha256(path.read_bytes()).hexdigest()[:12]
-            visibility = NeuralVisibility(VisibilityNetwork.load(path), device=device)
+            visibility = NeuralVisibility(VisibilityNetwork.load(path), device=device,
+                                          num_rotations=num_rotations)
             identity = f"{path.name}@{digest}"
     except (FileNotFoundError, ValueError, KeyError, RuntimeError) as e:
         raise LookupError(f"no network weights could be loaded: {e}") from e
@@ -222,7 +231,8 @@ def resolve_methods(names, checkpoint: str | Path | None = None,
     """Builds the named methods.
 
     Args:
-        names: method names from :data:`METHOD_NAMES`.
+        names: method names from :data:`METHOD_NAMES`, or a network's name with
+            ``-x<K>`` appended: its mean over ``K`` rotations of each cloud.
         checkpoint: network checkpoint for ``neural`` (default: shipped weights).
         sweeps: parameter values overriding a baseline's default grid, by name.
 
@@ -237,11 +247,15 @@ def resolve_methods(names, checkpoint: str | Path | None = None,
     methods: dict[str, dict[str, Method]] = {}
     absent: dict[str, str] = {}
     for name in names:
-        if name not in METHOD_NAMES:
-            raise ValueError(f"unknown method {name!r}; choose from {', '.join(METHOD_NAMES)}")
-        if name.startswith("neural"):
+        rotated = _ROTATED.fullmatch(name)
+        base, turns = (rotated[1], int(rotated[2])) if rotated else (name, 1)
+        if base not in METHOD_NAMES:
+            raise ValueError(f"unknown method {name!r}; choose from {', '.join(METHOD_NAMES)} "
+                             f"(a neural one may end in -x<rotations>, e.g. neural-x8)")
+        if base.startswith("neural"):
             try:
-                methods[name] = {"": neural_method(checkpoint, use_normals=name == "neural-normals")}
+                methods[name] = {"": neural_method(checkpoint, use_normals=base == "neural-normals",
+                                                   num_rotations=turns)}
             except LookupError as e:
                 absent[name] = str(e)
         else:

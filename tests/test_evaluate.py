@@ -181,6 +181,24 @@ def test_neural_checkpoint_is_scored_like_any_method(data, tmp_path, capsys):
         assert row["accuracy"] == pytest.approx(total.accuracy)
 
 
+def test_neural_names_take_a_number_of_rotations(tmp_path):
+    pytest.importorskip("o3dvis.visibility")
+    from o3dvis.methods import resolve_methods
+    from o3dvis.nn import VisibilityNetwork
+    from o3dvis.nn.network import NetworkConfig
+
+    ckpt = tmp_path / "tiny.safetensors"
+    VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 8), feature_channels=8, hidden=(8,))).save(ckpt)
+    methods, absent = resolve_methods(["neural", "neural-x3", "neural-normals-x2"], ckpt)
+    assert len(methods["neural"][""].visibility.rotations) == 1
+    assert len(methods["neural-x3"][""].visibility.rotations) == 3
+    assert "3 rotations" in methods["neural-x3"][""].__name__
+    assert "neural-normals-x2" in absent and "take no normals" in absent["neural-normals-x2"]
+    for bad in ("neural-x0", "neural-x", "hpr-x2", "neural-x2-x2"):
+        with pytest.raises(ValueError, match="unknown method"):
+            resolve_methods([bad], ckpt)
+
+
 def test_cache_resumes(data, tmp_path, capsys):
     cache = tmp_path / "cache"
     args = ["--data", str(data), "--points", "400", "--methods", "hpr", "--hpr-k", "2", "--cache", str(cache),

@@ -54,7 +54,9 @@ def _grid(name: str) -> str:
 
 def _add_method_args(p: argparse.ArgumentParser, default: str) -> None:
     p.add_argument("--methods", type=_names, default=_names(default),
-                   help=f"comma-separated: hpr, hpr-exp, neural, neural-normals (default: {default})")
+                   help=f"comma-separated: hpr, hpr-exp, neural, neural-normals; a neural one "
+                        f"with -x<K> appended averages K rotations of each cloud, e.g. neural-x8 "
+                        f"(default: {default})")
     p.add_argument("--model", "--checkpoint", dest="checkpoint", default=None, metavar="MODEL",
                    help="shipped model name or .safetensors checkpoint for 'neural' "
                         "(default: the shipped default; --checkpoint is the older name)")

@@ -6,7 +6,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from o3dvis.data.shapes import DEFAULT_PRIMITIVES, PRIMITIVES, random_shape, write_shapes
+from o3dvis.data.groundtruth import visibility_from_mesh
+from o3dvis.data.shapes import DEFAULT_PRIMITIVES, PRIMITIVES, random_enclosure, random_shape, write_shapes
 
 
 def _hits(mesh: o3d.geometry.TriangleMesh, origin, direction) -> np.ndarray:
@@ -49,3 +50,27 @@ def test_primitives_are_chosen_by_name(tmp_path):
         random_shape(np.random.default_rng(0), primitives=("box", "teapot"))
     with pytest.raises(ValueError, match="no primitives given"):
         random_shape(np.random.default_rng(0), primitives=())
+
+
+
+def _seen(mesh: o3d.geometry.TriangleMesh) -> tuple[np.ndarray, np.ndarray]:
+    """Distances from the origin of points sampled on the mesh, and whether any of 32 cameras sees each."""
+    o3d.utility.random.seed(0)
+    points = np.asarray(mesh.sample_points_uniformly(20000).points)
+    cameras = np.random.default_rng(0).normal(size=(32, 3))
+    cameras *= 6 / np.linalg.norm(cameras, axis=1, keepdims=True)
+    return np.linalg.norm(points, axis=1), visibility_from_mesh(mesh, points, cameras).any(axis=0)
+
+
+def test_enclosures_hide_their_contents_unless_holed(tmp_path):
+    for seed in range(3):
+        # a closed convex shell around parts within 90 % of its inradius: what no camera sees is the
+        # parts, every one of them nearer the centre than any point of the shell
+        radius, seen = _seen(random_enclosure(np.random.default_rng([seed, 0]), hole=False))
+        shell = radius[seen].min()
+        assert 0.01 < (~seen).mean() < 0.9 and radius[~seen].max() < 0.95 * shell
+        # the same shell and parts (turned otherwise): through the hole, some of the parts are seen
+        radius, seen = _seen(random_enclosure(np.random.default_rng([seed, 0]), hole=True))
+        assert (seen & (radius < 0.95 * shell)).any()
+    files = write_shapes(str(tmp_path), 2, seed=1, enclosed=True)
+    assert all(len(o3d.io.read_triangle_mesh(f).triangles) for f in files)

@@ -15,7 +15,7 @@ def _shapes(args) -> int:
     from ..data.shapes import PRIMITIVES, write_shapes
 
     names = tuple(PRIMITIVES) if args.primitives == "all" else tuple(args.primitives.split(","))
-    paths = write_shapes(args.out_dir, args.count, args.seed, names)
+    paths = write_shapes(args.out_dir, args.count, args.seed, names, args.enclosed)
     print(f"wrote {len(paths)} meshes to {args.out_dir}")
     return 0
 
@@ -76,6 +76,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--primitives", default=",".join(DEFAULT_PRIMITIVES),
                    help=f"comma-separated parts to draw from, or 'all' ({','.join(PRIMITIVES)}; "
                         "default: all but the thick-walled ones)")
+    p.add_argument("--enclosed", action="store_true",
+                   help="put each shape inside a closed shell (half of them with a hole cut in it)")
     p.set_defaults(func=_shapes)
 
     p = sub.add_parser("prepare", help="label meshes with ray-cast visibility", formatter_class=fmt,

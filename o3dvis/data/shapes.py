@@ -4,7 +4,9 @@ Tori, thin plates, open cups and bowls, nested and interpenetrating parts give
 self-occlusion that the real meshes alone would not cover, so training never
 depends on one mesh set. The thick-walled cups, tubs and bowls (opt-in by name)
 put two opposite-facing surfaces closer than the point spacing, as in the
-walls of real cups, bowls and bathtubs.
+walls of real cups, bowls and bathtubs. Enclosures (opt-in) put a random shape
+inside a closed shell, or one with a hole cut in it: whole surfaces that no
+viewpoint sees, as in the inner parts of CAD assemblies.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import open3d as o3d
 
-__all__ = ["random_shape", "PRIMITIVES", "DEFAULT_PRIMITIVES", "write_shapes"]
+__all__ = ["random_shape", "random_enclosure", "PRIMITIVES", "DEFAULT_PRIMITIVES", "write_shapes"]
 
 Mesh = o3d.geometry.TriangleMesh
 
@@ -122,16 +124,62 @@ def random_shape(rng: np.random.Generator, parts: int | None = None,
     return mesh.translate(-mesh.get_axis_aligned_bounding_box().get_center())
 
 
+def _shell(rng: np.random.Generator) -> tuple[Mesh, float]:
+    """A closed sphere, ellipsoid or box about the origin, finely triangulated, and its inradius."""
+    axes = rng.uniform(0.6, 1.4, 3) if rng.random() < 0.7 else np.ones(3)
+    if rng.random() < 0.5:
+        mesh = Mesh.create_sphere(1.0, resolution=32)
+    else:
+        mesh = Mesh.create_box(2.0, 2.0, 2.0).translate((-1.0, -1.0, -1.0)).subdivide_midpoint(4)
+    mesh.vertices = o3d.utility.Vector3dVector(np.asarray(mesh.vertices) * axes)
+    return mesh, float(axes.min())
+
+
+def random_enclosure(rng: np.random.Generator, primitives: Sequence[str] = DEFAULT_PRIMITIVES,
+                     hole: bool | None = None) -> Mesh:
+    """A random shape (2-5 parts) inside a shell, which half of the time has a hole cut in it.
+
+    The shell is a sphere, ellipsoid or box; the shape is scaled to 50-90 % of
+    the shell's inradius, so that it lies wholly inside. The hole removes the
+    shell's triangles beyond a random plane, 30-80 % of the way to its edge.
+
+    Args:
+        rng: numpy random generator (the mesh is a function of its state).
+        primitives: names in :data:`PRIMITIVES` to draw the inner parts from.
+        hole: cut a hole in the shell (None: at random).
+
+    Returns:
+        A triangle mesh centred near the origin, randomly rotated.
+    """
+    inner = random_shape(rng, int(rng.integers(2, 6)), primitives)
+    shell, inradius = _shell(rng)
+    v = np.asarray(inner.vertices)
+    inner.scale(rng.uniform(0.5, 0.9) * inradius / np.linalg.norm(v, axis=1).max(), center=np.zeros(3))
+    if rng.random() < 0.5 if hole is None else hole:
+        axis = rng.normal(size=3)
+        v, t = np.asarray(shell.vertices), np.asarray(shell.triangles)
+        height = v @ (axis / np.linalg.norm(axis))
+        cut = rng.uniform(0.3, 0.8) * height.max()
+        shell.triangles = o3d.utility.Vector3iVector(t[~(height[t] > cut).all(axis=1)])
+        shell.remove_unreferenced_vertices()
+    mesh = shell + inner
+    return mesh.rotate(_random_rotation(rng), center=np.zeros(3))
+
+
 def write_shapes(out_dir: str, count: int, seed: int = 0,
-                 primitives: Sequence[str] = DEFAULT_PRIMITIVES) -> list[str]:
-    """Writes ``count`` random shapes as ``procedural__NNNNN.ply`` into ``out_dir``."""
+                 primitives: Sequence[str] = DEFAULT_PRIMITIVES, enclosed: bool = False) -> list[str]:
+    """Writes ``count`` random shapes as ``procedural__NNNNN.ply`` into ``out_dir``.
+
+    With ``enclosed``, each is a :func:`random_enclosure` of the primitives.
+    """
     from pathlib import Path
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
     for i in range(count):
-        mesh = random_shape(np.random.default_rng([seed, i]), primitives=primitives)
+        rng = np.random.default_rng([seed, i])
+        mesh = random_enclosure(rng, primitives) if enclosed else random_shape(rng, primitives=primitives)
         path = out / f"procedural__{i:05d}.ply"
         o3d.io.write_triangle_mesh(str(path), mesh)
         paths.append(str(path))

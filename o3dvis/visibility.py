@@ -71,8 +71,8 @@ def fixed_rotations(count: int) -> Tensor:
     deterministic, and the first ``k`` of them are ``fixed_rotations(k)``.
     """
     generator = torch.Generator().manual_seed(0)  # one draw per rotation: the first k never change
-    q = torch.stack([torch.randn(4, generator=generator, dtype=torch.float64) for _ in range(count - 1)]
-                    ) if count > 1 else torch.empty(0, 4, dtype=torch.float64)
+    draws = [torch.randn(4, generator=generator, dtype=torch.float64) for _ in range(count - 1)]
+    q = torch.stack(draws) if draws else torch.empty(0, 4, dtype=torch.float64)
     w, x, y, z = (q / q.norm(dim=1, keepdim=True)).unbind(1)
     rotations = torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
                              2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),

@@ -46,3 +46,25 @@ def test_normals_model_beats_best_radius_hpr(procedural_samples, best_hpr):
 def test_default_model_beats_best_radius_hpr(procedural_samples, best_hpr):
     neural = _pooled_accuracy(neural_method(), procedural_samples)
     assert neural > best_hpr[1], f"default model {neural:.4f} vs HPR {best_hpr}"
+
+
+def _sphere(n: int, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` evenly spread points on a sphere about the origin (Fibonacci lattice), and their normals."""
+    i = np.arange(n) + 0.5
+    z, phi = 1 - 2 * i / n, np.pi * (1 + 5 ** 0.5) * i
+    unit = np.c_[np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z]
+    return radius * unit, unit
+
+
+@pytest.mark.parametrize("use_normals", [False, True])
+def test_models_hide_a_sphere_inside_a_sphere(use_normals):
+    """Exact answer: none of the inner sphere, and the cap of the outer one that faces the camera."""
+    (outer, n_out), (inner, n_in) = _sphere(8000, 1.0), _sphere(4000, 0.5)
+    points, normals = np.r_[outer, inner], np.r_[n_out, n_in]
+    cameras = np.random.default_rng(0).normal(size=(8, 3))
+    cameras *= 3 / np.linalg.norm(cameras, axis=1, keepdims=True)
+    extra = {"normals": normals} if use_normals else {}
+    pred = neural_method(use_normals=use_normals)(points, cameras, **extra)
+    truth = outer @ cameras.T > 1  # a point of the unit sphere sees the camera c iff p . c > 1
+    assert pred[:, len(outer):].mean() < 0.03, "inner sphere called visible"
+    assert (pred[:, :len(outer)] == truth.T).mean() > 0.97, "outer sphere"

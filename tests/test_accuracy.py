@@ -1,4 +1,5 @@
-"""The shipped models against Open3D HPR with its best radius, on fixed procedural shapes at 8k points.
+"""The shipped models against Open3D HPR with its best radius, on fixed procedural shapes at 8k points,
+and against the exact answer on a sphere inside a sphere.
 
 Shapes, points and viewpoints come from fixed seeds (never tuned to the result); HPR gets its best
 radius of the sweep over the whole set, as in ``o3dvis eval``; the networks have no parameter.

@@ -1,4 +1,5 @@
-"""Procedural shapes: every primitive is a usable surface; the thick walls have two sides."""
+"""Procedural shapes: every primitive is a usable surface; the thick walls have two sides;
+enclosures hide their contents unless holed."""
 
 from __future__ import annotations
 

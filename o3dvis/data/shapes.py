@@ -155,7 +155,7 @@ def random_enclosure(rng: np.random.Generator, primitives: Sequence[str] = DEFAU
     shell, inradius = _shell(rng)
     v = np.asarray(inner.vertices)
     inner.scale(rng.uniform(0.5, 0.9) * inradius / np.linalg.norm(v, axis=1).max(), center=np.zeros(3))
-    if rng.random() < 0.5 if hole is None else hole:
+    if (rng.random() < 0.5) if hole is None else hole:
         axis = rng.normal(size=3)
         v, t = np.asarray(shell.vertices), np.asarray(shell.triangles)
         height = v @ (axis / np.linalg.norm(axis))

@@ -24,6 +24,7 @@ from torch import Tensor
 
 from .cameras import Views, as_vectors, as_views
 from .clouds import cloud_arrays, cloud_device, unit_normals
+from .data.dataset import random_rotation
 from .models import available_models, load_model, torch_device
 from .nn.network import VisibilityNetwork
 from .nn.octree import bounding_box, morton_order, normalize_points
@@ -65,19 +66,13 @@ def _normalize(points: Tensor, bounds: tuple[Tensor, Tensor] | None = None
 
 
 def fixed_rotations(count: int) -> Tensor:
-    """(count, 3, 3) float64 rotations: the identity, then uniformly random ones from a fixed seed.
+    """(count, 3, 3) float64 rotations: the identity, then uniformly random ones from fixed seeds.
 
     The same on every machine and every call, so that an ensemble over them is
     deterministic, and the first ``k`` of them are ``fixed_rotations(k)``.
     """
-    generator = torch.Generator().manual_seed(0)  # one draw per rotation: the first k never change
-    draws = [torch.randn(4, generator=generator, dtype=torch.float64) for _ in range(count - 1)]
-    q = torch.stack(draws) if draws else torch.empty(0, 4, dtype=torch.float64)
-    w, x, y, z = (q / q.norm(dim=1, keepdim=True)).unbind(1)
-    rotations = torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                             2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                             2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], 1)
-    return torch.cat([torch.eye(3, dtype=torch.float64)[None], rotations.view(-1, 3, 3)])
+    turns = [np.eye(3)] + [random_rotation(np.random.default_rng([0, k])) for k in range(1, count)]
+    return torch.from_numpy(np.stack(turns))
 
 
 class RotatedEncoding(NamedTuple):

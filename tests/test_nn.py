@@ -299,6 +299,35 @@ def test_training_smoke_loss_falls(tmp_path):
     assert len(losses) == 8 and np.mean(losses[-2:]) < 0.8 * np.mean(losses[:2])
 
 
+def test_teacher_targets_and_the_mixed_loss():
+    """A one-frame teacher gives the network's own probabilities, cloud by cloud and in the
+    batch's row order; the mixed target's loss is the mix of the two cross-entropies."""
+    from o3dvis.data.dataset import Batch
+    from o3dvis.train import _Encoder, batch_loss, teacher_targets
+    from o3dvis.visibility import NeuralVisibility
+
+    torch.manual_seed(0)
+    net = VisibilityNetwork(NetworkConfig(depth=6)).eval()
+    clouds = [normalize_points(_sphere_with_bump(n, seed=s).double())[0].float() for n, s in ((900, 1), (1300, 2))]
+    cams = [torch.tensor([[2.5, 1.0, 0.5], [-0.3, 2.2, 1.0]]), torch.tensor([[0.2, -2.4, 1.1]])]
+    labels = [torch.rand(len(c), len(p)) > 0.5 for c, p in zip(cams, clouds)]
+    sizes = [len(p) for p in clouds]
+    batch = Batch(torch.cat(clouds), torch.zeros(sum(sizes), 3),
+                  torch.cat([torch.full((n,), i) for i, n in enumerate(sizes)]), cams, labels, sizes)
+    with torch.no_grad():
+        targets = teacher_targets(NeuralVisibility(net), batch, use_normals=False)
+        for p, c, t in zip(clouds, cams, targets):
+            own = torch.stack([net.predict(net.encode(p), p, cam).softmax(dim=1)[:, 1] for cam in c])
+            torch.testing.assert_close(t, own, atol=1e-5, rtol=1e-5)
+        model = _Encoder(net)
+        plain, acc = batch_loss(model, batch, False)
+        soft, _ = batch_loss(model, batch, False, targets, weight=1.0)
+        mixed, acc_mixed = batch_loss(model, batch, False, targets, weight=0.25)
+    assert acc == acc_mixed
+    torch.testing.assert_close(mixed, 0.75 * plain + 0.25 * soft)
+    assert soft < plain  # the network's own answers are closer to it than random labels
+
+
 @pytest.mark.parametrize("added", [{"use_normals": True}, {"noise_cues": True}])
 def test_warm_start_with_added_inputs_keeps_the_function(added):
     from o3dvis.train import warm_start

@@ -47,7 +47,8 @@ def _train(args) -> int:
     cfg = TrainConfig(
         data=args.data, out=args.out, val=args.val, steps=args.steps, batch_size=args.batch_size,
         lr=args.lr, val_every=args.val_every, workers=args.workers, seed=args.seed, device=args.device,
-        network=network, init=args.init,
+        network=network, init=args.init, teacher=args.teacher, teacher_rotations=args.teacher_rotations,
+        teacher_weight=args.teacher_weight,
         augmentation={"min_points": args.min_points, "max_points": args.max_points,
                       "views": args.views, "noise": args.noise, "noise_prob": args.noise_prob})
     best = train(cfg)
@@ -119,6 +120,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default="cpu", help="torch device, e.g. cuda (default: cpu)")
     p.add_argument("--seed", type=int, default=0, help="seed of the network and the sampling (default 0)")
     p.add_argument("--init", help="start from this checkpoint (extra input channels start at zero)")
+    p.add_argument("--teacher", help="also learn this checkpoint's answers, averaged over rotations")
+    p.add_argument("--teacher-rotations", type=int, default=4,
+                   help="rotations the teacher averages over (default 4)")
+    p.add_argument("--teacher-weight", type=float, default=0.5,
+                   help="share of the teacher's probability in each target, the rest the label (default 0.5)")
     p.set_defaults(func=_train)
 
     p = sub.add_parser("publish", help="install a checkpoint as a shipped model", formatter_class=fmt,

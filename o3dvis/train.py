@@ -103,8 +103,7 @@ def batch_loss(net: torch.nn.Module, batch: Batch, use_normals: bool,
     normals = batch.normals if use_normals else None
     features = net(batch.points, batch.batch, normals, len(batch.sizes))
     losses, correct, total = [], 0, 0
-    for i, (start, size) in enumerate(zip(np.cumsum([0] + batch.sizes[:-1]), batch.sizes)):
-        sl = slice(int(start), int(start) + size)
+    for i, sl in enumerate(batch.slices()):
         for v, (cam, label) in enumerate(zip(batch.cameras[i], batch.labels[i])):
             logits = module.predict(features[sl], batch.points[sl], cam,
                                     normals=normals[sl] if use_normals else None)
@@ -115,19 +114,15 @@ def batch_loss(net: torch.nn.Module, batch: Batch, use_normals: bool,
                 p = (1 - weight) * label.to(logits.dtype) + weight * targets[i][v]
                 losses.append(F.cross_entropy(logits, torch.stack([1 - p, p], dim=1)))
             correct += int((logits.argmax(dim=1) == target).sum())
-            total += size
+            total += len(target)
     return torch.stack(losses).mean(), correct / total
 
 
 def teacher_targets(teacher: NeuralVisibility, batch: Batch, use_normals: bool) -> list[torch.Tensor]:
     """(views, n) probabilities of "visible" from ``teacher`` (e.g. one averaging over
     rotations) for each cloud of ``batch``."""
-    targets = []
-    for i, (start, size) in enumerate(zip(np.cumsum([0] + batch.sizes[:-1]), batch.sizes)):
-        sl = slice(int(start), int(start) + size)
-        field = teacher.encode(batch.points[sl], normals=batch.normals[sl] if use_normals else False)
-        targets.append(field.probabilities(batch.cameras[i]))
-    return targets
+    return [teacher.encode(batch.points[sl], normals=batch.normals[sl] if use_normals else False)
+            .probabilities(cameras) for sl, cameras in zip(batch.slices(), batch.cameras)]
 
 
 @torch.no_grad()

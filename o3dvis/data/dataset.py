@@ -56,6 +56,11 @@ class Batch:
     labels: list[Tensor]
     sizes: list[int]
 
+    def slices(self) -> list[slice]:
+        """The rows of each cloud in ``points``, ``normals`` and ``batch``."""
+        ends = np.cumsum(self.sizes).tolist()
+        return [slice(end - size, end) for end, size in zip(ends, self.sizes)]
+
     def to(self, device: torch.device | str) -> "Batch":
         return Batch(self.points.to(device), self.normals.to(device), self.batch.to(device),
                      [c.to(device) for c in self.cameras], [v.to(device) for v in self.labels],

@@ -206,10 +206,9 @@ class VisibilityField:
             inputs = [self.network.view_inputs(view, chunk, normals) for view in projections]
             dirs, cues = ((inputs[0][0][None], inputs[0][1][None]) if len(inputs) == 1 else
                           (torch.stack([d for d, _ in inputs]), torch.stack([c for _, c in inputs])))
-            chunks.append(self.network.predictor(features[chunk], dirs, cues))
+            chunks.append(self.network.predictor.margin(features[chunk], dirs, cues))
         del projections
-        logits = torch.cat(chunks, dim=1)
-        return torch.sigmoid(logits[..., 1] - logits[..., 0])
+        return torch.sigmoid(torch.cat(chunks, dim=1))
 
     def _batches(self, views: Views, rows: Tensor | None = None) -> Iterator[tuple[slice, Tensor]]:
         """Yields ``(views slice, (v, M) probabilities)`` of the points ``rows`` (None: all),

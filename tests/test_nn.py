@@ -140,21 +140,29 @@ def test_interpolation_is_convex_and_exact_at_centres():
     torch.testing.assert_close(got, (mid + 1) / 2 * 8 - 0.5)
 
 
-def test_embedding_matches_direct_sinusoids():
-    d = torch.nn.functional.normalize(torch.randn(100, 3, dtype=torch.float64), dim=1)
-    emb = ViewEmbedding(6)(d.T)  # channels first
-    ref = [d] + [f(2**k * torch.pi * d) for k in range(6) for f in (torch.sin, torch.cos)]
-    torch.testing.assert_close(emb, torch.cat(ref, dim=1).T)
+@pytest.mark.parametrize("frequencies", [0, 1, 6])
+@pytest.mark.parametrize("grad", [False, True])
+def test_embedding_matches_direct_sinusoids(frequencies, grad):
+    """Both the autograd path and the in-place one; (V, 3, N) batches of views too."""
+    d = torch.nn.functional.normalize(torch.randn(2, 100, 3, dtype=torch.float64), dim=-1).requires_grad_(grad)
+    emb = ViewEmbedding(frequencies)(d.transpose(-1, -2))  # channels first
+    ref = [d] + [f(2**k * torch.pi * d) for k in range(frequencies) for f in (torch.sin, torch.cos)]
+    assert emb.shape == (2, 3 + 6 * frequencies, 100) and emb.requires_grad == grad
+    torch.testing.assert_close(emb, torch.cat(ref, dim=-1).transpose(-1, -2))
 
 
-def test_predictor_equals_the_plain_mlp_on_the_concatenation():
+@pytest.mark.parametrize("grad", [False, True])
+def test_predictor_equals_the_plain_mlp_on_the_concatenation(grad):
     torch.manual_seed(0)
     pred = VisibilityPredictor(8, num_frequencies=3, num_cues=5, hidden=(16, 12)).double()
     projected = torch.randn(2, 50, pred.embedding.dim, dtype=torch.float64)
-    dirs = torch.nn.functional.normalize(torch.randn(2, 50, 3, dtype=torch.float64), dim=-1)
+    dirs = torch.nn.functional.normalize(torch.randn(2, 50, 3, dtype=torch.float64), dim=-1).requires_grad_(grad)
     cues = torch.randn(2, 50, 5, dtype=torch.float64)
     emb = pred.embedding(dirs.transpose(-1, -2)).transpose(-1, -2)
-    torch.testing.assert_close(pred(projected, dirs, cues), pred.mlp(torch.cat([projected * emb, cues], dim=-1)))
+    expected = pred.mlp(torch.cat([projected * emb, cues], dim=-1))
+    with torch.set_grad_enabled(grad):
+        torch.testing.assert_close(pred(projected, dirs, cues), expected)
+        torch.testing.assert_close(pred.margin(projected, dirs, cues), expected[..., 1] - expected[..., 0])
 
 
 @pytest.mark.parametrize("interpolation", ["nearest", "trilinear"])

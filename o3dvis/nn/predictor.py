@@ -29,12 +29,25 @@ class ViewEmbedding(nn.Module):
         return 3 + 6 * self.num_frequencies
 
     def forward(self, dirs: Tensor) -> Tensor:
-        out = [dirs]
-        s, c = torch.sin(torch.pi * dirs), torch.cos(torch.pi * dirs)
-        for _ in range(self.num_frequencies):
-            out += [s, c]
-            s, c = 2 * s * c, 1 - 2 * s * s
-        return torch.cat(out, dim=-2)
+        if torch.is_grad_enabled() and dirs.requires_grad:
+            out = [dirs]
+            s, c = torch.sin(torch.pi * dirs), torch.cos(torch.pi * dirs)
+            for _ in range(self.num_frequencies):
+                out += [s, c]
+                s, c = 2 * s * c, 1 - 2 * s * s
+            return torch.cat(out, dim=-2)
+        # without autograd each term is written in place into its rows of the result
+        out = dirs.new_empty(*dirs.shape[:-2], self.dim, dirs.shape[-1])
+        rows = out.unflatten(-2, (-1, 3))  # (..., 1 + 2F, 3, N)
+        rows[..., 0, :, :] = dirs
+        if self.num_frequencies:
+            torch.sin(torch.pi * dirs, out=rows[..., 1, :, :])
+            torch.cos(torch.pi * dirs, out=rows[..., 2, :, :])
+        for k in range(1, self.num_frequencies):
+            s, c = rows[..., 2 * k - 1, :, :], rows[..., 2 * k, :, :]
+            torch.mul(s, c, out=rows[..., 2 * k + 1, :, :]).mul_(2)
+            torch.mul(s, s, out=rows[..., 2 * k + 2, :, :]).mul_(-2).add_(1)
+        return out
 
 
 class VisibilityPredictor(nn.Module):
@@ -74,14 +87,30 @@ class VisibilityPredictor(nn.Module):
         return carry(per_leaf).addmm_(layer.weight[:, c:], points.transpose(0, 1)).transpose(0, 1)
 
     def forward(self, projected: Tensor, dirs: Tensor, cues: Tensor) -> Tensor:
-        """(..., N, E) projected features, (..., N, 3) directions, (..., N, Z) cues -> (..., N, 2).
+        """(..., N, E) projected features, (..., N, 3) directions, (..., N, Z) cues -> (..., N, 2)."""
+        return self.mlp[-1](self._hidden(projected, dirs, cues))
+
+    def margin(self, projected: Tensor, dirs: Tensor, cues: Tensor) -> Tensor:
+        """(..., N) logit of "visible" minus that of "hidden", as from :meth:`forward`,
+        with a last layer of one output instead of two (what a probability needs)."""
+        last = self.mlp[-1]
+        weight, bias = last.weight[1:] - last.weight[:1], last.bias[1:] - last.bias[:1]
+        return F.linear(self._hidden(projected, dirs, cues), weight, bias)[..., 0]
+
+    def _hidden(self, projected: Tensor, dirs: Tensor, cues: Tensor) -> Tensor:
+        """The activations before the last layer.
 
         The first layer sees ``[projected * embedding, cues]``; its weight is
         applied in two parts so that the concatenation is never built. The
         embedding is computed channels first (contiguous rows, see
-        :class:`ViewEmbedding`) and read transposed by the matrix product.
+        :class:`ViewEmbedding`), multiplied in place when nothing needs its
+        gradient, and read transposed by the matrix product.
         """
         first, e = self.mlp[0], self.embedding.dim
-        embedded = projected.transpose(-1, -2) * self.embedding(dirs.transpose(-1, -2))
+        embedded = self.embedding(dirs.transpose(-1, -2))
+        if torch.is_grad_enabled() and (embedded.requires_grad or projected.requires_grad):
+            embedded = embedded * projected.transpose(-1, -2)
+        else:
+            embedded.mul_(projected.transpose(-1, -2))
         x = F.linear(embedded.transpose(-1, -2), first.weight[:, :e], first.bias)
-        return self.mlp[1:](x.add_(F.linear(cues, first.weight[:, e:])))
+        return self.mlp[1:-1](x.add_(F.linear(cues, first.weight[:, e:])))

@@ -163,6 +163,9 @@ def test_predictor_equals_the_plain_mlp_on_the_concatenation(grad):
     with torch.set_grad_enabled(grad):
         torch.testing.assert_close(pred(projected, dirs, cues), expected)
         torch.testing.assert_close(pred.margin(projected, dirs, cues), expected[..., 1] - expected[..., 0])
+        # one view's directions against features of two: broadcast, not written in place
+        torch.testing.assert_close(pred(projected, dirs[0], cues[0]),
+                                   pred.mlp(torch.cat([projected * emb[0], cues[0].expand(2, -1, -1)], dim=-1)))
 
 
 @pytest.mark.parametrize("interpolation", ["nearest", "trilinear"])

@@ -107,10 +107,11 @@ class VisibilityPredictor(nn.Module):
         gradient, and read transposed by the matrix product.
         """
         first, e = self.mlp[0], self.embedding.dim
-        embedded = self.embedding(dirs.transpose(-1, -2))
-        if torch.is_grad_enabled() and (embedded.requires_grad or projected.requires_grad):
-            embedded = embedded * projected.transpose(-1, -2)
+        embedded, projected = self.embedding(dirs.transpose(-1, -2)), projected.transpose(-1, -2)
+        grad = torch.is_grad_enabled() and (embedded.requires_grad or projected.requires_grad)
+        if grad or torch.broadcast_shapes(embedded.shape, projected.shape) != embedded.shape:
+            embedded = embedded * projected
         else:
-            embedded.mul_(projected.transpose(-1, -2))
+            embedded.mul_(projected)
         x = F.linear(embedded.transpose(-1, -2), first.weight[:, :e], first.bias)
         return self.mlp[1:-1](x.add_(F.linear(cues, first.weight[:, e:])))

@@ -117,7 +117,7 @@ def test_cuda_without_cuda_is_a_clear_error(network, pcd, points):
         o3dvis.NeuralVisibility(network, device="gpu0")
 
 
-def test_batched_query_equals_one_call_per_camera(network, points):
+def test_batched_query_equals_one_call_per_camera(network, points, monkeypatch):
     rng = np.random.default_rng(1)
     cameras = np.stack([_camera(points, d) for d in rng.normal(size=(5, 3))])
     field = o3dvis.NeuralVisibility(network).encode(points)
@@ -138,16 +138,13 @@ def test_batched_query_equals_one_call_per_camera(network, points):
         rows.append(out.numel())
         return out
 
-    network.predictor.margin = counted
-    try:
-        for chunk in (1000, 7000):
-            rows.clear()
-            small = o3dvis.NeuralVisibility(network, chunk_size=chunk).encode(points)
-            torch.testing.assert_close(small.probabilities(cameras), batched, atol=1e-6, rtol=1e-5)
-            assert max(rows) <= chunk and sum(rows) == 5 * len(points)
-            assert len(rows) == (15 if chunk == 1000 else 3)
-    finally:
-        del network.predictor.margin
+    monkeypatch.setattr(network.predictor, "margin", counted)
+    for chunk in (1000, 7000):
+        rows.clear()
+        small = o3dvis.NeuralVisibility(network, chunk_size=chunk).encode(points)
+        torch.testing.assert_close(small.probabilities(cameras), batched, atol=1e-6, rtol=1e-5)
+        assert max(rows) <= chunk and sum(rows) == 5 * len(points)
+        assert len(rows) == (15 if chunk == 1000 else 3)
 
 
 def _look_at(eye, target) -> np.ndarray:

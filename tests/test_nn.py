@@ -201,18 +201,77 @@ def test_view_cues_flag_the_far_side_of_a_sphere():
     assert (cues == -5.0).any()
 
 
-def test_view_cues_same_in_chunks_and_with_or_without_autograd():
+@pytest.mark.parametrize("planes", [False, True])
+def test_view_cues_same_in_chunks_and_with_or_without_autograd(planes):
     torch.manual_seed(0)
     p = torch.nn.functional.normalize(torch.randn(5000, 3), dim=1) * torch.rand(5000, 1)
     cam = torch.tensor([2.0, 1.0, -0.5], requires_grad=True)
-    view = ViewProjection(p, cam)
+    view = ViewProjection(p, cam, planes=planes)
     full = view.cues()
+    assert full.shape == (5000, 40 if planes else 36)
     full.sum().backward()  # the autograd path is differentiable end to end
     assert torch.isfinite(cam.grad).all()
     with torch.inference_mode():  # the in-place path
-        fast = ViewProjection(p, cam.detach())
+        fast = ViewProjection(p, cam.detach(), planes=planes)
         chunks = torch.cat([fast.cues(slice(a, a + 1234)) for a in range(0, 5000, 1234)])
-    torch.testing.assert_close(chunks, full.detach(), atol=1e-5, rtol=0)
+    # the plane cues sum their terms in another order on the two paths (float32 rounding)
+    torch.testing.assert_close(chunks, full.detach(), atol=1e-3 if planes else 1e-5, rtol=0)
+    assert torch.equal(chunks[:, :36], fast.cues()[:, :36]) if planes else True
+
+
+def _best_threshold_accuracy(score, positive):
+    """Accuracy of the best rule ``score > t`` for ``positive``."""
+    order = torch.argsort(score)
+    pos = positive[order].float()
+    below_neg, below_pos = torch.cumsum(1 - pos, 0), torch.cumsum(pos, 0)
+    return ((below_neg + pos.sum() - below_pos) / len(pos)).max().item()
+
+
+@pytest.mark.parametrize("view", [{"direction": torch.tensor([0.0, 0.0, -1.0])},
+                                  {"camera": torch.tensor([0.2, 0.1, 4.0])}])
+def test_plane_cues_tell_a_point_just_behind_a_sloped_surface(view):
+    """Points a third of a pixel's depth slope behind a tilted plane: their residual to the
+    pixel's nearest point overlaps the front points' (which lie up-slope of it), their residual
+    to the fitted plane does not."""
+    g = torch.Generator().manual_seed(0)
+    xy = torch.rand(8000, 2, generator=g) * 2 - 1
+    z = 0.4 * xy[:, 0] + 0.3 * xy[:, 1] - 0.004 * (torch.arange(8000) >= 4000)
+    behind = torch.arange(8000) >= 4000
+    _, cues = view_cues(torch.cat([xy, z[:, None]], dim=1), planes=True, **view)
+    assert cues.shape == (8000, 40)
+    for s in range(4):  # the own pixel's residual, every scale
+        assert _best_threshold_accuracy(cues[:, 9 * s + 4], behind) < 0.65
+    for s in range(2):  # the plane residual at the two finest scales
+        assert _best_threshold_accuracy(cues[:, 36 + s], behind) > 0.93
+    assert cues[behind, 37].median() > cues[~behind, 37].median() + 0.05
+
+
+def test_fit_planes_is_exact_on_a_plane_and_flat_through_a_lone_point(monkeypatch):
+    from o3dvis.nn import cues as cues_module
+
+    g = torch.Generator().manual_seed(1)
+    res, pixel = 12, 0.5
+    offsets = torch.rand(res, res, 2, generator=g, dtype=torch.float64) - 0.5
+    centre = torch.arange(res, dtype=torch.float64) + 0.5
+    u = (centre[:, None] + offsets[..., 0]) * pixel  # image positions of the nearest points
+    v = (centre[None, :] + offsets[..., 1]) * pixel
+    zbuf = 3.0 + 0.7 * u - 0.2 * v
+    zbuf[5, 7] = float("inf")  # an empty pixel
+    monkeypatch.setattr(cues_module, "_RIDGE", 0.0)
+    planes = cues_module._fit_planes(zbuf, offsets, torch.tensor(3.0, dtype=torch.float64),
+                                     torch.tensor(pixel, dtype=torch.float64)).view(res, res, 3)
+    filled = torch.isfinite(zbuf)
+    torch.testing.assert_close(planes[..., 1][filled], torch.full((res * res - 1,), 0.7, dtype=torch.float64))
+    torch.testing.assert_close(planes[..., 2][filled], torch.full((res * res - 1,), -0.2, dtype=torch.float64))
+    at = planes[..., 0] + planes[..., 1] * u + planes[..., 2] * v
+    torch.testing.assert_close(at[filled], zbuf[filled])
+    monkeypatch.undo()  # with the ridge, a point alone in its neighbourhood gets a flat plane through it
+    lone = torch.full((5, 5), float("inf"), dtype=torch.float64)
+    lone[2, 2] = 2.0
+    plane = cues_module._fit_planes(lone, offsets[:5, :5], torch.tensor(1.0, dtype=torch.float64),
+                                    torch.tensor(pixel, dtype=torch.float64)).view(5, 5, 3)[2, 2]
+    assert plane[1] == 0 and plane[2] == 0
+    torch.testing.assert_close(plane[0], torch.tensor(2.0, dtype=torch.float64))
 
 
 def test_patch_table_rows_are_the_3x3_depth_neighbourhoods_of_the_pixels():
@@ -245,10 +304,12 @@ def _sphere_with_bump(n=3000, seed=0):
     return p * (1 + 0.3 * (p[:, :1] > 0.7))
 
 
-@pytest.mark.parametrize("use_normals, with_noise_cues", [(False, False), (True, False), (False, True)])
-def test_network_invariant_to_order_translation_and_scale(use_normals, with_noise_cues):
+@pytest.mark.parametrize("use_normals, with_noise_cues, planes",
+                         [(False, False, False), (True, False, False), (False, True, False), (False, False, True)])
+def test_network_invariant_to_order_translation_and_scale(use_normals, with_noise_cues, planes):
     torch.manual_seed(0)
-    net = VisibilityNetwork(NetworkConfig(depth=6, use_normals=use_normals, noise_cues=with_noise_cues)).eval()
+    net = VisibilityNetwork(NetworkConfig(depth=6, use_normals=use_normals, noise_cues=with_noise_cues,
+                                          plane_cues=planes)).eval()
     pts = _sphere_with_bump().double()
     normals = torch.nn.functional.normalize(pts, dim=1).float() if use_normals else None
     cam = torch.tensor([2.5, 1.0, 0.5], dtype=torch.float64)
@@ -339,7 +400,7 @@ def test_teacher_targets_and_the_mixed_loss():
     assert soft < plain  # the network's own answers are closer to it than random labels
 
 
-@pytest.mark.parametrize("added", [{"use_normals": True}, {"noise_cues": True}])
+@pytest.mark.parametrize("added", [{"use_normals": True}, {"noise_cues": True}, {"plane_cues": True}])
 def test_warm_start_with_added_inputs_keeps_the_function(added):
     from o3dvis.train import warm_start
 

@@ -38,6 +38,8 @@ def _train(args) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     network = {"use_normals": args.normals, "noise_cues": args.noise_cues}
+    if args.plane_cues:
+        network["plane_cues"] = True
     if args.depth:
         network["depth"] = args.depth
     if args.channels:
@@ -112,6 +114,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--normals", action="store_true", help="train a model that takes normals")
     p.add_argument("--noise-cues", action="store_true",
                    help="the U-Net also reads two per-cloud noise statistics (o3dvis.nn.noise)")
+    p.add_argument("--plane-cues", action="store_true",
+                   help="the predictor also reads each point's depth residual to a plane fitted to "
+                        "the nearest points around its pixel, at every scale (o3dvis.nn.cues)")
     p.add_argument("--depth", type=int, help="octree depth (default: the network's)")
     p.add_argument("--channels", help="comma-separated stage widths")
     p.add_argument("--frequencies", type=int, help="view-embedding frequencies (default: the network's)")

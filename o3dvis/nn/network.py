@@ -32,6 +32,7 @@ class NetworkConfig:
     hidden: tuple[int, ...] = (32, 32)
     interpolation: str = "nearest"
     cue_scales: tuple[int, ...] = DEFAULT_SCALES
+    plane_cues: bool = False
     use_normals: bool = False
     noise_cues: bool = False
     extra: dict = field(default_factory=dict)
@@ -59,7 +60,7 @@ class VisibilityNetwork(nn.Module):
         self.unet = OctreeUNet(in_channels, config.channels, config.blocks, config.feature_channels)
         self.predictor = VisibilityPredictor(
             config.feature_channels + 3, config.num_frequencies,
-            num_cues(config.cue_scales) + (1 if config.use_normals else 0), config.hidden)
+            num_cues(config.cue_scales, config.plane_cues) + (1 if config.use_normals else 0), config.hidden)
 
     def _signal(self, points: Tensor, batch: Tensor, octree: Octree, normals: Tensor | None) -> Tensor:
         """(L, C) input of the U-Net per leaf: mean local and global coordinates (and normals),
@@ -112,7 +113,7 @@ class VisibilityNetwork(nn.Module):
     def view(self, points: Tensor, camera: Tensor | None = None,
              direction: Tensor | None = None) -> ViewProjection:
         """The projection of one cloud for one camera position or viewing direction."""
-        return ViewProjection(points, camera, direction, self.config.cue_scales)
+        return ViewProjection(points, camera, direction, self.config.cue_scales, self.config.plane_cues)
 
     def view_inputs(self, view: ViewProjection, rows: slice = slice(None),
                     normals: Tensor | None = None) -> tuple[Tensor, Tensor]:

@@ -232,19 +232,25 @@ class ViewProjection:
             empty = torch.isnan(near)
             residual = ((torch.where(empty, depth, near) - depth) * inv).clamp(-50, 50)
             cues = torch.where(empty, _EMPTY, _asinh(residual)).flatten(1)
-        else:
-            cues = _asinh_(near.sub_(depth).mul_(inv).clamp_(-50, 50)).nan_to_num_(_EMPTY).flatten(1)
+            return cues if self.planes is None else torch.cat([cues, self._planes(pixels, rows)], dim=1)
+        near = _asinh_(near.sub_(depth).mul_(inv).clamp_(-50, 50)).flatten(1)
         if self.planes is None:
-            return cues
+            return near.nan_to_num_(_EMPTY)
+        # the last step writes into the result's columns: no concatenation
+        out = near.new_empty(near.shape[0], near.shape[1] + pixels.shape[1])
+        torch.nan_to_num(near, _EMPTY, out=out[:, :near.shape[1]])
+        out[:, near.shape[1]:] = self._planes(pixels, rows)
+        return out
+
+    def _planes(self, pixels: Tensor, rows: slice) -> Tensor:
+        """(n, S) plane cues of ``points[rows]``, whose pixels are ``pixels``."""
         plane = self.planes.index_select(0, pixels.reshape(-1)).view(*pixels.shape, 3)
-        image, depth, inv = self.image[rows], depth[..., 0], inv[..., 0]
+        image, depth, inv = self.image[rows], self.depth[rows, None], self.inv_footprint[rows, :, 0]
         if torch.is_grad_enabled():
             at = plane[..., 0] + plane[..., 1] * image[:, :1] + plane[..., 2] * image[:, 1:]
-            behind = _asinh(((at - depth) * inv).clamp(-50, 50))
-        else:
-            at = torch.addcmul(plane[..., 0], plane[..., 1], image[:, :1]).addcmul_(plane[..., 2], image[:, 1:])
-            behind = _asinh_(at.sub_(depth).mul_(inv).clamp_(-50, 50))
-        return torch.cat([cues, behind], dim=1)
+            return _asinh(((at - depth) * inv).clamp(-50, 50))
+        at = torch.addcmul(plane[..., 0], plane[..., 1], image[:, :1]).addcmul_(plane[..., 2], image[:, 1:])
+        return _asinh_(at.sub_(depth).mul_(inv).clamp_(-50, 50))
 
 
 def view_cues(points: Tensor, camera: Tensor | None = None, direction: Tensor | None = None,

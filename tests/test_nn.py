@@ -216,7 +216,8 @@ def test_view_cues_same_in_chunks_and_with_or_without_autograd(planes):
         chunks = torch.cat([fast.cues(slice(a, a + 1234)) for a in range(0, 5000, 1234)])
     # the plane cues sum their terms in another order on the two paths (float32 rounding)
     torch.testing.assert_close(chunks, full.detach(), atol=1e-3 if planes else 1e-5, rtol=0)
-    assert torch.equal(chunks[:, :36], fast.cues()[:, :36]) if planes else True
+    if planes:  # the residual cues are those of the model without planes
+        torch.testing.assert_close(chunks[:, :36], ViewProjection(p, cam.detach()).cues().detach(), atol=1e-5, rtol=0)
 
 
 def _best_threshold_accuracy(score, positive):

@@ -189,15 +189,15 @@ class ViewProjection:
         # and the points' image positions, at which cues() evaluates them
         self.planes = depth.new_empty(len(self.patches), 3) if planes else None
         self.image = torch.stack([u + half, v + half], dim=1) if planes else None
-        ref = depth.detach().mean()
+        ref = depth.detach().mean() if planes else None
         pixel_sizes, start = [], 0
         for s, res in enumerate(sides):
             pixel = 2 * half / res
             pixel_sizes.append(pixel)
-            iu = ((u + half) / pixel).long().clamp_(0, res - 1)
-            iv = ((v + half) / pixel).long().clamp_(0, res - 1)
+            fu, fv = (u + half) / pixel, (v + half) / pixel
+            iu, iv = fu.long().clamp_(0, res - 1), fv.long().clamp_(0, res - 1)
             if planes:
-                offset = torch.stack([(u + half) / pixel - iu - 0.5, (v + half) / pixel - iv - 0.5], 1)
+                offset = torch.stack([fu - iu - 0.5, fv - iv - 0.5], 1)
             index = iu.mul_(res).add_(iv)
             zbuf = depth.new_full((res * res,), float("inf")).scatter_reduce(0, index, depth, "amin")
             if planes:  # the image offset of each pixel's nearest point, and the pixel's plane

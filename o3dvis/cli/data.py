@@ -37,9 +37,7 @@ def _train(args) -> int:
 
     if args.threads:
         torch.set_num_threads(args.threads)
-    network = {"use_normals": args.normals, "noise_cues": args.noise_cues}
-    if args.plane_cues:
-        network["plane_cues"] = True
+    network = {"use_normals": args.normals, "noise_cues": args.noise_cues, "plane_cues": args.plane_cues}
     if args.depth:
         network["depth"] = args.depth
     if args.channels:

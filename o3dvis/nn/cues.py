@@ -188,13 +188,14 @@ class ViewProjection:
         # with planes: (c, a, b) of each pixel's plane (see _fit_planes), in the patches' rows,
         # and the points' image positions, at which cues() evaluates them
         self.planes = depth.new_empty(len(self.patches), 3) if planes else None
-        self.image = torch.stack([u + half, v + half], dim=1) if planes else None
+        u, v = u + half, v + half  # image positions from the corner, computed once for all scales
+        self.image = torch.stack([u, v], dim=1) if planes else None
         ref = depth.detach().mean() if planes else None
         pixel_sizes, start = [], 0
         for s, res in enumerate(sides):
             pixel = 2 * half / res
             pixel_sizes.append(pixel)
-            fu, fv = (u + half) / pixel, (v + half) / pixel
+            fu, fv = u / pixel, v / pixel
             iu, iv = fu.long().clamp_(0, res - 1), fv.long().clamp_(0, res - 1)
             if planes:
                 offset = torch.stack([fu - iu - 0.5, fv - iv - 0.5], 1)

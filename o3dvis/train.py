@@ -71,12 +71,16 @@ def warm_start(net: VisibilityNetwork, state: dict[str, torch.Tensor]) -> None:
     Used to start a normals model from a default one, or a model with more view
     cues from an earlier one: weights over the added inputs start at zero, so
     ``net`` first computes what the source computed from the shared inputs.
+    A calibration in ``state`` is dropped (training changes the margins it was
+    fitted to; ``o3dvis calibrate`` fits it anew).
     """
     from .nn.conv import _Linear
 
     target = net.state_dict()
     linear = {f"{name}.weight": m for name, m in net.named_modules() if isinstance(m, _Linear)}
     for name, value in state.items():
+        if name.startswith("calibration.") and name not in target:
+            continue
         dst = target[name]
         with torch.no_grad():
             if dst.shape == value.shape:

@@ -26,6 +26,7 @@ from .cameras import Views, as_vectors, as_views
 from .clouds import cloud_arrays, cloud_device, unit_normals
 from .data.dataset import random_rotation
 from .models import available_models, load_model, torch_device
+from .nn.calibration import calibration_terms
 from .nn.network import VisibilityNetwork
 from .nn.octree import bounding_box, morton_order, normalize_points
 
@@ -107,6 +108,8 @@ class VisibilityField:
     normalised frame), views from off that plane or line see every point.
     With ``rotated`` encodings (see ``NeuralVisibility(num_rotations=...)``),
     a probability is the mean of the network's answers in every frame.
+    ``calibration``: the ``(scale, shift)`` that a calibrated network applies
+    to this cloud's margins in every frame (see :mod:`o3dvis.nn.calibration`).
 
     The rows of ``features``, ``points_n`` and ``normals`` may be stored in
     another order than the cloud's (:meth:`NeuralVisibility.encode` sorts them
@@ -118,7 +121,8 @@ class VisibilityField:
     def __init__(self, network: VisibilityNetwork, features: Tensor, points_n: Tensor,
                  normals: Tensor | None, center: Tensor, scale: Tensor, bounds: tuple[Tensor, Tensor],
                  chunk_size: int = DEFAULT_CHUNK, hull: tuple[Tensor, Tensor] | None = None,
-                 rank: Tensor | None = None, rotated: Sequence[RotatedEncoding] = ()):
+                 rank: Tensor | None = None, rotated: Sequence[RotatedEncoding] = (),
+                 calibration: tuple[float, float] | None = None):
         self.network = network
         self.features = features
         self.points_n = points_n
@@ -129,6 +133,7 @@ class VisibilityField:
         self.hull = hull
         self.rank = rank
         self.rotated = tuple(rotated)
+        self.calibration = calibration
 
     @property
     def num_points(self) -> int:
@@ -208,7 +213,11 @@ class VisibilityField:
                           (torch.stack([d for d, _ in inputs]), torch.stack([c for _, c in inputs])))
             chunks.append(self.network.predictor.margin(features[chunk], dirs, cues))
         del projections
-        return torch.sigmoid(torch.cat(chunks, dim=1))
+        margin = torch.cat(chunks, dim=1)
+        if self.calibration is not None:
+            scale, shift = self.calibration
+            margin.mul_(scale).add_(shift)
+        return torch.sigmoid(margin)
 
     def _batches(self, views: Views, rows: Tensor | None = None) -> Iterator[tuple[slice, Tensor]]:
         """Yields ``(views slice, (v, M) probabilities)`` of the points ``rows`` (None: all),
@@ -458,11 +467,15 @@ class NeuralVisibility:
         rank[order] = torch.arange(len(order), device=order.device)
         points_n = points_n.index_select(0, order)
         unit = None if unit is None else unit.to(self.device).index_select(0, order).float()
+        calibrated = network.calibration is not None
         with torch.no_grad():
-            features = network.encode(points_n, normals=unit)
+            noise = network.cloud_noise(points_n) if network.config.noise_cues or calibrated else None
+            features = network.encode(points_n, normals=unit, noise=noise)
             rotated = [self._rotated(network, points_n, unit, r) for r in self.rotations[1:]]
+        calibration = (network.calibration.affine(calibration_terms(noise[0], len(points_n)))
+                       if calibrated else None)
         return VisibilityField(network, features, points_n, unit, center, scale, (lo, hi), self.chunk_size,
-                               hull, rank, rotated)
+                               hull, rank, rotated, calibration)
 
     @staticmethod
     def _rotated(network: VisibilityNetwork, points_n: Tensor, normals: Tensor | None,

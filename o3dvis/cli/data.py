@@ -1,4 +1,4 @@
-"""``o3dvis shapes``, ``o3dvis prepare`` and ``o3dvis train``."""
+"""``o3dvis shapes``, ``o3dvis prepare``, ``o3dvis train``, ``o3dvis calibrate`` and ``o3dvis publish``."""
 
 from __future__ import annotations
 
@@ -53,6 +53,21 @@ def _train(args) -> int:
                       "views": args.views, "noise": args.noise, "noise_prob": args.noise_prob})
     best = train(cfg)
     print(json.dumps({"checkpoint": str(best)}))
+    return 0
+
+
+def _calibrate(args) -> int:
+    import torch
+
+    from ..calibrate import calibrate
+    from ..data.dataset import Augmentation
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    summary = calibrate(args.checkpoint, args.data, args.out, args.clouds, args.keep, args.seed,
+                        Augmentation(max_points=args.max_points))
+    print(json.dumps({k: summary[k] for k in ("u", "w", "samples", "cross_entropy_before",
+                                              "cross_entropy_after")}))
     return 0
 
 
@@ -129,6 +144,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--teacher-weight", type=float, default=0.5,
                    help="share of the teacher's probability in each target, the rest the label (default 0.5)")
     p.set_defaults(func=_train)
+
+    p = sub.add_parser("calibrate", help="fit a trained network's per-cloud calibration", formatter_class=fmt,
+                       description="Fit, on training clouds drawn as training draws them, the map of the\n"
+                                   "network's margins that depends on each cloud's noise and size\n"
+                                   "(o3dvis.nn.calibration), and write the calibrated network.\n\n"
+                                   "example:\n  o3dvis calibrate runs/default/best.safetensors data/train "
+                                   "data/proc -o default-calibrated.safetensors")
+    p.add_argument("checkpoint", metavar="CHECKPOINT", help=".safetensors file written by o3dvis train")
+    p.add_argument("data", nargs="+", help="folders of prepared .npz training files")
+    p.add_argument("-o", "--out", required=True, help="the calibrated .safetensors file to write")
+    p.add_argument("--clouds", type=int, default=2000, help="training clouds drawn (default 2000)")
+    p.add_argument("--keep", type=int, default=20000, help="(point, view) pairs kept per cloud (default 20000)")
+    p.add_argument("--max-points", type=int, default=81920, help="largest cloud drawn (default 81920)")
+    p.add_argument("--seed", type=int, default=1, help="seed of the draw (default 1)")
+    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
+    p.set_defaults(func=_calibrate)
 
     p = sub.add_parser("publish", help="install a checkpoint as a shipped model", formatter_class=fmt,
                        description="Copy a checkpoint into o3dvis/weights/ and write its model-card entry\n"

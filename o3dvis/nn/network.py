@@ -9,6 +9,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
+from .calibration import CloudCalibration
 from .conv import octree_interpolate
 from .cues import DEFAULT_SCALES, ViewProjection, num_cues
 from .noise import NUM_NOISE_CUES, noise_cues
@@ -35,6 +36,7 @@ class NetworkConfig:
     plane_cues: bool = False
     use_normals: bool = False
     noise_cues: bool = False
+    calibrated: bool = False
     extra: dict = field(default_factory=dict)
 
     @classmethod
@@ -61,10 +63,13 @@ class VisibilityNetwork(nn.Module):
         self.predictor = VisibilityPredictor(
             config.feature_channels + 3, config.num_frequencies,
             num_cues(config.cue_scales, config.plane_cues) + (1 if config.use_normals else 0), config.hidden)
+        # fitted after training (o3dvis calibrate); applied to the margins by o3dvis.VisibilityField
+        self.calibration = CloudCalibration() if config.calibrated else None
 
-    def _signal(self, points: Tensor, batch: Tensor, octree: Octree, normals: Tensor | None) -> Tensor:
+    def _signal(self, points: Tensor, batch: Tensor, octree: Octree, normals: Tensor | None,
+                noise: Tensor | None = None) -> Tensor:
         """(L, C) input of the U-Net per leaf: mean local and global coordinates (and normals),
-        then the cloud's noise cues when the network reads them."""
+        then the cloud's noise cues when the network reads them (``noise``: precomputed, or None)."""
         res = 1 << octree.depth
         local = ((points + 1) * (res / 2)).frac() * 2 - 1
         per_point = [local, points] + ([normals] if normals is not None else [])
@@ -75,18 +80,23 @@ class VisibilityNetwork(nn.Module):
         signal = sums / counts[:, None]
         if not self.config.noise_cues:
             return signal
-        if octree.batch_size == 1:
-            cloud = noise_cues(points)[None]
-        else:
-            cloud = torch.stack([noise_cues(points[batch == b]) for b in range(octree.batch_size)])
-        return torch.cat([signal, cloud.index_select(0, octree.batch_of(octree.depth))], dim=1)
+        if noise is None:
+            noise = self.cloud_noise(points, batch, octree.batch_size)
+        return torch.cat([signal, noise.index_select(0, octree.batch_of(octree.depth))], dim=1)
+
+    @staticmethod
+    def cloud_noise(points: Tensor, batch: Tensor | None = None, batch_size: int = 1) -> Tensor:
+        """(B, 2) noise cues of each cloud (see :func:`~o3dvis.nn.noise.noise_cues`)."""
+        if batch is None or batch_size == 1:
+            return noise_cues(points)[None]
+        return torch.stack([noise_cues(points[batch == b]) for b in range(batch_size)])
 
     def octree(self, points: Tensor, batch: Tensor | None = None, batch_size: int | None = None) -> Octree:
         """The octree of normalised points at this network's depths (what :meth:`encode` builds)."""
         return Octree(points, batch, self.config.depth, self.config.full_depth, batch_size)
 
     def encode(self, points: Tensor, batch: Tensor | None = None, normals: Tensor | None = None,
-               batch_size: int | None = None) -> Tensor:
+               batch_size: int | None = None, noise: Tensor | None = None) -> Tensor:
         """Per-point view-independent features, (N, E).
 
         Args:
@@ -94,6 +104,7 @@ class VisibilityNetwork(nn.Module):
             batch: (N,) cloud index of each point (None: one cloud).
             normals: (N, 3) unit normals, required by a normals model.
             batch_size: number of clouds (default: ``batch.max() + 1``).
+            noise: the clouds' :meth:`cloud_noise`, when the caller has it already.
         """
         if self.config.use_normals != (normals is not None):
             raise ValueError("this model needs normals" if self.config.use_normals else
@@ -101,7 +112,7 @@ class VisibilityNetwork(nn.Module):
         if batch is None:
             batch = torch.zeros(points.shape[0], dtype=torch.long, device=points.device)
         octree = self.octree(points, batch, batch_size)
-        leaf = self.unet(self._signal(points, batch, octree, normals), octree)
+        leaf = self.unet(self._signal(points, batch, octree, normals, noise), octree)
         if self.config.interpolation == "trilinear":
             def carry(x: Tensor) -> Tensor:
                 return octree_interpolate(x.transpose(0, 1), octree, points, batch).transpose(0, 1)

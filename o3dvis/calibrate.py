@@ -13,10 +13,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from .data.dataset import Augmentation, VisibilityDataset
-from .nn.calibration import calibration_terms, fit_calibration
+from .nn.calibration import NUM_TERMS, calibration_loss, calibration_terms, fit_calibration
 from .nn.network import NetworkConfig, VisibilityNetwork
 
 __all__ = ["calibrate"]
@@ -65,7 +64,7 @@ def calibrate(checkpoint: str | Path, data: list[str | Path], out: str | Path, c
     draw = VisibilityDataset(files, augmentation or Augmentation(max_points=81920), seed=seed, length=clouds)
     vis = NeuralVisibility(net)
     rng = np.random.default_rng(seed)
-    terms, margins, labels = [], [], []
+    terms, cloud, margins, labels = [], [], [], []
     for k in tqdm(range(clouds), disable=not progress, desc="calibrate", unit="cloud"):
         points, normals, cameras, label = draw[k]
         field = vis.encode(points.double(), normals=normals if net.config.use_normals else False)
@@ -73,16 +72,16 @@ def calibrate(checkpoint: str | Path, data: list[str | Path], out: str | Path, c
         rows = torch.from_numpy(rng.choice(len(p), min(len(p), keep), replace=False))
         margins.append(torch.log(p[rows]) - torch.log1p(-p[rows]))
         labels.append(label.reshape(-1)[rows].double())
-        terms.append(calibration_terms(net.cloud_noise(points)[0], len(points)).expand(len(rows), -1))
-    terms, margins, labels = torch.cat(terms), torch.cat(margins), torch.cat(labels)
-    u, w = fit_calibration(terms, margins, labels)
+        terms.append(calibration_terms(net.cloud_noise(points)[0], len(points)))
+        cloud.append(torch.full((len(rows),), k))
+    terms, cloud, margins, labels = torch.stack(terms), torch.cat(cloud), torch.cat(margins), torch.cat(labels)
+    u, w = fit_calibration(terms, cloud, margins, labels)
+    identity = torch.zeros(NUM_TERMS, dtype=torch.float64)
     calibrated = VisibilityNetwork(NetworkConfig.from_dict({**asdict(net.config), "calibrated": True}))
     calibrated.load_state_dict({**net.state_dict(), "calibration.u": u, "calibration.w": w})
     summary = {"u": u.tolist(), "w": w.tolist(), "clouds": clouds, "samples": len(margins), "seed": seed,
                "data": [str(d) for d in data], "checkpoint": str(checkpoint),
-               "cross_entropy_before": F.binary_cross_entropy_with_logits(margins, labels).item(),
-               "cross_entropy_after": F.binary_cross_entropy_with_logits(
-                   margins * torch.exp(terms @ u) + terms @ w, labels).item()}
+               "cross_entropy_before": calibration_loss(identity, identity, terms, cloud, margins, labels).item(),
+               "cross_entropy_after": calibration_loss(u, w, terms, cloud, margins, labels).item()}
     calibrated.save(out, {"calibration": summary})
     return summary
-

@@ -8,6 +8,7 @@ import torch
 
 from o3dvis.nn.calibration import NUM_TERMS, calibration_terms, fit_calibration
 from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
+from o3dvis.nn.octree import normalize_points
 from o3dvis.visibility import NeuralVisibility
 
 SMALL = dict(depth=6, channels=(8, 16, 16, 16, 16), noise_cues=True)
@@ -25,17 +26,18 @@ def test_fit_recovers_a_known_affine_map():
     clouds, per_cloud = 40, 2000
     noise = torch.rand(clouds, 2, generator=g, dtype=torch.float64) * 0.5
     sizes = torch.randint(2000, 80000, (clouds,), generator=g)
-    terms = torch.stack([calibration_terms(c, int(n)) for c, n in zip(noise, sizes)]).repeat_interleave(per_cloud, 0)
+    terms = torch.stack([calibration_terms(c, int(n)) for c, n in zip(noise, sizes)])
+    cloud = torch.arange(clouds).repeat_interleave(per_cloud)
     u = torch.tensor([0.3, -0.8, 0.5, 0.1, 0.4, -0.2], dtype=torch.float64)
     w = torch.tensor([-0.5, 2.0, -1.0, 0.3, 1.0, -0.6], dtype=torch.float64)
-    margins = 3 * torch.randn(len(terms), generator=g, dtype=torch.float64)
-    labels = torch.bernoulli(torch.sigmoid(margins * torch.exp(terms @ u) + terms @ w), generator=g)
-    fit_u, fit_w = fit_calibration(terms, margins, labels)
+    margins = 3 * torch.randn(len(cloud), generator=g, dtype=torch.float64)
+    labels = torch.bernoulli(torch.sigmoid(margins * torch.exp(terms @ u)[cloud] + (terms @ w)[cloud]), generator=g)
+    fit_u, fit_w = fit_calibration(terms, cloud, margins, labels)
     torch.testing.assert_close(fit_u, u, atol=0.25, rtol=0)
     torch.testing.assert_close(fit_w, w, atol=0.4, rtol=0)
     # a calibrated network's own answers need none: the fit stays near the identity
     labels = torch.bernoulli(torch.sigmoid(margins), generator=g)
-    fit_u, fit_w = fit_calibration(terms, margins, labels)
+    fit_u, fit_w = fit_calibration(terms, cloud, margins, labels)
     assert fit_u.abs().max() < 0.15 and fit_w.abs().max() < 0.3
 
 
@@ -62,8 +64,6 @@ def test_field_applies_the_calibration_to_every_margin(tmp_path):
     loaded = VisibilityNetwork.load(path)
     torch.testing.assert_close(loaded.calibration.w, calibrated.calibration.w)
     after = NeuralVisibility(loaded).encode(pts).probabilities(cams).double()
-    from o3dvis.nn.octree import normalize_points
-
     noise = plain.cloud_noise(normalize_points(torch.from_numpy(pts))[0].float())[0]
     terms = calibration_terms(noise, len(pts))
     scale, shift = torch.exp(terms @ loaded.calibration.u), terms @ loaded.calibration.w

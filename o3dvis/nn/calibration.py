@@ -19,7 +19,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-__all__ = ["CloudCalibration", "calibration_terms", "fit_calibration", "NUM_TERMS"]
+__all__ = ["CloudCalibration", "calibration_terms", "calibration_loss", "fit_calibration", "NUM_TERMS"]
 
 NUM_TERMS = 6
 _LOG_SIZE_CENTRE, _LOG_SIZE_SCALE = 9.5, 1.5  # ln(N) of 2 k - 82 k points maps to about -1.3 .. +1.2
@@ -47,15 +47,24 @@ class CloudCalibration(nn.Module):
         return float(torch.exp(terms @ self.u)), float(terms @ self.w)
 
 
-def fit_calibration(terms: Tensor, margins: Tensor, labels: Tensor, max_iter: int = 300
-                    ) -> tuple[Tensor, Tensor]:
-    """``(u, w)`` minimising the cross-entropy of ``margins * exp(terms u) + terms w``.
+def calibration_loss(u: Tensor, w: Tensor, terms: Tensor, cloud: Tensor, margins: Tensor,
+                     labels: Tensor) -> Tensor:
+    """Cross-entropy of ``margins * exp(terms u) + terms w``, each sample with its cloud's terms.
 
     Args:
-        terms: (M, 6) the :func:`calibration_terms` of each sample's cloud.
+        u, w: (6,) coefficients.
+        terms: (C, 6) the :func:`calibration_terms` of each cloud.
+        cloud: (M,) the cloud of each sample.
         margins: (M,) the network's margins.
         labels: (M,) 1 for visible, 0 for hidden.
-        max_iter: L-BFGS iterations.
+    """
+    scale, shift = torch.exp(terms @ u).index_select(0, cloud), (terms @ w).index_select(0, cloud)
+    return nn.functional.binary_cross_entropy_with_logits(margins * scale + shift, labels)
+
+
+def fit_calibration(terms: Tensor, cloud: Tensor, margins: Tensor, labels: Tensor, max_iter: int = 300
+                    ) -> tuple[Tensor, Tensor]:
+    """``(u, w)`` minimising :func:`calibration_loss` (L-BFGS, from the identity).
 
     Returns:
         float64 ``u`` and ``w``, (6,) each.
@@ -67,8 +76,7 @@ def fit_calibration(terms: Tensor, margins: Tensor, labels: Tensor, max_iter: in
 
     def closure() -> Tensor:
         opt.zero_grad()
-        logits = margins * torch.exp(terms @ u) + terms @ w
-        loss = nn.functional.binary_cross_entropy_with_logits(logits, labels)
+        loss = calibration_loss(u, w, terms, cloud, margins, labels)
         loss.backward()
         return loss
 

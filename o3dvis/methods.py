@@ -34,11 +34,11 @@ _ROTATED = re.compile(r"(neural(?:-normals)?)-x([1-9][0-9]*)")
 
 def _neural(method):
     """``method`` as a NeuralVisibility or VisibilityField when it is one (None: the pretrained
-    network; a :class:`NeuralMethod` gives its NeuralVisibility), else None."""
-    from .visibility import NeuralVisibility, VisibilityField
+    network, loaded once per process; a :class:`NeuralMethod` gives its NeuralVisibility), else None."""
+    from .visibility import NeuralVisibility, VisibilityField, shared_pretrained
 
     if method is None:
-        return NeuralVisibility.pretrained()
+        return shared_pretrained()
     inner = getattr(method, "visibility", None)
     if isinstance(inner, NeuralVisibility):
         return inner

@@ -17,7 +17,7 @@ from o3dvis.cameras import as_views
 from o3dvis.cli import visible as visible_cli
 from o3dvis.models import file_sha256
 from o3dvis.nn import NetworkConfig, VisibilityNetwork
-from o3dvis.visibility import fixed_rotations
+from o3dvis.visibility import fixed_rotations, shared_pretrained
 
 SMALL = dict(depth=5, full_depth=2, channels=(8, 16), feature_channels=8, num_frequencies=2, hidden=(16,))
 CAMERA = [0.0, 0.0, 5.0]
@@ -430,6 +430,35 @@ def test_unknown_model_name(pcd, points, monkeypatch, tmp_path, network):
     _, pt_map = o3dvis.hidden_point_removal_neural(pcd, _camera(points), threshold=0.4)
     _, expected = o3dvis.hidden_point_removal_neural(pcd, _camera(points), threshold=0.4, model=network)
     assert pt_map == expected
+
+
+def test_the_shipped_model_is_loaded_once_and_shared(pcd, monkeypatch):
+    shipped = shared_pretrained()
+    assert shared_pretrained("default", "cpu") is shipped
+    with pytest.raises(ValueError, match="unknown model 'tiny'; available: default, normals"):
+        shared_pretrained("tiny")
+
+    def load_again(*args, **kwargs):
+        raise AssertionError("the shipped weights were loaded again")
+
+    monkeypatch.setattr(o3dvis.NeuralVisibility, "pretrained", load_again)
+    cloud = o3d.geometry.PointCloud(pcd)
+    o3dvis.estimate_normals_neural(cloud, num_views=4, refine_views=0)  # method=None: the shared model
+    assert cloud.has_normals()
+    _, pt_map = o3dvis.hidden_point_removal_neural(pcd, _camera(np.asarray(pcd.points)))
+    assert len(pt_map) > 0
+
+
+def test_the_shared_model_follows_the_weights_folder(pcd, monkeypatch, tmp_path, network):
+    shipped = shared_pretrained()
+    network.save(tmp_path / "default.safetensors")
+    card = {"models": {"default": {"file": "default.safetensors",
+                                   "sha256": file_sha256(tmp_path / "default.safetensors")}}}
+    (tmp_path / "model_card.json").write_text(json.dumps(card))
+    monkeypatch.setattr(models, "WEIGHTS_DIR", tmp_path)
+    other = shared_pretrained()
+    assert other is not shipped and other.network.config == network.config
+    assert shared_pretrained() is other
 
 
 TINY = {

@@ -497,10 +497,10 @@ def shared_pretrained(name: str = "default", device: str | torch.device | None =
     """The shipped model ``name`` on ``device``, loaded once per process and shared by every caller.
 
     What the functions of o3dvis use when given no model: loading the weights and
-    checking their sha256 takes a fifth of a second, as long as the whole
-    visibility of a 20 k-point cloud from 26 views. Thread-safe; the instance is
-    shared, so do not move or change it (:meth:`NeuralVisibility.pretrained`
-    gives a private one).
+    checking their sha256 takes 0.16-0.19 s the first time in a process and
+    0.06-0.07 s again (two CPU cores), longer than the visibility of a 2 k-point
+    cloud. Thread-safe; the instance is shared, so do not move or change it
+    (:meth:`NeuralVisibility.pretrained` gives a private one).
 
     Args:
         name: a model name of the model card (not a file path).

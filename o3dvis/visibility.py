@@ -513,13 +513,18 @@ def shared_pretrained(name: str = "default", device: str | torch.device | None =
     Raises:
         ValueError: ``name`` is not in the model card (the message lists the available ones).
     """
-    if name not in available_models():
-        raise ValueError(f"unknown model {name!r}; available: {', '.join(available_models()) or 'none'}")
-    key = (str(models.WEIGHTS_DIR), name, str(torch_device(device)))
+    key = _cache_key(name, device)
     with _CACHE_LOCK:
-        if key not in _CACHE:
+        if key not in _CACHE:  # the model card is read only here: a hit costs no file access
+            names = available_models()
+            if name not in names:
+                raise ValueError(f"unknown model {name!r}; available: {', '.join(names) or 'none'}")
             _CACHE[key] = NeuralVisibility.pretrained(name, device)
         return _CACHE[key]
+
+
+def _cache_key(name: str, device: str | torch.device | None) -> tuple[str, str, str]:
+    return str(models.WEIGHTS_DIR), name, str(torch_device(device))
 
 
 def _resolve_model(model, device: torch.device) -> NeuralVisibility:
@@ -530,9 +535,9 @@ def _resolve_model(model, device: torch.device) -> NeuralVisibility:
         return NeuralVisibility(model, device=device)
     if model is None or isinstance(model, (str, Path)):
         name = "default" if model is None else model
-        if not isinstance(name, str) or name not in available_models():
-            return NeuralVisibility.pretrained(name, device)
-        return shared_pretrained(name, device)
+        if isinstance(name, str) and (_cache_key(name, device) in _CACHE or name in available_models()):
+            return shared_pretrained(name, device)
+        return NeuralVisibility.pretrained(name, device)
     raise TypeError("model must be None, a model name or path, a NeuralVisibility or a "
                     f"VisibilityNetwork, got {type(model).__name__}")
 

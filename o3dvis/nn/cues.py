@@ -30,6 +30,9 @@ DEFAULT_SCALES = (1, 2, 4, 8)
 
 
 _EMPTY = -5.0  # cue of a neighbour pixel that no point falls into (below any asinh(+-50))
+# what the in-place path gives an empty neighbour's residual before asinh: beyond the clamp, and
+# asinh maps it to _EMPTY exactly, so no NaN reaches sqrt and log1p, which take a slow path on NaN
+_EMPTY_RESIDUAL = math.sinh(_EMPTY)
 
 
 def _asinh(x: Tensor) -> Tensor:
@@ -234,12 +237,11 @@ class ViewProjection:
             residual = ((torch.where(empty, depth, near) - depth) * inv).clamp(-50, 50)
             cues = torch.where(empty, _EMPTY, _asinh(residual)).flatten(1)
             return cues if self.planes is None else torch.cat([cues, self._planes(pixels, rows)], dim=1)
-        near = _asinh_(near.sub_(depth).mul_(inv).clamp_(-50, 50)).flatten(1)
+        near = _asinh_(near.sub_(depth).mul_(inv).clamp_(-50, 50).nan_to_num_(_EMPTY_RESIDUAL)).flatten(1)
         if self.planes is None:
-            return near.nan_to_num_(_EMPTY)
-        # the last step writes into the result's columns: no concatenation
+            return near
         out = near.new_empty(near.shape[0], near.shape[1] + pixels.shape[1])
-        torch.nan_to_num(near, _EMPTY, out=out[:, :near.shape[1]])
+        out[:, :near.shape[1]] = near
         out[:, near.shape[1]:] = self._planes(pixels, rows)
         return out
 

@@ -62,7 +62,7 @@ def calibrate(checkpoint: str | Path, data: list[str | Path], out: str | Path, c
     if not files:
         raise ValueError(f"no prepared .npz files in {[str(d) for d in data]}")
     draw = VisibilityDataset(files, augmentation or Augmentation(max_points=81920), seed=seed, length=clouds)
-    vis = NeuralVisibility(net)
+    vis = NeuralVisibility(net, precision="float32")  # the margins the calibration maps, unrounded
     rng = np.random.default_rng(seed)
     terms, cloud, margins, labels = [], [], [], []
     for k in tqdm(range(clouds), disable=not progress, desc="calibrate", unit="cloud"):

@@ -9,7 +9,9 @@ adapts it. The bench names its methods instead: :func:`resolve_methods` turns
 ``hpr``, ``hpr-exp``, ``neural`` and ``neural-normals`` into parameter sweeps
 ``{label: method}`` (a network method with ``needs_normals = True`` also takes
 ``normals=``; ``neural-x8`` and ``neural-normals-x8`` average the network over
-8 rotations of each cloud, see ``NeuralVisibility(num_rotations=...)``); a
+8 rotations of each cloud, see ``NeuralVisibility(num_rotations=...)``, and a
+``-float32`` or ``-bfloat16`` ending fixes the dtype of its per-view matrix
+products, see ``NeuralVisibility(precision=...)``); a
 method that cannot be built here (no network code, no weights) is returned as
 absent with the reason, never replaced by something else.
 """
@@ -29,7 +31,7 @@ __all__ = ["resolve_method", "resolve_soft_method", "ground_truth_method", "Neur
            "neural_method", "resolve_methods", "METHOD_NAMES"]
 
 METHOD_NAMES = (*SWEEPS, "neural", "neural-normals")
-_ROTATED = re.compile(r"(neural(?:-normals)?)-x([1-9][0-9]*)")
+_NETWORK_VARIANT = re.compile(r"(neural(?:-normals)?)(?:-x([1-9][0-9]*))?(?:-(float32|bfloat16))?")
 
 
 def _neural(method):
@@ -157,9 +159,10 @@ class NeuralMethod:
         self.visibility = visibility
         self.identity = identity
         self.needs_normals = use_normals
-        turns = len(visibility.rotations)
+        turns, precision = len(visibility.rotations), visibility.precision
         self.__name__ = (f"neural({identity}{', normals' if use_normals else ''}"
-                         f"{f', {turns} rotations' if turns > 1 else ''})")
+                         f"{f', {turns} rotations' if turns > 1 else ''}"
+                         f"{f', {precision}' if precision != 'auto' else ''})")
 
     def encode(self, points: np.ndarray, normals: np.ndarray | None = None):
         """The cloud's visibility field (``field.query(cameras) -> (V, N) bool``)."""
@@ -182,7 +185,7 @@ class NeuralMethod:
 
 
 def neural_method(checkpoint: str | Path | None = None, device: str | None = None,
-                  use_normals: bool = False, num_rotations: int = 1) -> NeuralMethod:
+                  use_normals: bool = False, num_rotations: int = 1, precision: str = "auto") -> NeuralMethod:
     """The neural method from a checkpoint file or the shipped weights.
 
     Args:
@@ -190,7 +193,7 @@ def neural_method(checkpoint: str | Path | None = None, device: str | None = Non
             None for ``NeuralVisibility.pretrained()``.
         device: torch device (default: the API's choice).
         use_normals: give the network the cloud's normals (a model that takes them is needed).
-        num_rotations: see ``NeuralVisibility``.
+        num_rotations, precision: see ``NeuralVisibility``.
 
     Returns:
         A :class:`NeuralMethod`.
@@ -204,7 +207,8 @@ def neural_method(checkpoint: str | Path | None = None, device: str | None = Non
         raise LookupError(f"o3dvis.NeuralVisibility is not available ({e})") from e
     try:
         if checkpoint is None:
-            visibility = NeuralVisibility.pretrained(device=device, num_rotations=num_rotations)
+            visibility = NeuralVisibility.pretrained(device=device, num_rotations=num_rotations,
+                                                     precision=precision)
             identity = "pretrained"
         else:
             from .nn import VisibilityNetwork
@@ -214,7 +218,7 @@ def neural_method(checkpoint: str | Path | None = None, device: str | None = Non
                 raise FileNotFoundError(f"checkpoint {path} not found")
             digest = hashlib.sha256(path.read_bytes()).hexdigest()[:12]
             visibility = NeuralVisibility(VisibilityNetwork.load(path), device=device,
-                                          num_rotations=num_rotations)
+                                          num_rotations=num_rotations, precision=precision)
             identity = f"{path.name}@{digest}"
     except (FileNotFoundError, ValueError, KeyError, RuntimeError) as e:
         raise LookupError(f"no network weights could be loaded: {e}") from e
@@ -232,7 +236,8 @@ def resolve_methods(names, checkpoint: str | Path | None = None,
 
     Args:
         names: method names from :data:`METHOD_NAMES`, or a network's name with
-            ``-x<K>`` appended: its mean over ``K`` rotations of each cloud.
+            ``-x<K>`` appended (its mean over ``K`` rotations of each cloud) and/or
+            ``-float32`` / ``-bfloat16`` (the dtype of its per-view matrix products).
         checkpoint: network checkpoint for ``neural`` (default: shipped weights).
         sweeps: parameter values overriding a baseline's default grid, by name.
 
@@ -247,15 +252,17 @@ def resolve_methods(names, checkpoint: str | Path | None = None,
     methods: dict[str, dict[str, Method]] = {}
     absent: dict[str, str] = {}
     for name in names:
-        rotated = _ROTATED.fullmatch(name)
-        base, turns = (rotated[1], int(rotated[2])) if rotated else (name, 1)
+        variant = _NETWORK_VARIANT.fullmatch(name)
+        base, turns, precision = ((variant[1], int(variant[2] or 1), variant[3] or "auto") if variant
+                                  else (name, 1, "auto"))
         if base not in METHOD_NAMES:
             raise ValueError(f"unknown method {name!r}; choose from {', '.join(METHOD_NAMES)} "
-                             f"(a neural one may end in -x<rotations>, e.g. neural-x8)")
+                             f"(a neural one may end in -x<rotations> and -float32 or -bfloat16, "
+                             f"e.g. neural-x8, neural-float32)")
         if base.startswith("neural"):
             try:
                 methods[name] = {"": neural_method(checkpoint, use_normals=base == "neural-normals",
-                                                   num_rotations=turns)}
+                                                   num_rotations=turns, precision=precision)}
             except LookupError as e:
                 absent[name] = str(e)
         else:

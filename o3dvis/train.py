@@ -259,7 +259,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
         from .visibility import NeuralVisibility
 
         teacher = NeuralVisibility(VisibilityNetwork.load(cfg.teacher, device),
-                                   num_rotations=cfg.teacher_rotations)
+                                   num_rotations=cfg.teacher_rotations, precision="float32")
     for step, batch in enumerate(loader, start=start + 1):
         batch = batch.to(device)
         targets = None if teacher is None else teacher_targets(teacher, batch, net.config.use_normals)

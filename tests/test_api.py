@@ -244,35 +244,75 @@ def test_orthographic_direction(vis, points):
         field.query()
 
 
-def test_gradient_reaches_the_camera(vis, points):
-    field = vis.encode(points)
+def test_gradient_reaches_the_camera(network, points):
+    """The differentiable path computes in float32, as a float32 query does."""
+    field = o3dvis.NeuralVisibility(network, precision="float32").encode(points)
     camera = torch.tensor(_camera(points, (1.0, 2.0, 3.0)), requires_grad=True)
     probs = field.probabilities(camera)
     assert probs.requires_grad and probs.shape == (1, len(points))
     probs.sum().backward()
     assert camera.grad is not None and torch.isfinite(camera.grad).all() and camera.grad.abs().sum() > 0
     torch.testing.assert_close(probs.detach(), field.probabilities(camera.detach()))
+    bf16 = o3dvis.NeuralVisibility(network, precision="bfloat16").encode(points)
+    assert bf16.probabilities(camera).requires_grad  # a gradient asked for: float32 whatever the precision
     direction = torch.tensor([0.0, 0.0, 1.0], requires_grad=True)
     field.probabilities(direction=direction).sum().backward()
     assert torch.isfinite(direction.grad).all()
 
 
-def test_invariant_to_point_order(vis, points):
+# (precision, tolerance): bfloat16 products round the float32 differences of the inputs to their
+# own 8-bit mantissas, so their answers move by up to a few thousandths
+PRECISION_TOLERANCE = [("float32", 1e-4), ("bfloat16", 5e-3)]
+
+
+@pytest.mark.parametrize("precision, tol", PRECISION_TOLERANCE)
+def test_invariant_to_point_order(network, points, precision, tol):
+    vis = o3dvis.NeuralVisibility(network, precision=precision)
     camera = _camera(points, (1.0, -1.0, 0.5))
     perm = np.random.default_rng(2).permutation(len(points))
     a = vis.encode(points).probabilities(camera)[0]
     b = vis.encode(points[perm]).probabilities(camera)[0]
-    torch.testing.assert_close(b, a[perm], atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(b, a[perm], atol=tol / 10, rtol=tol / 10)
 
 
+@pytest.mark.parametrize("precision, tol", PRECISION_TOLERANCE)
 @pytest.mark.parametrize("scale, offset", [(3.7, (10.0, -2.0, 5.0)), (1e-3, (1e6, 1e6, -1e6)),
                                            (250.0, (0, 0, 0))])
-def test_invariant_to_translation_and_uniform_scale(vis, points, scale, offset):
+def test_invariant_to_translation_and_uniform_scale(network, points, scale, offset, precision, tol):
+    vis = o3dvis.NeuralVisibility(network, precision=precision)
     camera = _camera(points, (-1.0, 0.3, 0.8))
     a = vis.encode(points).probabilities(camera)
     moved = points * scale + np.asarray(offset)
     b = vis.encode(moved).probabilities(camera * scale + np.asarray(offset))
-    torch.testing.assert_close(b, a, atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(b, a, atol=tol, rtol=tol)
+
+
+def test_bfloat16_products_answer_as_float32_ones(points):
+    """With the shipped weights the reduced-precision path gives the same answers to bfloat16
+    rounding: views all around the cloud, batched (several per MLP call) and one at a time."""
+    views = [_camera(points, d) for d in np.random.default_rng(3).normal(size=(12, 3))]
+    exact = o3dvis.NeuralVisibility.pretrained(precision="float32").encode(points)
+    reduced = o3dvis.NeuralVisibility.pretrained(precision="bfloat16").encode(points)
+    assert exact.matmul_dtype == torch.float32 and reduced.matmul_dtype == torch.bfloat16
+    p32, p16 = exact.probabilities(views), reduced.probabilities(views)
+    assert not torch.equal(p16, p32)  # the products did run in bfloat16
+    torch.testing.assert_close(p16, p32, atol=0.03, rtol=0)
+    assert ((p16 > 0.5) == (p32 > 0.5)).float().mean() > 0.999
+    reduced.chunk_size = 1000  # one view and part of the cloud per call
+    torch.testing.assert_close(reduced.probabilities(views), p16, atol=0.03, rtol=0)
+
+
+def test_precision_auto_and_bad_values(network):
+    from o3dvis.nn.predictor import resolve_precision
+
+    assert resolve_precision("float32", torch.device("cpu")) == torch.float32
+    assert resolve_precision("bfloat16", torch.device("cpu")) == torch.bfloat16
+    assert resolve_precision("auto", torch.device("meta")) == torch.float32  # never off a CPU
+    native = torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported()
+    assert resolve_precision("auto", torch.device("cpu")) == (torch.bfloat16 if native else torch.float32)
+    for bad in ("half", "fp32", None):
+        with pytest.raises(ValueError, match="precision must be one of auto, float32, bfloat16"):
+            o3dvis.NeuralVisibility(network, precision=bad)
 
 
 def test_fixed_rotations_are_rotations_and_the_same_each_call():

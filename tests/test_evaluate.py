@@ -181,7 +181,7 @@ def test_neural_checkpoint_is_scored_like_any_method(data, tmp_path, capsys):
         assert row["accuracy"] == pytest.approx(total.accuracy)
 
 
-def test_neural_names_take_a_number_of_rotations(tmp_path):
+def test_neural_names_take_a_number_of_rotations_and_a_precision(tmp_path):
     pytest.importorskip("o3dvis.visibility")
     from o3dvis.methods import resolve_methods
     from o3dvis.nn import VisibilityNetwork
@@ -189,12 +189,19 @@ def test_neural_names_take_a_number_of_rotations(tmp_path):
 
     ckpt = tmp_path / "tiny.safetensors"
     VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 8), feature_channels=8, hidden=(8,))).save(ckpt)
-    methods, absent = resolve_methods(["neural", "neural-x3", "neural-normals-x2"], ckpt)
+    methods, absent = resolve_methods(["neural", "neural-x3", "neural-normals-x2", "neural-float32",
+                                       "neural-x2-bfloat16"], ckpt)
     assert len(methods["neural"][""].visibility.rotations) == 1
     assert len(methods["neural-x3"][""].visibility.rotations) == 3
     assert "3 rotations" in methods["neural-x3"][""].__name__
     assert "neural-normals-x2" in absent and "take no normals" in absent["neural-normals-x2"]
-    for bad in ("neural-x0", "neural-x", "hpr-x2", "neural-x2-x2"):
+    assert methods["neural"][""].visibility.precision == "auto"
+    assert methods["neural-float32"][""].visibility.precision == "float32"
+    bf16 = methods["neural-x2-bfloat16"][""]
+    assert bf16.visibility.precision == "bfloat16" and len(bf16.visibility.rotations) == 2
+    assert "float32" in methods["neural-float32"][""].__name__ and "2 rotations, bfloat16" in bf16.__name__
+    for bad in ("neural-x0", "neural-x", "hpr-x2", "neural-x2-x2", "neural-float16", "neural-float32-x2",
+                "hpr-float32"):
         with pytest.raises(ValueError, match="unknown method"):
             resolve_methods([bad], ckpt)
 

@@ -392,7 +392,7 @@ def test_teacher_targets_and_the_mixed_loss():
     batch = Batch(torch.cat(clouds), torch.zeros(sum(sizes), 3),
                   torch.cat([torch.full((n,), i) for i, n in enumerate(sizes)]), cams, labels, sizes)
     with torch.no_grad():
-        targets = teacher_targets(NeuralVisibility(net), batch, use_normals=False)
+        targets = teacher_targets(NeuralVisibility(net, precision="float32"), batch, use_normals=False)
         for p, c, t in zip(clouds, cams, targets):
             own = torch.stack([net.predict(net.encode(p), p, cam).softmax(dim=1)[:, 1] for cam in c])
             torch.testing.assert_close(t, own, atol=1e-5, rtol=1e-5)

@@ -592,7 +592,8 @@ def test_a_flat_cloud_is_all_visible_from_off_its_plane_and_left_to_the_network_
     for cloud in (tilted, noisy):
         field = vis.encode(cloud)
         raw = o3dvis.VisibilityField(field.network, field.features, field.points_n, None, field.center,
-                                     field.scale, field.bounds, rank=field.rank)  # without the flat rule
+                                     field.scale, field.bounds, rank=field.rank,
+                                     matmul_dtype=field.matmul_dtype)  # without the flat rule
         off = [tilted.mean(axis=0) + 4 * normal, tilted.mean(axis=0) - 5 * normal]
         assert (field.probabilities(off) == 1).all() and not (raw.probabilities(off) == 1).all()
         torch.testing.assert_close(field.probabilities(in_plane), raw.probabilities(in_plane), rtol=0, atol=0)

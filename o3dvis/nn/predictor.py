@@ -8,7 +8,29 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-__all__ = ["ViewEmbedding", "VisibilityPredictor"]
+__all__ = ["ViewEmbedding", "VisibilityPredictor", "PRECISIONS", "resolve_precision"]
+
+PRECISIONS = ("auto", "float32", "bfloat16")
+
+
+def resolve_precision(precision: str, device: torch.device) -> torch.dtype:
+    """The dtype of the per-view matrix products for ``precision`` on ``device``.
+
+    ``"auto"`` is bfloat16 on a CPU with native bfloat16 dot products
+    (AVX512-BF16 or AMX), where they run about 4x faster than float32 ones,
+    and float32 elsewhere (an emulated bfloat16 product is slower).
+
+    Raises:
+        ValueError: ``precision`` is not one of :data:`PRECISIONS`.
+    """
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+    if precision != "auto":
+        return getattr(torch, precision)
+    if device.type != "cpu":
+        return torch.float32
+    native = [getattr(torch.cpu, name, None) for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported")]
+    return torch.bfloat16 if any(check is not None and check() for check in native) else torch.float32
 
 
 class ViewEmbedding(nn.Module):
@@ -90,12 +112,47 @@ class VisibilityPredictor(nn.Module):
         """(..., N, E) projected features, (..., N, 3) directions, (..., N, Z) cues -> (..., N, 2)."""
         return self.mlp[-1](self._hidden(projected, dirs, cues))
 
-    def margin(self, projected: Tensor, dirs: Tensor, cues: Tensor) -> Tensor:
+    def margin(self, projected: Tensor, dirs: Tensor, cues: Tensor, dtype: torch.dtype | None = None) -> Tensor:
         """(..., N) logit of "visible" minus that of "hidden", as from :meth:`forward`,
-        with a last layer of one output instead of two (what a probability needs)."""
+        with a last layer of one output instead of two (what a probability needs).
+
+        ``dtype`` (e.g. ``torch.bfloat16``): run the matrix products in it, accumulated in
+        float32, when no gradient is needed (see :meth:`_reduced_margin`); None: in the inputs' dtype.
+        """
         last = self.mlp[-1]
         weight, bias = last.weight[1:] - last.weight[:1], last.bias[1:] - last.bias[:1]
+        grad = torch.is_grad_enabled() and any(t.requires_grad for t in (projected, dirs, cues, weight))
+        if dtype is not None and dtype != projected.dtype and not grad:
+            return self._reduced_margin(projected, dirs, cues, weight, bias, dtype)
         return F.linear(self._hidden(projected, dirs, cues), weight, bias)[..., 0]
+
+    def _reduced_margin(self, projected: Tensor, dirs: Tensor, cues: Tensor, weight: Tensor, bias: Tensor,
+                        dtype: torch.dtype) -> Tensor:
+        """:meth:`margin` with every matrix product in ``dtype``, no autograd.
+
+        The embedding times the features is written straight into a ``dtype``
+        buffer (the cast costs no pass of its own), the cues are cast once, and
+        each layer is one batched product that accumulates in float32 and adds
+        the layer's input terms before it rounds; the hidden activations are
+        stored in ``dtype``. On the shipped default at 200 k points, 0.014 % of
+        the answers differ from float32 ones (see the README).
+        """
+        first, e = self.mlp[0], self.embedding.dim
+        embedded = self.embedding(dirs.transpose(-1, -2))  # (..., E, n)
+        shape = torch.broadcast_shapes(embedded.shape, projected.transpose(-1, -2).shape, cues.shape[:-2] + (1, 1))
+        lead, n = shape[:-2], shape[-1]
+        low = embedded.new_empty(shape, dtype=dtype)
+        torch.mul(embedded, projected.transpose(-1, -2), out=low)
+        low = low.reshape(-1, e, n).transpose(1, 2)  # (B, n, E), a view
+        cues = cues.expand(*lead, n, cues.shape[-1]).reshape(-1, n, cues.shape[-1]).to(dtype)
+
+        def product(x: Tensor, w: Tensor, b: Tensor) -> Tensor:
+            return torch.baddbmm(b.to(dtype), x, w.to(dtype).T.expand(x.shape[0], -1, -1))
+
+        x = product(cues, first.weight[:, e:], product(low, first.weight[:, :e], first.bias)).relu_()
+        for layer in self.mlp[2:-1:2]:  # the hidden layers, each followed by a ReLU
+            x = product(x, layer.weight, layer.bias).relu_()
+        return product(x, weight, bias).float().view(*lead, n)
 
     def _hidden(self, projected: Tensor, dirs: Tensor, cues: Tensor) -> Tensor:
         """The activations before the last layer.

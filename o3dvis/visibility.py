@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import contextlib
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import NamedTuple
 
@@ -41,6 +42,32 @@ DEFAULT_CHUNK = 1 << 15
 _NORMALS_MODEL = "normals"
 _INSIDE_TOL = 1e-6
 _FLAT_TOL = 1e-9
+
+
+def _threaded_map(fn: Callable, items: Iterable, workers: int) -> Iterator:
+    """``map(fn, items)`` on ``workers`` threads, each running torch ops on one thread of its own.
+
+    On a CPU, views answered side by side this way are faster than one view at a
+    time with every op split over the threads: the per-view ops are many and small
+    (a split op waits for its slowest part), and each thread's buffers stay in its
+    own cache. Each item runs without autograd (grad mode is per thread). A
+    worker takes its own thread count before setting it to 1, and the caller's
+    count is put back when each item is done: ``torch.set_num_threads`` also sets
+    the count that threads new to torch start with.
+    """
+    caller = torch.get_num_threads()
+
+    def task(item):
+        torch.get_num_threads()  # this thread's count is settled now, not at its first parallel op
+        torch.set_num_threads(1)
+        try:
+            with torch.inference_mode():
+                return fn(item)
+        finally:
+            torch.set_num_threads(caller)
+
+    with ThreadPoolExecutor(workers, thread_name_prefix="o3dvis-views") as pool:
+        yield from pool.map(task, items)
 
 
 def _fmt(vector: Tensor) -> str:
@@ -243,8 +270,9 @@ class VisibilityField:
         frames = [(self.features, self.points_n, self.normals, cameras, directions)] + [
             (e.features, e.points, e.normals, *e.views(cameras, directions)) for e in self.rotated]
         per_batch = max(1, self.chunk_size // n)
-        for start in range(0, total, per_batch):
-            batch = slice(start, min(total, start + per_batch))
+        batches = [slice(start, min(total, start + per_batch)) for start in range(0, total, per_batch)]
+
+        def answer(batch: slice) -> Tensor:
             probs = self._frame_probabilities(*frames[0], batch, rows, n)
             if frames[1:]:  # the mean over the frames
                 for frame in frames[1:]:
@@ -259,7 +287,15 @@ class VisibilityField:
                 for j, mask in masks:
                     keep[j] = mask
                 probs = probs * keep
-            yield batch, probs if unsort is None else probs.index_select(1, unsort)
+            return probs if unsort is None else probs.index_select(1, unsort)
+
+        # views side by side on the CPU's threads when each view is more than one chunk of points:
+        # 25 against 33-45 ms per view at 200 k points on two cores; for smaller clouds a view is
+        # a few large ops that split well over the threads, and there is nothing to gain
+        workers = min(torch.get_num_threads(), len(batches))
+        parallel = (workers > 1 and n > self.chunk_size and self.device.type == "cpu"
+                    and not torch.is_grad_enabled())
+        yield from zip(batches, _threaded_map(answer, batches, workers) if parallel else map(answer, batches))
 
     def probabilities(self, cameras=None, direction=None, *, frustum: bool = True,
                       indices=None) -> Tensor:

@@ -7,6 +7,7 @@ give the same bits for the same call twice.
 
 from __future__ import annotations
 
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -121,3 +122,51 @@ def test_the_same_call_twice_gives_the_same_bits(vis, scenes):
     b = vis.encode(o3d.geometry.PointCloud(pcd)).probabilities(cameras_all.copy())
     assert torch.equal(a, b)
     np.testing.assert_array_equal(vis.encode(pcd).query(cameras_all), a.numpy() > 0.5)
+
+
+def test_views_answered_side_by_side_on_the_threads_as_one_at_a_time(scenes, monkeypatch):
+    """A cloud of more than one chunk is answered a view per worker thread (each on one torch
+    thread) when the caller has several: the same answers as one view at a time on the caller's
+    thread; the caller keeps its thread count; a worker's error reaches the caller; gradients stay
+    on the caller's thread."""
+    pcd = scenes[0][0]
+    views = np.stack([_camera(pcd, 20 + k) for k in range(5)])
+    field = o3dvis.NeuralVisibility.pretrained(precision="float32").encode(pcd)
+    field.chunk_size = 500  # below the cloud's 1 200 points: one view per batch, in chunks
+    ran_on = []
+    answer = o3dvis.VisibilityField._frame_probabilities
+
+    def spy(self, *args, **kwargs):
+        ran_on.append(threading.current_thread())
+        return answer(self, *args, **kwargs)
+
+    monkeypatch.setattr(o3dvis.VisibilityField, "_frame_probabilities", spy)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        side_by_side = field.probabilities(views)
+        assert len(ran_on) == 5 and threading.current_thread() not in ran_on
+        assert all(t.name.startswith("o3dvis-views") for t in ran_on)
+        assert torch.get_num_threads() == 2
+        ran_on.clear()
+        torch.set_num_threads(1)
+        one_at_a_time = field.probabilities(views)
+        assert ran_on == [threading.current_thread()] * 5
+        torch.testing.assert_close(side_by_side, one_at_a_time, atol=1e-6, rtol=0)
+        np.testing.assert_array_equal(field.query(views), one_at_a_time.numpy() > 0.5)
+
+        torch.set_num_threads(2)
+        ran_on.clear()
+        cameras = torch.tensor(views, requires_grad=True)
+        field.probabilities(cameras).sum().backward()
+        assert ran_on == [threading.current_thread()] * 5 and torch.isfinite(cameras.grad).all()
+
+        def fail(self, *args, **kwargs):
+            raise RuntimeError("a worker failed")
+
+        monkeypatch.setattr(o3dvis.VisibilityField, "_frame_probabilities", fail)
+        with pytest.raises(RuntimeError, match="a worker failed"):
+            field.query(views)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(threads)

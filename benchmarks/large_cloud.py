@@ -25,6 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import o3dvis  # noqa: E402
 from o3dvis.apps import fibonacci_sphere  # noqa: E402
+from o3dvis.nn.predictor import PRECISIONS  # noqa: E402
 
 CAMERA = np.array([0.3, -0.2, 3.0])
 
@@ -39,10 +40,12 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     parser.add_argument("--model", default="default", help="shipped model name or .safetensors path")
+    parser.add_argument("--precision", default="auto", choices=PRECISIONS,
+                        help="dtype of the per-view matrix products (default: auto)")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
-    vis = o3dvis.NeuralVisibility.pretrained(args.model, args.device)
+    vis = o3dvis.NeuralVisibility.pretrained(args.model, args.device, precision=args.precision)
     baseline = _rss_gib()
     points = fibonacci_sphere(args.points)
     truth = points @ CAMERA > 1.0
@@ -52,6 +55,7 @@ def main() -> None:
     mask = field.query(CAMERA)[0]
     t2 = time.perf_counter()
     record = {"points": args.points, "device": args.device, "threads": torch.get_num_threads(),
+              "matmul_dtype": str(field.matmul_dtype).removeprefix("torch."),
               "encode_s": round(t1 - t0, 2), "query_s": round(t2 - t1, 2), "total_s": round(t2 - t0, 2),
               "baseline_rss_gib": round(baseline, 2), "peak_rss_gib": round(_rss_gib(), 2),
               "accuracy": round(float((mask == truth).mean()), 5),

@@ -600,6 +600,15 @@ def test_cli_visible_writes_the_visible_points(tmp_path, network, pcd, points, c
     expected = np.flatnonzero(o3dvis.NeuralVisibility(network).encode(points).query(camera, threshold=0.4)[0])
     np.testing.assert_allclose(written, points[expected])
     assert f"{len(expected)} of {len(points)} points visible" in capsys.readouterr().out
+    for precision in ("float32", "bfloat16"):
+        args = parser.parse_args(["visible", str(src), f"--camera={','.join(map(str, camera))}", "-o", str(dst),
+                                  "--model", str(ckpt), "--precision", precision])
+        assert args.func(args) == 0
+        field = o3dvis.NeuralVisibility(network, precision=precision).encode(points)
+        np.testing.assert_allclose(np.asarray(o3d.io.read_point_cloud(str(dst)).points),
+                                   points[np.flatnonzero(field.query(camera)[0])])
+    with pytest.raises(SystemExit):
+        parser.parse_args(["visible", str(src), "--camera", "0,0,5", "-o", str(dst), "--precision", "half"])
     with pytest.raises(SystemExit):
         parser.parse_args(["visible", str(src), "--camera", "1,2", "-o", str(dst)])
     args = parser.parse_args(["visible", str(tmp_path / "none.ply"), "--camera", "0,0,5", "-o", str(dst)])

@@ -383,6 +383,17 @@ def test_cli_normals_render_shadow_reconstruct(tmp_path, sphere):
         _cli("normals", cloud_path, "-o", out, "--method", "gt")
 
 
+def test_cli_network_precision(tmp_path):
+    parser = argparse.ArgumentParser(prog="o3dvis")
+    apps_cli.register(parser.add_subparsers(dest="command", required=True))
+    for flags, precision in (([], "auto"), (["--precision", "float32"], "float32"),
+                             (["--precision", "bfloat16"], "bfloat16")):
+        args = parser.parse_args(["normals", "in.ply", "-o", "out.ply", *flags])
+        assert apps_cli._method(args).precision == precision
+    with pytest.raises(SystemExit):
+        parser.parse_args(["normals", "in.ply", "-o", "out.ply", "--precision", "float16"])
+
+
 def test_cli_best_view_with_a_checkpoint(tmp_path, sphere):
     from o3dvis.nn import NetworkConfig, VisibilityNetwork
 

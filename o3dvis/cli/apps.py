@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .visible import _vector
+from .visible import _add_precision_flag, _vector
 
 __all__ = ["register"]
 
@@ -19,6 +19,7 @@ def _add_method_flags(parser: argparse.ArgumentParser, choices=("neural", "hpr",
     parser.add_argument("--model", default=None,
                         help="shipped model name or .safetensors checkpoint (default: the shipped default)")
     parser.add_argument("--device", default=None, help="torch device, e.g. cuda (default: cpu)")
+    _add_precision_flag(parser)
     if "hpr" in choices:
         parser.add_argument("--hpr-k", type=float, default=2.0,
                             help="HPR radius = bbox diagonal * 10**K (default 2)")
@@ -38,7 +39,7 @@ def _method(args: argparse.Namespace):
     if args.method == "neural":
         from ..visibility import NeuralVisibility
 
-        return NeuralVisibility.pretrained(args.model or "default", device=args.device)
+        return NeuralVisibility.pretrained(args.model or "default", device=args.device, precision=args.precision)
     if args.method == "hpr":
         from ..baselines import hpr_method
 

@@ -18,6 +18,14 @@ def _vector(text: str) -> list[float]:
     return values
 
 
+def _add_precision_flag(parser: argparse.ArgumentParser) -> None:
+    from ..nn.predictor import PRECISIONS
+
+    parser.add_argument("--precision", choices=PRECISIONS, default="auto",
+                        help="dtype of the network's per-view matrix products (default auto: bfloat16 on "
+                             "CPUs with native bfloat16 dot products, else float32)")
+
+
 def register(subparsers) -> None:
     """Adds the ``visible`` subcommand."""
     parser = subparsers.add_parser(
@@ -40,6 +48,7 @@ def register(subparsers) -> None:
     parser.add_argument("--device", default=None, help="torch device, e.g. cuda (default: cpu)")
     parser.add_argument("--no-normals", action="store_true",
                         help="ignore the normals of the input cloud")
+    _add_precision_flag(parser)
     parser.set_defaults(func=run)
 
 
@@ -54,14 +63,17 @@ def run(args: argparse.Namespace) -> int:
     """
     import open3d as o3d
 
-    from ..visibility import select_visible
+    from ..visibility import NeuralVisibility, select_visible
     from .apps import _read_cloud, _stages
 
+    model = args.model
+    if args.precision != "auto":
+        model = NeuralVisibility.pretrained(model or "default", device=args.device, precision=args.precision)
     with _stages(3, "visible") as bar:
         pcd = _read_cloud(args.input)
         bar.update()
         visible = select_visible(pcd, args.camera, direction=args.direction, threshold=args.threshold,
-                                 model=args.model, device=args.device,
+                                 model=model, device=args.device,
                                  normals=False if args.no_normals else None)
         bar.update()
         if not visible.has_points():

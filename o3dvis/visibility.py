@@ -290,8 +290,8 @@ class VisibilityField:
             return probs if unsort is None else probs.index_select(1, unsort)
 
         # views side by side on the CPU's threads when each view is more than one chunk of points:
-        # 25 against 33-45 ms per view at 200 k points on two cores; for smaller clouds a view is
-        # a few large ops that split well over the threads, and there is nothing to gain
+        # 25-31 against 31-45 ms per view at 200 k points on two cores; for smaller clouds a view
+        # is a few large ops that split well over the threads, and there is nothing to gain
         workers = min(torch.get_num_threads(), len(batches))
         parallel = (workers > 1 and n > self.chunk_size and self.device.type == "cpu"
                     and not torch.is_grad_enabled())

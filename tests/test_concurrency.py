@@ -8,6 +8,7 @@ give the same bits for the same call twice.
 from __future__ import annotations
 
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -161,12 +162,19 @@ def test_views_answered_side_by_side_on_the_threads_as_one_at_a_time(scenes, mon
         field.probabilities(cameras).sum().backward()
         assert ran_on == [threading.current_thread()] * 5 and torch.isfinite(cameras.grad).all()
 
-        def fail(self, *args, **kwargs):
-            raise RuntimeError("a worker failed")
+        calls = []
+
+        def fail(self, features, points, normals, cameras, directions, batch, rows, n):
+            calls.append(batch.start)
+            if batch.start == 0:
+                raise RuntimeError("a worker failed")
+            time.sleep(0.05)
 
         monkeypatch.setattr(o3dvis.VisibilityField, "_frame_probabilities", fail)
+        many = np.stack([_camera(pcd, 40 + k) for k in range(40)])
         with pytest.raises(RuntimeError, match="a worker failed"):
-            field.query(views)
+            field.query(many)
+        assert len(calls) < 10  # the views not yet started when the first failed were dropped
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(threads)

@@ -13,7 +13,7 @@ from o3dvis.apps import (best_view, depth_image, estimate_normals_neural, fibona
                          ground_truth_method, make_view, orient_normals_neural, points_in_shadow,
                          reconstruct_poisson, reconstruct_view_dependent, render_points,
                          render_with_shadows, shadow_map)
-from o3dvis.apps.normals import multiview_normals
+from o3dvis.apps.normals import covisible_normals, multiview_normals, neighbourhoods
 from o3dvis.cli import apps as apps_cli
 from o3dvis.data.prepare import sample_surface
 
@@ -120,6 +120,57 @@ def test_orient_open3d_normals_on_a_box():
     assert (cos > 0).mean() > 0.98  # PCA normals across an edge may lean to the other face
 
 
+def _wedge(count: int = 400) -> tuple[np.ndarray, np.ndarray]:
+    """Points on two planes meeting at the y axis at 17 degrees (z = 0 and z = 0.3 x, x in [0, 1]),
+    and which plane each is on."""
+    rng = np.random.default_rng(5)
+    x, y = rng.random(count), rng.random(count)
+    upper = np.arange(count) % 2 == 1
+    return np.column_stack([x, y, np.where(upper, 0.3 * x, 0.0)]), upper
+
+
+def test_covisible_fit_leaves_out_neighbours_never_seen_with_the_point():
+    points, upper = _wedge()
+    truth = np.where(upper[:, None], np.array([-0.3, 0, 1]) / np.hypot(0.3, 1), [0.0, 0, 1])
+    neighbours = neighbourhoods(points, o3d.geometry.KDTreeSearchParamKNN(12))
+    apex = points[:, 0] < 0.2  # where the other plane's points are among the 12 nearest
+    assert (upper[neighbours[apex]] != upper[apex, None]).any(axis=1).mean() > 0.5
+
+    together, fitted = covisible_normals(points, np.ones((2, len(points)), bool), neighbours)
+    assert fitted.all()
+    assert np.median(_angles(together, truth)[apex] % 180) > 3  # a plain fit mixes the planes
+
+    apart, fitted = covisible_normals(points, np.stack([~upper, upper]), neighbours)
+    angles = np.minimum(_angles(apart, truth), 180 - _angles(apart, truth))
+    assert fitted.all() and angles.max() < 1e-6
+
+
+def test_knn_normals_on_a_box_are_face_normals_and_outward():
+    mesh = _box((1.5, 1.0, 0.6), (0, 0, 0))
+    points, face_normals, method = _sample(mesh, 4000, seed=2)
+    pcd = estimate_normals_neural(_cloud(points), 26, method,
+                                  search_param=o3d.geometry.KDTreeSearchParamKNN(10))
+    cos = np.einsum("ij,ij->i", np.asarray(pcd.normals), face_normals)
+    assert (cos[np.abs(cos) > 0.87] > 0).all()  # every normal within 30 degrees of its face's
+    assert (cos > 0).mean() > 0.98  # a plane fitted next to an edge may be the other face's
+    assert np.median(_angles(np.asarray(pcd.normals), face_normals)) < 1
+
+
+def test_neighbourhoods_follow_open3d_search_parameters():
+    points = np.column_stack([np.arange(10.0), np.zeros(10), np.zeros(10)])
+    knn = neighbourhoods(points, o3d.geometry.KDTreeSearchParamKNN(3))
+    assert knn.shape == (10, 3) and (knn[:, 0] == np.arange(10)).all()  # each point is its own nearest
+    hybrid = neighbourhoods(points, o3d.geometry.KDTreeSearchParamHybrid(radius=1.5, max_nn=5))
+    assert hybrid.shape == (10, 5)
+    assert ((hybrid < 10).sum(axis=1) == [2] + [3] * 8 + [2]).all()  # the rest is padding (= N)
+    with pytest.raises(TypeError, match="KDTreeSearchParamKNN"):
+        neighbourhoods(points, o3d.geometry.KDTreeSearchParamRadius(1.0))
+    with pytest.raises(ValueError, match="at least 1"):
+        neighbourhoods(points, o3d.geometry.KDTreeSearchParamKNN(0))
+    with pytest.raises(ValueError, match="radius"):
+        neighbourhoods(points, o3d.geometry.KDTreeSearchParamHybrid(radius=0.0, max_nn=5))
+
+
 def test_normals_bad_input(sphere):
     points, _, method = sphere
     with pytest.raises(ValueError, match="no normals"):
@@ -133,6 +184,9 @@ def test_normals_bad_input(sphere):
     with pytest.raises(ValueError, match="one line"):
         line = np.column_stack([np.linspace(0, 1, 50), np.zeros(50), np.zeros(50)])
         estimate_normals_neural(_cloud(line), 6, lambda p, c: np.ones((len(c), len(p)), bool))
+    with pytest.raises(ValueError, match="three neighbours"):
+        estimate_normals_neural(_cloud(points), 4, method,
+                                search_param=o3d.geometry.KDTreeSearchParamHybrid(1e-6, 30))
 
 
 # ---------------------------------------------------------------- reconstruction
@@ -370,6 +424,13 @@ def test_cli_normals_render_shadow_reconstruct(tmp_path, sphere):
     assert _cli("normals", cloud_path, "-o", out, "--views", "12", *gt) == 0
     normals = np.asarray(o3d.io.read_point_cloud(out).normals)
     assert (np.einsum("ij,ij->i", normals, points) > 0).all()
+    knn_out = str(tmp_path / "normals_knn.ply")
+    assert _cli("normals", cloud_path, "-o", knn_out, "--views", "12", "--knn", "12", *gt) == 0
+    knn_normals = np.asarray(o3d.io.read_point_cloud(knn_out).normals)
+    assert (np.einsum("ij,ij->i", knn_normals, points) > 0).all()
+    assert not np.allclose(knn_normals, normals)  # another fit: the flag reached the function
+    with pytest.raises(ValueError, match="--orient-only"):
+        _cli("normals", out, "-o", knn_out, "--orient-only", "--knn", "12", *gt)
     assert _cli("render", out, "--camera", "0,0,4", "-o", str(tmp_path / "r.png"), "--width", "80",
                 "--height", "60", "--depth-output", str(tmp_path / "d.npy"), *gt) == 0
     assert np.asarray(o3d.io.read_image(str(tmp_path / "r.png"))).shape == (60, 80, 3)

@@ -4,6 +4,12 @@ For each of ``num_views`` cameras around the cloud, the visible points are
 triangulated in the image plane (:mod:`.triangulation`); every triangle faces
 its camera, so its normal is oriented. Averaged over triangles and views, they
 give each point an oriented normal, with no tangent-plane propagation.
+
+With an Open3D search parameter instead, each point's normal is a plane fitted
+to its neighbours as ``PointCloud.estimate_normals`` fits it, but each
+neighbour weighted by how many of the point's views also see it: the far
+side of a thin wall, never seen with the point, drops out. The cameras that
+see the point then orient it. No triangulation: several times faster.
 """
 
 from __future__ import annotations
@@ -19,7 +25,8 @@ from .camera import cloud_points, viewpoints_around
 from ..methods import resolve_method
 from .triangulation import DEFAULT_EDGE_FACTOR, local_spacing, triangle_normals, visible_triangles
 
-__all__ = ["estimate_normals_neural", "orient_normals_neural", "multiview_normals"]
+__all__ = ["estimate_normals_neural", "orient_normals_neural", "multiview_normals",
+           "covisible_normals", "neighbourhoods"]
 
 
 def _get_normals(pcd) -> np.ndarray | None:
@@ -76,9 +83,75 @@ def _add_triangle_normals(total: np.ndarray, points: np.ndarray, cameras: np.nda
                                  minlength=total.size).reshape(total.shape)
 
 
+def neighbourhoods(points: np.ndarray, search_param) -> np.ndarray:
+    """(N, K) indices of each point's neighbours (itself included) as Open3D's search finds them.
+
+    Args:
+        points: (N, 3) points.
+        search_param: ``o3d.geometry.KDTreeSearchParamKNN`` (the ``knn`` nearest)
+            or ``KDTreeSearchParamHybrid`` (at most ``max_nn`` within ``radius``;
+            slots beyond the points found hold ``N``).
+
+    Raises:
+        TypeError: another search parameter (a plain radius search has no bound on its size).
+        ValueError: a count below 1 or a radius that is not positive and finite.
+    """
+    if isinstance(search_param, o3d.geometry.KDTreeSearchParamKNN):
+        count, radius = search_param.knn, np.inf
+    elif isinstance(search_param, o3d.geometry.KDTreeSearchParamHybrid):
+        count, radius = search_param.max_nn, search_param.radius
+        if not (np.isfinite(radius) and radius > 0):
+            raise ValueError(f"the search radius must be positive and finite, got {radius}")
+    else:
+        raise TypeError("search_param must be o3d.geometry.KDTreeSearchParamKNN or "
+                        f"KDTreeSearchParamHybrid, got {type(search_param).__name__}")
+    if count < 1:
+        raise ValueError(f"the search must take at least 1 neighbour, got {count}")
+    _, index = cKDTree(points).query(points, k=min(count, len(points)), distance_upper_bound=radius,
+                                     workers=-1)
+    return index.reshape(len(points), -1)
+
+
+def covisible_normals(points: np.ndarray, visibility: np.ndarray, neighbours: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Unoriented unit normals of planes fitted to co-visible neighbours.
+
+    Each neighbour of a point is weighted by the share of the views seeing the
+    point that also see the neighbour (all weigh 1 for a point no view sees):
+    points on the far side of a thin wall, never seen with it, drop out of its fit.
+
+    Args:
+        points: (N, 3) points.
+        visibility: (V, N) bool, which points each view sees.
+        neighbours: (N, K) indices from :func:`neighbourhoods` (``N``: no neighbour).
+
+    Returns:
+        (N, 3) unit normals and (N,) bool: whether at least three neighbours
+        weighed in (elsewhere the normal is arbitrary).
+    """
+    seen = np.zeros(neighbours.shape, dtype=np.int32)
+    padded = np.zeros(len(points) + 1, dtype=bool)
+    for row in visibility:
+        padded[:-1] = row
+        seen += row[:, None] & padded[neighbours]
+    views = visibility.sum(axis=0)
+    weight = seen / np.maximum(views, 1)[:, None]
+    real = neighbours < len(points)
+    weight[views == 0] = real[views == 0]
+    near = np.concatenate([points, np.zeros((1, 3))])[neighbours]
+    centre = np.einsum("nk,nki->ni", weight, near) / weight.sum(axis=1, keepdims=True)
+    offset = near - centre[:, None]
+    _, vectors = np.linalg.eigh(np.einsum("nk,nki,nkj->nij", weight, offset, offset))
+    return vectors[:, :, 0], (weight > 0).sum(axis=1) >= 3
+
+
 def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_views: int = 64,
-                      edge_factor: float = DEFAULT_EDGE_FACTOR, progress: bool = False) -> np.ndarray:
+                      edge_factor: float = DEFAULT_EDGE_FACTOR, progress: bool = False,
+                      search_param=None) -> np.ndarray:
     """Oriented unit normals from per-view triangulations of the visible points.
+
+    With ``search_param``, from planes fitted to co-visible neighbours instead
+    (:func:`covisible_normals`), oriented towards the cameras that see them.
 
     Args:
         points: (N, 3) points.
@@ -90,6 +163,9 @@ def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_vi
         edge_factor: triangles with an edge longer than ``edge_factor`` times the
             local point spacing (distance to the 6th neighbour) are dropped.
         progress: show progress bars over the views.
+        search_param: an Open3D KNN or hybrid search parameter: fit planes to
+            the neighbours it finds instead of triangulating (``edge_factor``
+            is then unused).
 
     Returns:
         (N, 3) unit normals, each facing the cameras that see its point; points
@@ -98,13 +174,19 @@ def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_vi
     Raises:
         ValueError: when no view yields a triangle (e.g. all points collinear).
     """
-    if num_views < 1 or refine_views < 0:
-        raise ValueError(f"num_views must be at least 1 and refine_views at least 0, got "
-                         f"{num_views} and {refine_views}")
+    _check_views(num_views, refine_views)
     method = resolve_method(method)
+    cameras = viewpoints_around(points, num_views)
+    if search_param is not None:
+        neighbours = neighbourhoods(points, search_param)
+        visibility = method(points, cameras)
+        normals, fitted = covisible_normals(points, visibility, neighbours)
+        if not fitted.any():
+            raise ValueError("no point has three neighbours to fit a plane to: the points are "
+                             "too few or the search radius too small")
+        return _orient(points, normals, fitted, method, cameras, visibility, refine_views)
     max_edge = edge_factor * local_spacing(points)
     total = np.zeros((len(points), 3))
-    cameras = viewpoints_around(points, num_views)
     _add_triangle_normals(total, points, cameras, method(points, cameras), max_edge, None,
                           progress, "normals")
     missing = np.linalg.norm(total, axis=1) <= 1e-9
@@ -130,7 +212,8 @@ def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_vi
 
 
 def estimate_normals_neural(pcd, num_views: int = 26, method=None, *, refine_views: int = 64,
-                            edge_factor: float = DEFAULT_EDGE_FACTOR, progress: bool = False):
+                            edge_factor: float = DEFAULT_EDGE_FACTOR, progress: bool = False,
+                            search_param=None):
     """Estimates oriented normals from visibility, in place, like ``pcd.estimate_normals()``.
 
     Cameras sit on a Fibonacci sphere of radius = bounding-box diagonal around
@@ -148,14 +231,29 @@ def estimate_normals_neural(pcd, num_views: int = 26, method=None, *, refine_vie
         edge_factor: triangles with an edge longer than this many local point
             spacings are dropped (they bridge gaps or depth jumps).
         progress: show progress bars.
+        search_param: ``o3d.geometry.KDTreeSearchParamKNN(knn)`` or
+            ``KDTreeSearchParamHybrid(radius, max_nn)``: instead of
+            triangulating, fit each normal to the neighbours this search
+            finds, as ``pcd.estimate_normals(search_param)`` does, but weighting
+            each by the share of the point's views that see it too, then orient
+            it towards the cameras that see it. 2-3 times faster; on the
+            validation meshes slightly fewer normals oriented right (see the
+            README, *Normals*).
 
     Returns:
         ``pcd``, with unit normals set.
     """
     points = cloud_points(pcd)
     _get_normals(pcd)  # only clouds can take normals
-    _set_normals(pcd, multiview_normals(points, method, num_views, refine_views, edge_factor, progress))
+    _set_normals(pcd, multiview_normals(points, method, num_views, refine_views, edge_factor, progress,
+                                        search_param))
     return pcd
+
+
+def _check_views(num_views: int, refine_views: int) -> None:
+    if num_views < 1 or refine_views < 0:
+        raise ValueError(f"num_views must be at least 1 and refine_views at least 0, got "
+                         f"{num_views} and {refine_views}")
 
 
 def _vote(points: np.ndarray, normals: np.ndarray, cameras: np.ndarray, visibility: np.ndarray
@@ -189,21 +287,32 @@ def orient_normals_neural(pcd, num_views: int = 26, method=None, *, refine_views
     normals = _get_normals(pcd)
     if normals is None or len(normals) != len(points):
         raise ValueError("the point cloud has no normals to orient: call estimate_normals first")
-    if num_views < 1 or refine_views < 0:
-        raise ValueError(f"num_views must be at least 1 and refine_views at least 0, got "
-                         f"{num_views} and {refine_views}")
-    normals = np.array(normals, dtype=np.float64)
+    _check_views(num_views, refine_views)
     method = resolve_method(method)
     cameras = viewpoints_around(points, num_views)
-    vote = _vote(points, normals, cameras, method(points, cameras))
+    normals = np.array(normals, dtype=np.float64)
+    _set_normals(pcd, _orient(points, normals, np.ones(len(points), dtype=bool), method, cameras,
+                              method(points, cameras), refine_views))
+    return pcd
+
+
+def _orient(points: np.ndarray, normals: np.ndarray, defined: np.ndarray, method, cameras: np.ndarray,
+            visibility: np.ndarray, refine_views: int) -> np.ndarray:
+    """``normals`` flipped to face the cameras that see their points, (N, 3).
+
+    ``refine_views`` more cameras vote on the points the first ones do not see;
+    points no camera sees follow the nearest voted point. Where ``defined`` is
+    False the normal is replaced by the nearest defined point's.
+    """
+    vote = _vote(points, normals, cameras, visibility)
     if refine_views and (vote == 0).any():
         unseen = vote == 0
         cameras = viewpoints_around(points, refine_views)
         vote[unseen] = _vote(points[unseen], normals[unseen], cameras,
                              method(points, cameras, np.flatnonzero(unseen)))
-    normals[vote < 0] *= -1
-    known = vote != 0
+    normals = np.where(vote[:, None] < 0, -normals, normals)
+    normals = _fill_from_nearest(points, normals, defined)
+    known = (vote != 0) & defined
     guide = _fill_from_nearest(points, normals, known)
     normals[np.einsum("ij,ij->i", normals, guide) < 0] *= -1
-    _set_normals(pcd, normals)
-    return pcd
+    return normals

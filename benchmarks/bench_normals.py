@@ -7,6 +7,8 @@ their face normals, and three pipelines estimate oriented normals:
   (in a subprocess with a time limit);
 * ``o3dvis``: ``estimate_normals_neural`` (triangles of the surface seen from
   ``--views`` cameras, oriented towards them);
+* ``o3dvis KNN``: ``estimate_normals_neural(search_param=KNN(k))``, planes fitted to
+  the ``--covisible-knn`` nearest neighbours weighted by co-visibility, no triangulation;
 * ``PCA + o3dvis``: Open3D's ``estimate_normals(KNN(k))`` oriented by ``orient_normals_neural``.
 
 Scores: *oriented* = share of points whose normal points to the same side as
@@ -37,7 +39,7 @@ from mesh_bench import (Timed, add_common_flags, command_line, emit_report, load
 from o3dvis.apps.normals import estimate_normals_neural, orient_normals_neural
 from o3dvis.data.groundtruth import sample_viewpoints, visibility_from_mesh
 
-PIPELINES = ("Open3D", "o3dvis", "PCA + o3dvis")
+PIPELINES = ("Open3D", "o3dvis", "o3dvis KNN", "PCA + o3dvis")
 REFERENCE_VIEWS = 100
 
 
@@ -86,14 +88,18 @@ def scores(estimate: np.ndarray, reference: np.ndarray, scored: np.ndarray) -> t
     return oriented, angle
 
 
-def run_o3dvis(points, method, args, pca_knn=None) -> tuple[np.ndarray | None, float, float, str]:
-    """o3dvis normals (or PCA normals oriented by o3dvis): normals, seconds, of which visibility, status."""
+def run_o3dvis(points, method, args, pca_knn=None, covisible_knn=None
+               ) -> tuple[np.ndarray | None, float, float, str]:
+    """o3dvis normals (triangulated, or fitted to ``covisible_knn`` co-visible neighbours), or PCA
+    normals oriented by o3dvis: normals, seconds, of which visibility, status."""
     timed = Timed(method)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     start = time.perf_counter()
     try:
         if pca_knn is None:
-            estimate_normals_neural(pcd, args.views, timed, refine_views=args.refine_views)
+            search = None if covisible_knn is None else o3d.geometry.KDTreeSearchParamKNN(covisible_knn)
+            estimate_normals_neural(pcd, args.views, timed, refine_views=args.refine_views,
+                                    search_param=search)
         else:
             pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(pca_knn))
             orient_normals_neural(pcd, args.views, timed, refine_views=args.refine_views)
@@ -105,6 +111,8 @@ def run_o3dvis(points, method, args, pca_knn=None) -> tuple[np.ndarray | None, f
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_common_flags(parser, "20000,100000")
+    parser.add_argument("--covisible-knn", type=int, default=16,
+                        help="neighbours of the o3dvis KNN pipeline (default 16)")
     args = parser.parse_args()
     sizes = [int(s) for s in args.points.split(",")]
     shared_method = None if args.method == "gt" else visibility_method(args, None)
@@ -124,6 +132,7 @@ def main() -> int:
             est, seconds, status = open3d_normals(points, args.knn, args.timeout)
             result = {"Open3D": (est, seconds, None, status),
                       "o3dvis": run_o3dvis(points, method, args),
+                      "o3dvis KNN": run_o3dvis(points, method, args, covisible_knn=args.covisible_knn),
                       "PCA + o3dvis": run_o3dvis(points, method, args, args.knn)}
             for name, (est, seconds, vis_seconds, status) in result.items():
                 ok = status == "ok"
@@ -157,26 +166,19 @@ def _report(records: list[dict], sizes: list[int], args) -> str:
     summary = []
     for n in sizes:
         rows = [r for r in records if r["n"] == n]
-        for p in PIPELINES:
-            ok = [r[p] for r in rows if r[p]["status"] == "ok"]
-            timeouts = sum(r[p]["status"] == "timeout" for r in rows)
-            errors = len(rows) - len(ok) - timeouts
-            if ok:
-                oriented = np.array([o["oriented"] for o in ok])
-                summary.append([str(n), p, f"{len(ok)}/{len(rows)}", str(timeouts), str(errors),
-                                f"{oriented.mean():.2f}", f"{oriented.min():.2f}",
-                                f"{(oriented >= 99).sum()}/{len(ok)}",
-                                f"{np.mean([o['angle'] for o in ok]):.2f}",
-                                f"{np.median([o['seconds'] for o in ok]):.2f}",
-                                f"{np.sum([o['seconds'] for o in ok]):.1f}"])
-            else:
-                summary.append([str(n), p, f"0/{len(rows)}", str(timeouts), str(errors)] + [""] * 6)
-        both = [(r["Open3D"], r["o3dvis"]) for r in rows if r["o3dvis"]["status"] == "ok"
-                and r["Open3D"]["status"] in ("ok", "timeout")]
-        if both:
-            ratio = np.median([a["seconds"] / b["seconds"] for a, b in both])
-            summary.append([str(n), "Open3D s / o3dvis s (median)", "", "", "", "", "", "", "",
-                            f"{ratio:.2f}x", ""])
+        finished = [r for r in rows if r["Open3D"]["status"] == "ok"]
+        groups = [("", rows)] + ([(f" (the {len(finished)} meshes Open3D finished)", finished)]
+                                 if 0 < len(finished) < len(rows) else [])
+        for suffix, group in groups:
+            summary += [_summary_row(n, p + suffix, [r[p] for r in group]) for p in PIPELINES]
+        for p in ("o3dvis", "o3dvis KNN"):
+            for suffix, group in groups:
+                both = [(r["Open3D"], r[p]) for r in group if r[p]["status"] == "ok"
+                        and r["Open3D"]["status"] in ("ok", "timeout")]
+                if both:
+                    ratio = np.median([a["seconds"] / b["seconds"] for a, b in both])
+                    summary.append([str(n), f"Open3D s / {p} s (median per mesh){suffix}"] + [""] * 7
+                                   + [f"{ratio:.2f}x", ""])
     parts.append(markdown(["points", "pipeline", "ok", "timeouts", "errors", "mean oriented %",
                            "min oriented %", "meshes ≥ 99 %", "mean angle °", "median s", "total s"],
                           summary))
@@ -184,6 +186,18 @@ def _report(records: list[dict], sizes: list[int], args) -> str:
     parts.append("Timeouts count at the limit in the speed ratio. Times are wall-clock on a shared "
                  "machine; '(visibility s)' is the part spent in the visibility method.")
     return "\n".join(parts)
+
+
+def _summary_row(n: int, label: str, results: list[dict]) -> list[str]:
+    ok = [r for r in results if r["status"] == "ok"]
+    timeouts = sum(r["status"] == "timeout" for r in results)
+    counts = [str(n), label, f"{len(ok)}/{len(results)}", str(timeouts), str(len(results) - len(ok) - timeouts)]
+    if not ok:
+        return counts + [""] * 6
+    oriented = np.array([r["oriented"] for r in ok])
+    return counts + [f"{oriented.mean():.2f}", f"{oriented.min():.2f}", f"{(oriented >= 99).sum()}/{len(ok)}",
+                     f"{np.mean([r['angle'] for r in ok]):.2f}", f"{np.median([r['seconds'] for r in ok]):.2f}",
+                     f"{np.sum([r['seconds'] for r in ok]):.1f}"]
 
 
 if __name__ == "__main__":

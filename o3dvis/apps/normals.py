@@ -236,9 +236,9 @@ def estimate_normals_neural(pcd, num_views: int = 26, method=None, *, refine_vie
             triangulating, fit each normal to the neighbours this search
             finds, as ``pcd.estimate_normals(search_param)`` does, but weighting
             each by the share of the point's views that see it too, then orient
-            it towards the cameras that see it. 2-3 times faster; on the
-            validation meshes slightly fewer normals oriented right (see the
-            README, *Normals*).
+            it towards the cameras that see it. On the bench's validation
+            meshes 1.7 (20 k points) to 2.4 (100 k) times faster, with
+            0.2-0.4 points fewer normals oriented right (see the README).
 
     Returns:
         ``pcd``, with unit normals set.

@@ -145,6 +145,14 @@ def test_covisible_fit_leaves_out_neighbours_never_seen_with_the_point():
     assert fitted.all() and angles.max() < 1e-6
 
 
+def test_covisible_fit_of_a_point_whose_neighbours_no_view_shares_is_undefined():
+    points = np.zeros((6, 3))  # duplicates: the search may return others, not the point itself
+    visibility = np.array([[True, False, False, False, False, False]])
+    neighbours = np.array([[1, 2, 3]] + [[0, 1, 2]] * 5)
+    normals, fitted = covisible_normals(points, visibility, neighbours)
+    assert np.isfinite(normals).all() and not fitted[0]
+
+
 def test_knn_normals_on_a_box_are_face_normals_and_outward():
     mesh = _box((1.5, 1.0, 0.6), (0, 0, 0))
     points, face_normals, method = _sample(mesh, 4000, seed=2)

@@ -9,7 +9,7 @@ With an Open3D search parameter instead, each point's normal is a plane fitted
 to its neighbours as ``PointCloud.estimate_normals`` fits it, but each
 neighbour weighted by how many of the point's views also see it: the far
 side of a thin wall, never seen with the point, drops out. The cameras that
-see the point then orient it. No triangulation: several times faster.
+see the point then orient it. No triangulation, so faster (measured in the README).
 """
 
 from __future__ import annotations
@@ -139,7 +139,9 @@ def covisible_normals(points: np.ndarray, visibility: np.ndarray, neighbours: np
     real = neighbours < len(points)
     weight[views == 0] = real[views == 0]
     near = np.concatenate([points, np.zeros((1, 3))])[neighbours]
-    centre = np.einsum("nk,nki->ni", weight, near) / weight.sum(axis=1, keepdims=True)
+    # no weight at all only where a seen point's search returned none of its views' points (> K
+    # duplicates of it, unseen): centre 0, and the fit counts as undefined
+    centre = np.einsum("nk,nki->ni", weight, near) / np.maximum(weight.sum(axis=1, keepdims=True), 1e-300)
     offset = near - centre[:, None]
     _, vectors = np.linalg.eigh(np.einsum("nk,nki,nkj->nij", weight, offset, offset))
     return vectors[:, :, 0], (weight > 0).sum(axis=1) >= 3

@@ -195,6 +195,9 @@ def test_normals_bad_input(sphere):
     with pytest.raises(ValueError, match="three neighbours"):
         estimate_normals_neural(_cloud(points), 4, method,
                                 search_param=o3d.geometry.KDTreeSearchParamHybrid(1e-6, 30))
+    with pytest.raises(ValueError, match="one line"):
+        estimate_normals_neural(_cloud(line), 6, lambda p, c: np.ones((len(c), len(p)), bool),
+                                search_param=o3d.geometry.KDTreeSearchParamKNN(8))
 
 
 # ---------------------------------------------------------------- reconstruction

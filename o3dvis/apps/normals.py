@@ -127,7 +127,7 @@ def covisible_normals(points: np.ndarray, visibility: np.ndarray, neighbours: np
 
     Returns:
         (N, 3) unit normals and (N,) bool: whether at least three neighbours
-        weighed in (elsewhere the normal is arbitrary).
+        off one line weighed in (elsewhere the normal is arbitrary).
     """
     seen = np.zeros(neighbours.shape, dtype=np.int32)
     padded = np.zeros(len(points) + 1, dtype=bool)
@@ -143,8 +143,9 @@ def covisible_normals(points: np.ndarray, visibility: np.ndarray, neighbours: np
     # duplicates of it, unseen): centre 0, and the fit counts as undefined
     centre = np.einsum("nk,nki->ni", weight, near) / np.maximum(weight.sum(axis=1, keepdims=True), 1e-300)
     offset = near - centre[:, None]
-    _, vectors = np.linalg.eigh(np.einsum("nk,nki,nkj->nij", weight, offset, offset))
-    return vectors[:, :, 0], (weight > 0).sum(axis=1) >= 3
+    values, vectors = np.linalg.eigh(np.einsum("nk,nki,nkj->nij", weight, offset, offset))
+    planar = values[:, 1] > 1e-12 * values[:, 2]  # not all on one line
+    return vectors[:, :, 0], ((weight > 0).sum(axis=1) >= 3) & planar
 
 
 def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_views: int = 64,
@@ -184,8 +185,8 @@ def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_vi
         visibility = method(points, cameras)
         normals, fitted = covisible_normals(points, visibility, neighbours)
         if not fitted.any():
-            raise ValueError("no point has three neighbours to fit a plane to: the points are "
-                             "too few or the search radius too small")
+            raise ValueError("no point has three neighbours off one line to fit a plane to: the "
+                             "points are too few, all on one line, or the search radius too small")
         return _orient(points, normals, fitted, method, cameras, visibility, refine_views)
     max_edge = edge_factor * local_spacing(points)
     total = np.zeros((len(points), 3))

@@ -88,18 +88,17 @@ def scores(estimate: np.ndarray, reference: np.ndarray, scored: np.ndarray) -> t
     return oriented, angle
 
 
-def run_o3dvis(points, method, args, pca_knn=None, covisible_knn=None
+def run_o3dvis(points, method, args, pca_knn=None, search_param=None
                ) -> tuple[np.ndarray | None, float, float, str]:
-    """o3dvis normals (triangulated, or fitted to ``covisible_knn`` co-visible neighbours), or PCA
-    normals oriented by o3dvis: normals, seconds, of which visibility, status."""
+    """o3dvis normals (triangulated, or fitted to the co-visible neighbours ``search_param`` finds),
+    or PCA normals oriented by o3dvis: normals, seconds, of which visibility, status."""
     timed = Timed(method)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     start = time.perf_counter()
     try:
         if pca_knn is None:
-            search = None if covisible_knn is None else o3d.geometry.KDTreeSearchParamKNN(covisible_knn)
             estimate_normals_neural(pcd, args.views, timed, refine_views=args.refine_views,
-                                    search_param=search)
+                                    search_param=search_param)
         else:
             pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(pca_knn))
             orient_normals_neural(pcd, args.views, timed, refine_views=args.refine_views)
@@ -115,6 +114,7 @@ def main() -> int:
                         help="neighbours of the o3dvis KNN pipeline (default 16)")
     args = parser.parse_args()
     sizes = [int(s) for s in args.points.split(",")]
+    covisible = o3d.geometry.KDTreeSearchParamKNN(args.covisible_knn)
     shared_method = None if args.method == "gt" else visibility_method(args, None)
     records = []
     for path in mesh_subset(args.meshes, args.limit):
@@ -132,7 +132,7 @@ def main() -> int:
             est, seconds, status = open3d_normals(points, args.knn, args.timeout)
             result = {"Open3D": (est, seconds, None, status),
                       "o3dvis": run_o3dvis(points, method, args),
-                      "o3dvis KNN": run_o3dvis(points, method, args, covisible_knn=args.covisible_knn),
+                      "o3dvis KNN": run_o3dvis(points, method, args, search_param=covisible),
                       "PCA + o3dvis": run_o3dvis(points, method, args, args.knn)}
             for name, (est, seconds, vis_seconds, status) in result.items():
                 ok = status == "ok"

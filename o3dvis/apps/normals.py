@@ -175,7 +175,8 @@ def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_vi
         in no kept triangle take the normal of the nearest point that has one.
 
     Raises:
-        ValueError: when no view yields a triangle (e.g. all points collinear).
+        ValueError: when no view yields a triangle (e.g. all points collinear),
+            or, with ``search_param``, no point has a plane fitted.
     """
     _check_views(num_views, refine_views)
     method = resolve_method(method)
@@ -305,7 +306,7 @@ def _orient(points: np.ndarray, normals: np.ndarray, defined: np.ndarray, method
 
     ``refine_views`` more cameras vote on the points the first ones do not see;
     points no camera sees follow the nearest voted point. Where ``defined`` is
-    False the normal is replaced by the nearest defined point's.
+    False the normal is replaced by the nearest voted defined point's.
     """
     vote = _vote(points, normals, cameras, visibility)
     if refine_views and (vote == 0).any():
@@ -314,8 +315,7 @@ def _orient(points: np.ndarray, normals: np.ndarray, defined: np.ndarray, method
         vote[unseen] = _vote(points[unseen], normals[unseen], cameras,
                              method(points, cameras, np.flatnonzero(unseen)))
     normals = np.where(vote[:, None] < 0, -normals, normals)
-    normals = _fill_from_nearest(points, normals, defined)
-    known = (vote != 0) & defined
-    guide = _fill_from_nearest(points, normals, known)
+    guide = _fill_from_nearest(points, normals, (vote != 0) & defined)
+    normals[~defined] = guide[~defined]
     normals[np.einsum("ij,ij->i", normals, guide) < 0] *= -1
     return normals

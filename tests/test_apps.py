@@ -88,7 +88,7 @@ def test_tensor_cloud_gets_normals(sphere):
     assert (np.einsum("ij,ij->i", normals, points) > 0).mean() > 0.99
 
 
-def test_points_no_view_sees_take_the_nearest_normal():
+def test_points_no_view_sees_get_the_plane_of_the_surface():
     rng = np.random.default_rng(0)
     points = np.column_stack([rng.random((500, 2)), np.zeros(500)])
 
@@ -97,6 +97,43 @@ def test_points_no_view_sees_take_the_nearest_normal():
 
     normals = multiview_normals(points, top_left_from_above, 12)
     assert np.allclose(normals, [0, 0, 1])
+
+
+def _floor_under_a_lid() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A floor (z = 0, normals +z) on a 0.01 grid, x in [0, 1), and a lid 0.04 above its right half
+    (normals -z); the method sees the floor's left half from above and the lid from below: the
+    nearest seen point of most of the right half of the floor is the lid point above it."""
+    x, y = np.meshgrid(np.arange(100) / 100, np.arange(20) / 100, indexing="ij")
+    floor = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    lid = floor[floor[:, 0] >= 0.5] + [0, 0, 0.04]
+    points = np.concatenate([floor, lid])
+    truth = np.repeat([[0, 0, 1.0], [0, 0, -1.0]], [len(floor), len(lid)], axis=0)
+
+    def method(p, cameras):
+        on_lid = p[:, 2] > 0.02
+        return ((cameras[:, 2:] > 0.5) & ~on_lid & (p[:, 0] < 0.5)) | ((cameras[:, 2:] < -0.5) & on_lid)
+
+    return points, truth, method
+
+
+@pytest.mark.parametrize("search_param", [None, o3d.geometry.KDTreeSearchParamKNN(16)])
+def test_unseen_points_take_the_side_of_the_surface_they_join(search_param):
+    points, truth, method = _floor_under_a_lid()
+    normals = multiview_normals(points, method, 26, refine_views=0, search_param=search_param)
+    assert (np.einsum("ij,ij->i", normals, truth) > 0).all()
+
+
+def test_orient_propagates_along_the_surface_not_to_the_nearest_point():
+    points, truth, method = _floor_under_a_lid()
+    far = np.column_stack([np.random.default_rng(2).random((30, 2)), np.full(30, 5.0)])  # joins nothing
+    points, truth = np.concatenate([points, far]), np.concatenate([truth, np.tile([0, 0, -1.0], (30, 1))])
+    signs = np.where(np.random.default_rng(3).random(len(points)) < 0.5, -1.0, 1.0)
+    pcd = _cloud(points)
+    pcd.normals = o3d.utility.Vector3dVector(truth * signs[:, None])
+    orient_normals_neural(pcd, 26, method, refine_views=0)
+    # the far patch, seen by no camera and joined to no seen point, faces as its nearest seen
+    # point, on the lid
+    assert np.allclose(np.asarray(pcd.normals), truth)
 
 
 def test_orient_flips_existing_normals_outward(sphere):

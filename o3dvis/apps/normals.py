@@ -19,6 +19,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import open3d as o3d
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
 from .camera import cloud_points, viewpoints_around
@@ -27,6 +29,9 @@ from .triangulation import DEFAULT_EDGE_FACTOR, local_spacing, triangle_normals,
 
 __all__ = ["estimate_normals_neural", "orient_normals_neural", "multiview_normals",
            "covisible_normals", "neighbourhoods"]
+
+_FIT_NEIGHBOURS = 16  # neighbours of the plane fitted where no triangle gives a normal
+_GRAPH_NEIGHBOURS = 10  # neighbours of a point in the graph that propagates orientation
 
 
 def _get_normals(pcd) -> np.ndarray | None:
@@ -138,9 +143,16 @@ def covisible_normals(points: np.ndarray, visibility: np.ndarray, neighbours: np
     weight = seen / np.maximum(views, 1)[:, None]
     real = neighbours < len(points)
     weight[views == 0] = real[views == 0]
-    near = np.concatenate([points, np.zeros((1, 3))])[neighbours]
     # no weight at all only where a seen point's search returned none of its views' points (> K
-    # duplicates of it, unseen): centre 0, and the fit counts as undefined
+    # duplicates of it, unseen): the fit counts as undefined
+    return _fit_planes(points, neighbours, weight)
+
+
+def _fit_planes(points: np.ndarray, neighbours: np.ndarray, weight: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (M, 3) of weighted least-squares planes through rows of neighbours (M, K), and
+    (M,) whether each is defined: three neighbours of positive weight, not all on one line."""
+    near = np.concatenate([points, np.zeros((1, 3))])[neighbours]
     centre = np.einsum("nk,nki->ni", weight, near) / np.maximum(weight.sum(axis=1, keepdims=True), 1e-300)
     offset = near - centre[:, None]
     values, vectors = np.linalg.eigh(np.einsum("nk,nki,nkj->nij", weight, offset, offset))
@@ -171,8 +183,10 @@ def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_vi
             is then unused).
 
     Returns:
-        (N, 3) unit normals, each facing the cameras that see its point; points
-        in no kept triangle take the normal of the nearest point that has one.
+        (N, 3) unit normals, each facing the cameras that see its point; a point
+        in no kept triangle gets the normal of a plane through its 16 nearest
+        points, turned to the side propagated along the surface from the
+        triangulated points (the nearest one's normal where no plane fits).
 
     Raises:
         ValueError: when no view yields a triangle (e.g. all points collinear),
@@ -212,7 +226,13 @@ def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_vi
                          "or all on one line")
     normals = np.zeros_like(total)
     normals[known] = total[known] / length[known, None]
-    return _fill_from_nearest(points, normals, known)
+    defined = known.copy()
+    loose = np.flatnonzero(~known)
+    if len(loose):  # a plane through the nearest points, its side taken from the triangulated ones
+        _, neighbours = cKDTree(points).query(points[loose], k=min(_FIT_NEIGHBOURS, len(points)))
+        neighbours = neighbours.reshape(len(loose), -1)
+        normals[loose], defined[loose] = _fit_planes(points, neighbours, np.ones(neighbours.shape))
+    return _spread(points, normals, known, defined)
 
 
 def estimate_normals_neural(pcd, num_views: int = 26, method=None, *, refine_views: int = 64,
@@ -275,7 +295,8 @@ def orient_normals_neural(pcd, num_views: int = 26, method=None, *, refine_views
 
     Each point's orientation is voted by the cameras that see it, weighted by
     the cosine between the normal and the direction to the camera; points that
-    no camera sees follow their nearest voted neighbour.
+    no camera sees take the side propagated along the surface from the voted
+    ones, as ``orient_normals_consistent_tangent_plane`` propagates it.
 
     Args:
         pcd: ``o3d.geometry.PointCloud`` (legacy or tensor) with normals.
@@ -305,8 +326,8 @@ def _orient(points: np.ndarray, normals: np.ndarray, defined: np.ndarray, method
     """``normals`` flipped to face the cameras that see their points, (N, 3).
 
     ``refine_views`` more cameras vote on the points the first ones do not see;
-    points no camera sees follow the nearest voted point. Where ``defined`` is
-    False the normal is replaced by the nearest voted defined point's.
+    the side of the others is propagated from them (:func:`_spread`). Where
+    ``defined`` is False the normal is replaced by the nearest voted defined point's.
     """
     vote = _vote(points, normals, cameras, visibility)
     if refine_views and (vote == 0).any():
@@ -315,7 +336,56 @@ def _orient(points: np.ndarray, normals: np.ndarray, defined: np.ndarray, method
         vote[unseen] = _vote(points[unseen], normals[unseen], cameras,
                              method(points, cameras, np.flatnonzero(unseen)))
     normals = np.where(vote[:, None] < 0, -normals, normals)
-    guide = _fill_from_nearest(points, normals, (vote != 0) & defined)
-    normals[~defined] = guide[~defined]
-    normals[np.einsum("ij,ij->i", normals, guide) < 0] *= -1
-    return normals
+    return _spread(points, normals, (vote != 0) & defined, defined)
+
+
+def _spread(points: np.ndarray, normals: np.ndarray, oriented: np.ndarray, defined: np.ndarray
+            ) -> np.ndarray:
+    """``normals`` completed from the ``oriented`` ones, (N, 3).
+
+    Rows neither oriented nor ``defined`` take the nearest oriented point's normal;
+    the defined ones keep their own, turned to the side :func:`_propagate` gives.
+    """
+    guide = _fill_from_nearest(points, normals, oriented)
+    normals = np.where(defined[:, None], normals, guide)
+    return _propagate(points, normals, oriented | ~defined, guide)
+
+
+def _propagate(points: np.ndarray, normals: np.ndarray, oriented: np.ndarray, guide: np.ndarray
+               ) -> np.ndarray:
+    """``normals`` with the rows not ``oriented`` flipped to agree with the oriented ones, (N, 3).
+
+    The propagation of Open3D's ``orient_normals_consistent_tangent_plane``,
+    seeded: a minimum spanning tree of the nearest-neighbour graph of the
+    loose points (an edge costs ``1 - |n_i . n_j|``, low along a smooth surface)
+    is rooted at all oriented points at once, and each loose point takes the
+    side of its parent. A surface seen nowhere thus takes its side from where
+    it joins a seen one, not from the nearest seen point, which may lie across
+    a gap and face the other way. Loose points with no path to an oriented
+    one face the same side as their row of ``guide``.
+    """
+    loose = np.flatnonzero(~oriented)
+    count = len(points)
+    if not len(loose) or len(loose) == count:
+        return normals
+    k = min(_GRAPH_NEIGHBOURS + 1, count)
+    _, near = cKDTree(points).query(points[loose], k=k)
+    a, b = np.repeat(loose, k), near.reshape(len(loose), k).ravel()
+    pairs = np.unique(np.minimum(a, b) * count + np.maximum(a, b))
+    a, b = np.divmod(pairs[pairs // count != pairs % count], count)
+    cost = 1 + 1e-6 - np.abs(np.einsum("ij,ij->i", normals[a], normals[b]))
+    seeds = np.unique(np.concatenate([a, b]))
+    seeds = seeds[oriented[seeds]]  # each joined to a root node past the points, at (almost) no cost
+    graph = coo_matrix((np.concatenate([cost, np.full(len(seeds), 1e-9)]),
+                        (np.concatenate([a, seeds]), np.concatenate([b, np.full(len(seeds), count)]))),
+                       shape=(count + 1, count + 1))
+    _, parent = breadth_first_order(minimum_spanning_tree(graph), count, directed=False)
+    parent = parent[:count]
+    top = (parent < 0) | (parent == count)  # not reached, or oriented
+    parent = np.where(top, np.arange(count), parent)
+    side = np.where(top | (np.einsum("ij,ij->i", normals, normals[parent]) >= 0), 1, -1)
+    while (parent[parent] != parent).any():  # products of the sides along each path to its top
+        side, parent = side * side[parent], parent[parent]
+    unreached = top & ~oriented
+    side[unreached] = np.where(np.einsum("ij,ij->i", normals[unreached], guide[unreached]) < 0, -1, 1)
+    return normals * side[:, None]

@@ -81,8 +81,8 @@ def add_common_flags(parser: argparse.ArgumentParser, points: str) -> None:
                                                            "(default: the shipped weights)")
     parser.add_argument("--hpr-k", type=float, default=2.0, help="HPR radius = diagonal * 10**K (default 2)")
     parser.add_argument("--views", type=int, default=26, help="cameras for the o3dvis normals (default 26)")
-    parser.add_argument("--refine-views", type=int, default=64,
-                        help="more cameras for points the first leave uncovered (default 64)")
+    parser.add_argument("--refine-views", type=int, default=0,
+                        help="more cameras for points the first leave uncovered (default 0)")
     parser.add_argument("--knn", type=int, default=30,
                         help="neighbours of Open3D's estimate_normals and orient_normals_consistent_tangent_plane "
                              "(default 30)")

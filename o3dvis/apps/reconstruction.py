@@ -47,7 +47,7 @@ def reconstruct_view_dependent(pcd, camera, method=None, *,
 
 
 def reconstruct_poisson(pcd, depth: int = 8, method=None, *, num_views: int = 26,
-                        refine_views: int = 64, width: float = 0,
+                        refine_views: int = 0, width: float = 0,
                         scale: float = 1.1, linear_fit: bool = False, n_threads: int = -1,
                         progress: bool = False
                         ) -> tuple[o3d.geometry.TriangleMesh, o3d.utility.DoubleVector]:

@@ -30,8 +30,8 @@ def _add_method_flags(parser: argparse.ArgumentParser, choices=("neural", "hpr",
 
 def _add_view_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--views", type=int, default=26, help="cameras for the normals (default 26)")
-    parser.add_argument("--refine-views", type=int, default=64,
-                        help="more cameras for the points the first leave uncovered (default 64, 0: none)")
+    parser.add_argument("--refine-views", type=int, default=0,
+                        help="more cameras for the points the first leave uncovered (default 0: none)")
 
 
 def _method(args: argparse.Namespace):

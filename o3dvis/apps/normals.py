@@ -88,7 +88,7 @@ def _add_triangle_normals(total: np.ndarray, points: np.ndarray, cameras: np.nda
                                  minlength=total.size).reshape(total.shape)
 
 
-def neighbourhoods(points: np.ndarray, search_param) -> np.ndarray:
+def neighbourhoods(points: np.ndarray, search_param, tree: cKDTree | None = None) -> np.ndarray:
     """(N, K) indices of each point's neighbours (itself included) as Open3D's search finds them.
 
     Args:
@@ -96,6 +96,7 @@ def neighbourhoods(points: np.ndarray, search_param) -> np.ndarray:
         search_param: ``o3d.geometry.KDTreeSearchParamKNN`` (the ``knn`` nearest)
             or ``KDTreeSearchParamHybrid`` (at most ``max_nn`` within ``radius``;
             slots beyond the points found hold ``N``).
+        tree: a ``scipy.spatial.cKDTree`` of ``points`` to reuse (default: one is built).
 
     Raises:
         TypeError: another search parameter (a plain radius search has no bound on its size).
@@ -112,8 +113,8 @@ def neighbourhoods(points: np.ndarray, search_param) -> np.ndarray:
                         f"KDTreeSearchParamHybrid, got {type(search_param).__name__}")
     if count < 1:
         raise ValueError(f"the search must take at least 1 neighbour, got {count}")
-    _, index = cKDTree(points).query(points, k=min(count, len(points)), distance_upper_bound=radius,
-                                     workers=-1)
+    tree = cKDTree(points) if tree is None else tree
+    _, index = tree.query(points, k=min(count, len(points)), distance_upper_bound=radius, workers=-1)
     return index.reshape(len(points), -1)
 
 
@@ -198,21 +199,22 @@ def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_vi
     _check_views(num_views, refine_views)
     method = resolve_method(method)
     cameras = viewpoints_around(points, num_views)
+    tree = cKDTree(points)  # the searches over all the points below share it
     if search_param is not None:
-        neighbours = neighbourhoods(points, search_param)
+        neighbours = neighbourhoods(points, search_param, tree)
         visibility = method(points, cameras)
         normals, fitted = covisible_normals(points, visibility, neighbours)
         if not fitted.any():
             raise ValueError("no point has three neighbours off one line to fit a plane to: the "
                              "points are too few, all on one line, or the search radius too small")
-        return _orient(points, normals, fitted, method, cameras, visibility, refine_views)
-    max_edge = edge_factor * local_spacing(points)
+        return _orient(points, normals, fitted, method, cameras, visibility, refine_views, tree)
+    max_edge = edge_factor * local_spacing(points, tree=tree)
     total = np.zeros((len(points), 3))
     _add_triangle_normals(total, points, cameras, method(points, cameras), max_edge, None,
                           progress, "normals")
     missing = np.linalg.norm(total, axis=1) <= 1e-9
     if refine_views and missing.any() and not missing.all():
-        _, neighbours = cKDTree(points).query(points[missing], k=min(16, len(points)))
+        _, neighbours = tree.query(points[missing], k=min(16, len(points)))
         around = np.zeros(len(points), dtype=bool)
         around[neighbours.ravel()] = True
         extra = np.zeros_like(total)
@@ -232,10 +234,10 @@ def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_vi
     defined = known.copy()
     loose = np.flatnonzero(~known)
     if len(loose):  # a plane through the nearest points, its side taken from the triangulated ones
-        _, neighbours = cKDTree(points).query(points[loose], k=min(_FIT_NEIGHBOURS, len(points)))
+        _, neighbours = tree.query(points[loose], k=min(_FIT_NEIGHBOURS, len(points)))
         neighbours = neighbours.reshape(len(loose), -1)
         normals[loose], defined[loose] = _fit_planes(points, neighbours, np.ones(neighbours.shape))
-    return _spread(points, normals, known, defined)
+    return _spread(points, normals, known, defined, tree)
 
 
 def estimate_normals_neural(pcd, num_views: int = 26, method=None, *, refine_views: int = 0,
@@ -321,12 +323,12 @@ def orient_normals_neural(pcd, num_views: int = 26, method=None, *, refine_views
     cameras = viewpoints_around(points, num_views)
     normals = np.array(normals, dtype=np.float64)
     _set_normals(pcd, _orient(points, normals, np.ones(len(points), dtype=bool), method, cameras,
-                              method(points, cameras), refine_views))
+                              method(points, cameras), refine_views, None))
     return pcd
 
 
 def _orient(points: np.ndarray, normals: np.ndarray, defined: np.ndarray, method, cameras: np.ndarray,
-            visibility: np.ndarray, refine_views: int) -> np.ndarray:
+            visibility: np.ndarray, refine_views: int, tree: cKDTree | None) -> np.ndarray:
     """``normals`` flipped to face the cameras that see their points, (N, 3).
 
     ``refine_views`` more cameras vote on the points the first ones do not see;
@@ -340,11 +342,11 @@ def _orient(points: np.ndarray, normals: np.ndarray, defined: np.ndarray, method
         vote[unseen] = _vote(points[unseen], normals[unseen], cameras,
                              method(points, cameras, np.flatnonzero(unseen)))
     normals = np.where(vote[:, None] < 0, -normals, normals)
-    return _spread(points, normals, (vote != 0) & defined, defined)
+    return _spread(points, normals, (vote != 0) & defined, defined, tree)
 
 
-def _spread(points: np.ndarray, normals: np.ndarray, oriented: np.ndarray, defined: np.ndarray
-            ) -> np.ndarray:
+def _spread(points: np.ndarray, normals: np.ndarray, oriented: np.ndarray, defined: np.ndarray,
+            tree: cKDTree | None) -> np.ndarray:
     """``normals`` completed from the ``oriented`` ones, (N, 3).
 
     Rows neither oriented nor ``defined`` take the nearest oriented point's normal;
@@ -352,11 +354,11 @@ def _spread(points: np.ndarray, normals: np.ndarray, oriented: np.ndarray, defin
     """
     guide = _fill_from_nearest(points, normals, oriented)
     normals = np.where(defined[:, None], normals, guide)
-    return _propagate(points, normals, oriented | ~defined, guide)
+    return _propagate(points, normals, oriented | ~defined, guide, tree)
 
 
-def _propagate(points: np.ndarray, normals: np.ndarray, oriented: np.ndarray, guide: np.ndarray
-               ) -> np.ndarray:
+def _propagate(points: np.ndarray, normals: np.ndarray, oriented: np.ndarray, guide: np.ndarray,
+               tree: cKDTree | None) -> np.ndarray:
     """``normals`` with the rows not ``oriented`` flipped to agree with the oriented ones, (N, 3).
 
     The propagation of Open3D's ``orient_normals_consistent_tangent_plane``,
@@ -366,14 +368,15 @@ def _propagate(points: np.ndarray, normals: np.ndarray, oriented: np.ndarray, gu
     side of its parent. A surface seen nowhere thus takes its side from where
     it joins a seen one, not from the nearest seen point, which may lie across
     a gap and face the other way. Loose points with no path to an oriented
-    one face the same side as their row of ``guide``.
+    one face the same side as their row of ``guide``. ``tree``: a ``cKDTree``
+    of ``points`` (None: built here when there is something to propagate).
     """
     loose = np.flatnonzero(~oriented)
     count = len(points)
     if not len(loose) or len(loose) == count:
         return normals
     k = min(_GRAPH_NEIGHBOURS + 1, count)
-    _, near = cKDTree(points).query(points[loose], k=k)
+    _, near = (cKDTree(points) if tree is None else tree).query(points[loose], k=k)
     a, b = np.repeat(loose, k), near.reshape(len(loose), k).ravel()
     pairs = np.unique(np.minimum(a, b) * count + np.maximum(a, b))
     a, b = np.divmod(pairs[pairs // count != pairs % count], count)

@@ -14,15 +14,16 @@ __all__ = ["local_spacing", "delaunay_surface", "visible_triangles", "triangle_n
 DEFAULT_EDGE_FACTOR = 3.0
 
 
-def local_spacing(points: np.ndarray, k: int = 6) -> np.ndarray:
+def local_spacing(points: np.ndarray, k: int = 6, tree: cKDTree | None = None) -> np.ndarray:
     """Per-point sampling scale: the distance to the ``k``-th nearest other point, (N,).
 
     Where duplicates make that distance 0, the distance to the nearest distinct point is used.
+    ``tree``: a ``cKDTree`` of ``points`` the caller has already (default: one is built).
     """
     if len(points) < 2:
         return np.zeros(len(points))
     k = min(k, len(points) - 1)
-    dist, _ = cKDTree(points).query(points, k=k + 1, workers=-1)
+    dist, _ = (cKDTree(points) if tree is None else tree).query(points, k=k + 1, workers=-1)
     dist = dist[:, 1:]
     positive = np.where(dist > 0, dist, np.inf).min(axis=1)
     return np.maximum(dist[:, -1], np.where(np.isfinite(positive), positive, 0))

@@ -1,7 +1,7 @@
 """Oriented normals: o3dvis against Open3D's estimate_normals + orient_normals_consistent_tangent_plane.
 
 For each mesh and cloud size, points are sampled uniformly on the surface with
-their face normals, and three pipelines estimate oriented normals:
+their face normals, and four pipelines estimate oriented normals:
 
 * ``Open3D``: ``estimate_normals(KNN(k))`` + ``orient_normals_consistent_tangent_plane(k)``
   (in a subprocess with a time limit);

@@ -13,7 +13,8 @@ from o3dvis.apps import (best_view, depth_image, estimate_normals_neural, fibona
                          ground_truth_method, make_view, orient_normals_neural, points_in_shadow,
                          reconstruct_poisson, reconstruct_view_dependent, render_points,
                          render_with_shadows, shadow_map)
-from o3dvis.apps.normals import covisible_normals, multiview_normals, neighbourhoods
+from o3dvis.apps.normals import (_smallest_eigenvectors, covisible_normals, multiview_normals,
+                                 neighbourhoods)
 from o3dvis.cli import apps as apps_cli
 from o3dvis.data.prepare import sample_surface
 
@@ -188,6 +189,50 @@ def test_covisible_fit_of_a_point_whose_neighbours_no_view_shares_is_undefined()
     neighbours = np.array([[1, 2, 3]] + [[0, 1, 2]] * 5)
     normals, fitted = covisible_normals(points, visibility, neighbours)
     assert np.isfinite(normals).all() and not fitted[0]
+
+
+def _scatters(points: np.ndarray) -> np.ndarray:
+    centred = points - points.mean(axis=1, keepdims=True)
+    return np.matmul(centred.transpose(0, 2, 1), centred)
+
+
+@pytest.mark.parametrize("scale", [1e-150, 1.0, 1e150])
+def test_closed_form_eigenvectors_match_eigh(scale):
+    rng = np.random.default_rng(3)
+    rotation = np.linalg.qr(rng.normal(size=(3000, 3, 3)))[0]
+    # neighbourhoods of every shape: blobs, noisy planes, strips, near-lines
+    extents = np.concatenate([np.ones((1000, 3)), [[1, 1, 1e-3]] * 500, [[1, 0.3, 1e-6]] * 500,
+                              [[1, 1e-3, 1e-9]] * 500, [[1, 0.999, 0.998]] * 500])
+    matrices = _scatters(rng.normal(size=(3000, 16, 3)) * extents[:, None] @ rotation) * scale
+    vectors, planar = _smallest_eigenvectors(matrices)
+    values, reference = np.linalg.eigh(matrices)
+    assert np.allclose(np.linalg.norm(vectors, axis=1), 1)
+    separated = (values[:, 1] - values[:, 0]) > 1e-8 * values[:, 2]
+    assert separated.mean() > 0.99
+    cos = np.abs(np.einsum("ij,ij->i", vectors, reference[:, :, 0]))
+    assert cos[separated].min() > 1 - 1e-12
+    assert planar.all()
+
+
+def test_closed_form_eigenvectors_of_degenerate_matrices():
+    rng = np.random.default_rng(4)
+    line = rng.normal(size=(1, 16, 1)) * np.array([0.6, 0.0, 0.8]) + 5.0
+    matrices = np.concatenate([np.zeros((1, 3, 3)), _scatters(line), np.eye(3)[None],
+                               np.diag([2.0, 2.0, 1.0])[None], np.diag([2.0, 1.0, 1.0])[None]])
+    vectors, planar = _smallest_eigenvectors(matrices)
+    assert np.isfinite(vectors).all() and np.allclose(np.linalg.norm(vectors, axis=1), 1)
+    assert planar.tolist() == [False, False, True, True, True]  # a line or a point has no plane
+    assert abs(vectors[1] @ [0.6, 0.0, 0.8]) < 1e-9  # any normal of a line is across it
+    assert abs(vectors[3][2]) == pytest.approx(1)  # the disk's axis
+    assert abs(vectors[4][0]) < 1e-12  # any vector of the cigar's round section
+
+
+def test_plane_fit_far_from_the_origin_is_exact():
+    rng = np.random.default_rng(5)
+    points = np.column_stack([rng.random((200, 2)) * 1e-3, np.zeros(200)]) + 1e6
+    neighbours = neighbourhoods(points, o3d.geometry.KDTreeSearchParamKNN(8))
+    normals, fitted = covisible_normals(points, np.ones((1, 200), bool), neighbours)
+    assert fitted.all() and np.abs(normals[:, 2]).min() > 1 - 1e-9
 
 
 def test_knn_normals_on_a_box_are_face_normals_and_outward():

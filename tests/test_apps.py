@@ -235,11 +235,12 @@ def test_plane_fit_far_from_the_origin_is_exact():
     assert fitted.all() and np.abs(normals[:, 2]).min() > 1 - 1e-9
 
 
-def test_knn_normals_on_a_box_are_face_normals_and_outward():
+def test_knn_normals_on_a_box_are_face_normals_and_outward(capsys):
     mesh = _box((1.5, 1.0, 0.6), (0, 0, 0))
     points, face_normals, method = _sample(mesh, 4000, seed=2)
-    pcd = estimate_normals_neural(_cloud(points), 26, method,
+    pcd = estimate_normals_neural(_cloud(points), 26, method, progress=True,
                                   search_param=o3d.geometry.KDTreeSearchParamKNN(10))
+    assert "3/3" in capsys.readouterr().err  # the steps' progress bar
     cos = np.einsum("ij,ij->i", np.asarray(pcd.normals), face_normals)
     assert (cos[np.abs(cos) > 0.87] > 0).all()  # every normal within 30 degrees of its face's
     assert (cos > 0).mean() > 0.98  # a plane fitted next to an edge may be the other face's
@@ -308,15 +309,20 @@ def test_view_dependent_mesh_does_not_bridge_depth_jumps():
     assert ((z > 0.5).all(axis=1) | (z < 0.5).all(axis=1)).all()
 
 
-def test_poisson_on_neural_normals_recovers_the_sphere(sphere):
+@pytest.mark.parametrize("search_param", [None, o3d.geometry.KDTreeSearchParamKNN(12)])
+def test_poisson_on_neural_normals_recovers_the_sphere(sphere, search_param):
     points, _, method = sphere
     pcd = _cloud(points)
-    mesh, densities = reconstruct_poisson(pcd, depth=6, method=method)
+    mesh, densities = reconstruct_poisson(pcd, depth=6, method=method, search_param=search_param)
     radii = np.linalg.norm(np.asarray(mesh.vertices), axis=1)
     assert len(densities) == len(radii)
     assert np.abs(radii - 1).mean() < 0.02
     assert abs(mesh.get_surface_area() - 4 * np.pi) < 0.05 * 4 * np.pi
     assert not pcd.has_normals()  # the input is left alone
+    if search_param is not None:  # the search reaches the fit: one too narrow for any plane fails
+        with pytest.raises(ValueError, match="three neighbours"):
+            reconstruct_poisson(pcd, depth=6, method=method,
+                                search_param=o3d.geometry.KDTreeSearchParamHybrid(radius=1e-9, max_nn=5))
 
 
 # ---------------------------------------------------------------- shadows
@@ -533,6 +539,14 @@ def test_cli_normals_render_shadow_reconstruct(tmp_path, sphere):
     assert _cli("reconstruct", cloud_path, "-o", str(tmp_path / "m.ply"), "--camera", "0,0,4",
                 *gt) == 0
     assert len(o3d.io.read_triangle_mesh(str(tmp_path / "m.ply")).triangles) > 1000
+    assert _cli("reconstruct", cloud_path, "-o", str(tmp_path / "p.ply"), "--depth", "5", "--views", "12",
+                "--knn", "12", *gt) == 0
+    radii = np.linalg.norm(np.asarray(o3d.io.read_triangle_mesh(str(tmp_path / "p.ply")).vertices), axis=1)
+    assert np.abs(radii - 1).mean() < 0.05  # inside out, or on unoriented normals, it would not be
+    with pytest.raises(ValueError, match="three neighbours"):  # the flag reaches the fit
+        _cli("reconstruct", cloud_path, "-o", str(tmp_path / "p.ply"), "--views", "12", "--knn", "2", *gt)
+    with pytest.raises(ValueError, match="--knn"):
+        _cli("reconstruct", cloud_path, "-o", str(tmp_path / "m.ply"), "--camera", "0,0,4", "--knn", "12", *gt)
     with pytest.raises(ValueError, match="--mesh"):
         _cli("normals", cloud_path, "-o", out, "--method", "gt")
 

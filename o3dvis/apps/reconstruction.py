@@ -49,7 +49,7 @@ def reconstruct_view_dependent(pcd, camera, method=None, *,
 def reconstruct_poisson(pcd, depth: int = 8, method=None, *, num_views: int = 26,
                         refine_views: int = 0, width: float = 0,
                         scale: float = 1.1, linear_fit: bool = False, n_threads: int = -1,
-                        progress: bool = False
+                        progress: bool = False, search_param=None
                         ) -> tuple[o3d.geometry.TriangleMesh, o3d.utility.DoubleVector]:
     """Screened Poisson reconstruction on normals oriented by visibility.
 
@@ -66,6 +66,9 @@ def reconstruct_poisson(pcd, depth: int = 8, method=None, *, num_views: int = 26
         num_views, refine_views: cameras used to estimate the normals (see
             :func:`~o3dvis.apps.normals.estimate_normals_neural`).
         progress: show a progress bar while estimating the normals.
+        search_param: an Open3D KNN or hybrid search parameter: fit the normals
+            to co-visible neighbours instead of triangulating (faster; see
+            :func:`~o3dvis.apps.normals.estimate_normals_neural`).
 
     Returns:
         The mesh and the per-vertex densities, as Open3D returns them.
@@ -84,7 +87,8 @@ def reconstruct_poisson(pcd, depth: int = 8, method=None, *, num_views: int = 26
     if width > 0 and scale * size <= 2 * width:  # Open3D's depth from width: ceil(log2(scale size / width))
         raise ValueError(f"width={width} gives an octree of fewer than 2 levels over a cloud {size:g} "
                          f"wide (scale={scale}); use a smaller width or width=0 with depth")
-    estimate_normals_neural(cloud, num_views, method, refine_views=refine_views, progress=progress)
+    estimate_normals_neural(cloud, num_views, method, refine_views=refine_views, progress=progress,
+                            search_param=search_param)
     # Open3D's Poisson loses precision far from the origin (georeferenced clouds): solve centred
     center = cloud.get_axis_aligned_bounding_box().get_center()
     mesh, densities = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(

@@ -32,6 +32,16 @@ def _add_view_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--views", type=int, default=26, help="cameras for the normals (default 26)")
     parser.add_argument("--refine-views", type=int, default=0,
                         help="more cameras for the points the first leave uncovered (default 0: none)")
+    parser.add_argument("--knn", type=int, default=None, metavar="K",
+                        help="fit each normal to its K nearest neighbours, weighted by the views that see "
+                             "them with it, instead of triangulating: faster (16 is a good start)")
+
+
+def _search(args: argparse.Namespace):
+    """The Open3D search parameter ``--knn`` names (None: triangulate)."""
+    import open3d as o3d
+
+    return None if args.knn is None else o3d.geometry.KDTreeSearchParamKNN(args.knn)
 
 
 def _method(args: argparse.Namespace):
@@ -95,9 +105,6 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, help="output point cloud file")
     _add_view_flags(p)
     p.add_argument("--orient-only", action="store_true", help="keep the normals of the input, only orient them")
-    p.add_argument("--knn", type=int, default=None, metavar="K",
-                   help="fit each normal to its K nearest neighbours, weighted by the views that see "
-                        "them with it, instead of triangulating: faster (16 is a good start)")
     _add_method_flags(p)
     p.set_defaults(func=_normals)
 
@@ -171,9 +178,8 @@ def _normals(args: argparse.Namespace) -> int:
             raise ValueError("--knn estimates normals; --orient-only keeps the input's")
         orient_normals_neural(pcd, args.views, method, refine_views=args.refine_views)
     else:
-        search = None if args.knn is None else o3d.geometry.KDTreeSearchParamKNN(args.knn)
         estimate_normals_neural(pcd, args.views, method, refine_views=args.refine_views, progress=True,
-                                search_param=search)
+                                search_param=_search(args))
     if not o3d.io.write_point_cloud(args.output, pcd):
         raise RuntimeError(f"could not write {args.output}")
     print(f"{len(pcd.points)} oriented normals -> {args.output}")
@@ -189,12 +195,15 @@ def _reconstruct(args: argparse.Namespace) -> int:
     pcd = _read_cloud(args.input)
     method = _method(args)
     if args.camera is not None:
+        if args.knn is not None:
+            raise ValueError("--knn estimates the normals of a Poisson reconstruction; --camera needs none")
         mesh = reconstruct_view_dependent(pcd, args.camera, method)
     else:
         if not 0 <= args.trim < 1:
             raise ValueError(f"--trim must be a quantile in [0, 1), got {args.trim}")
         mesh, densities = reconstruct_poisson(pcd, args.depth, method, num_views=args.views,
-                                              refine_views=args.refine_views, progress=True)
+                                              refine_views=args.refine_views, progress=True,
+                                              search_param=_search(args))
         if args.trim > 0:
             densities = np.asarray(densities)
             mesh.remove_vertices_by_mask(densities < np.quantile(densities, args.trim))

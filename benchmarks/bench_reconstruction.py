@@ -2,7 +2,8 @@
 
 For each mesh and cloud size, points are sampled uniformly on the surface and
 ``TriangleMesh.create_from_point_cloud_poisson(depth)`` runs twice: on
-``estimate_normals_neural`` normals (``reconstruct_poisson``) and on Open3D's
+``estimate_normals_neural`` normals (``reconstruct_poisson``; with ``--covisible-knn K``
+fitted to K co-visible neighbours instead of triangulated) and on Open3D's
 ``estimate_normals(KNN(k))`` + ``orient_normals_consistent_tangent_plane(k)``
 (in a subprocess with a time limit). Both meshes are untrimmed. Against the
 source mesh (30 000 points sampled on each surface):
@@ -55,7 +56,10 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_common_flags(parser, "20000")
     parser.add_argument("--depth", type=int, default=8, help="Poisson octree depth (default 8)")
+    parser.add_argument("--covisible-knn", type=int, default=None, metavar="K",
+                        help="o3dvis normals fitted to K co-visible neighbours (default: triangulated)")
     args = parser.parse_args()
+    search = None if args.covisible_knn is None else o3d.geometry.KDTreeSearchParamKNN(args.covisible_knn)
     sizes = [int(s) for s in args.points.split(",")]
     shared_method = None if args.method == "gt" else visibility_method(args, None)
     rows, records = [], []
@@ -72,7 +76,7 @@ def main() -> int:
             try:
                 ours = reconstruct_poisson(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)),
                                            args.depth, method, num_views=args.views,
-                                           refine_views=args.refine_views)[0]
+                                           refine_views=args.refine_views, search_param=search)[0]
                 record["o3dvis"] = (*surface_distance(ours, source, diagonal, args.seed),
                                     time.perf_counter() - start, "ok")
             except Exception as e:  # reported, never stops the run
@@ -126,7 +130,8 @@ def _report(records: list[dict], rows: list[list[str]], sizes: list[int], args) 
                             "", "", "", ""])
     return "\n".join([
         command_line(), "",
-        f"Poisson benchmark (depth {args.depth}, untrimmed): o3dvis normals with {method_label(args)}; "
+        f"Poisson benchmark (depth {args.depth}, untrimmed): o3dvis normals with {method_label(args)}"
+        f"{'' if args.covisible_knn is None else f', fitted to {args.covisible_knn} co-visible neighbours'}; "
         f"Open3D normals with k = {args.knn}, limit {args.timeout:g} s per run. "
         f"Chamfer in % of the bbox diagonal, F-score at {100 * F_THRESHOLD:g} % of it; "
         "times include normals and Poisson.", "",

@@ -287,7 +287,7 @@ class VisibilityField:
                 for j, mask in masks:
                     keep[j] = mask
                 probs = probs * keep
-            return probs if unsort is None else probs.index_select(1, unsort)
+            return probs if unsort is None else torch.gather(probs, 1, unsort.expand(len(probs), -1))
 
         # views side by side on the CPU's threads when each view is more than one chunk of points:
         # 25-31 against 31-45 ms per view at 200 k points on two cores; for smaller clouds a view

@@ -13,8 +13,8 @@ from o3dvis.apps import (best_view, depth_image, estimate_normals_neural, fibona
                          ground_truth_method, make_view, orient_normals_neural, points_in_shadow,
                          reconstruct_poisson, reconstruct_view_dependent, render_points,
                          render_with_shadows, shadow_map)
-from o3dvis.apps.normals import (_smallest_eigenvectors, covisible_normals, multiview_normals,
-                                 neighbourhoods)
+from o3dvis.apps.normals import (_fit_planes, _smallest_eigenvectors, covisible_normals,
+                                 multiview_normals, neighbourhoods)
 from o3dvis.cli import apps as apps_cli
 from o3dvis.data.prepare import sample_surface
 
@@ -181,6 +181,18 @@ def test_covisible_fit_leaves_out_neighbours_never_seen_with_the_point():
     apart, fitted = covisible_normals(points, np.stack([~upper, upper]), neighbours)
     angles = np.minimum(_angles(apart, truth), 180 - _angles(apart, truth))
     assert fitted.all() and angles.max() < 1e-6
+
+
+def test_covisible_weights_count_every_shared_view_past_255():
+    points, upper = _wedge(200)
+    neighbours = neighbourhoods(points, o3d.geometry.KDTreeSearchParamKNN(12))
+    # 256 views see every point, 44 more only the upper plane: 300 views, shares of 256 and 300
+    visibility = np.concatenate([np.ones((256, len(points)), bool), np.repeat(upper[None], 44, axis=0)])
+    padded = np.concatenate([visibility, np.zeros((300, 1), bool)], axis=1)
+    shared = (visibility[:, :, None] & padded[:, neighbours]).sum(axis=0)
+    expected = _fit_planes(points, neighbours, shared / visibility.sum(axis=0)[:, None])
+    normals, fitted = covisible_normals(points, visibility, neighbours)
+    assert fitted.all() and np.allclose(np.abs(np.einsum("ij,ij->i", normals, expected[0])), 1)
 
 
 def test_covisible_fit_of_a_point_whose_neighbours_no_view_shares_is_undefined():

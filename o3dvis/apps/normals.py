@@ -14,6 +14,7 @@ see the point then orient it. No triangulation, so faster (measured in the READM
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -134,7 +135,7 @@ def covisible_normals(points: np.ndarray, visibility: np.ndarray, neighbours: np
     real = neighbours < len(points)
     weight = np.empty(neighbours.shape)
     for rows in _chunks(len(neighbours)):
-        shared = np.zeros(weight[rows].shape, dtype=np.uint8)
+        shared = np.zeros(weight[rows].shape, dtype=np.int32)  # uint8 would wrap past 255 views
         for byte in codes:
             shared += _BIT_COUNT[byte[neighbours[rows]] & byte[rows, None]]
         weight[rows] = np.where(views[rows, None] > 0, shared / np.maximum(views[rows], 1)[:, None],
@@ -172,7 +173,7 @@ def _fit_planes(points: np.ndarray, neighbours: np.ndarray, weight: np.ndarray
 def _smallest_eigenvectors(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit eigenvectors of the smallest eigenvalues of symmetric 3x3 matrices, in closed form.
 
-    ``np.linalg.eigh`` takes 0.8 us a matrix here; this takes a fraction of it.
+    About 4x faster than ``np.linalg.eigh`` here (0.2 against 0.9 us a matrix).
     The eigenvalues come from the trigonometric solution of the characteristic
     cubic. Of the largest and the smallest, the one farther from the middle
     eigenvalue is well separated, so its eigenvector is found accurately as
@@ -459,14 +460,13 @@ def _nearest_among(points: np.ndarray, chosen: np.ndarray) -> Callable[[np.ndarr
     The k-d tree of the chosen points is built at the first lookup of any row, so
     clouds with nothing to look up never pay for it. With none chosen, each row is its own.
     """
-    index, trees = np.flatnonzero(chosen), []
+    index = np.flatnonzero(chosen)
+    tree = functools.cache(lambda: cKDTree(points[index], balanced_tree=False))
 
     def nearest(rows: np.ndarray) -> np.ndarray:
         if not rows.any() or not len(index):
             return np.flatnonzero(rows)
-        if not trees:
-            trees.append(cKDTree(points[index], balanced_tree=False))
-        return index[trees[0].query(points[rows], workers=-1)[1]]
+        return index[tree().query(points[rows], workers=-1)[1]]
 
     return nearest
 

@@ -13,7 +13,7 @@ from o3dvis.apps import (best_view, depth_image, estimate_normals_neural, fibona
                          ground_truth_method, make_view, orient_normals_neural, points_in_shadow,
                          reconstruct_poisson, reconstruct_view_dependent, render_points,
                          render_with_shadows, shadow_map)
-from o3dvis.apps.normals import (_fit_planes, _smallest_eigenvectors, covisible_normals,
+from o3dvis.apps.normals import (_fit_planes, _smallest_eigenvectors, _vote, covisible_normals,
                                  multiview_normals, neighbourhoods)
 from o3dvis.cli import apps as apps_cli
 from o3dvis.data.prepare import sample_surface
@@ -237,6 +237,27 @@ def test_closed_form_eigenvectors_of_degenerate_matrices():
     assert abs(vectors[1] @ [0.6, 0.0, 0.8]) < 1e-9  # any normal of a line is across it
     assert abs(vectors[3][2]) == pytest.approx(1)  # the disk's axis
     assert abs(vectors[4][0]) < 1e-12  # any vector of the cigar's round section
+
+
+def test_chunked_fit_and_vote_match_plain_formulas_across_chunks():
+    rng = np.random.default_rng(6)
+    points = rng.normal(size=(9000, 3)) * [1.0, 1.0, 0.05]  # more rows than one chunk
+    neighbours = neighbourhoods(points, o3d.geometry.KDTreeSearchParamKNN(10))
+    weight = rng.random(neighbours.shape)
+    normals, fitted = _fit_planes(points, neighbours, weight)
+    near = points[neighbours]
+    centre = np.einsum("nk,nki->ni", weight, near) / weight.sum(axis=1, keepdims=True)
+    offset = near - centre[:, None]
+    values, vectors = np.linalg.eigh(np.einsum("nk,nki,nkj->nij", weight, offset, offset))
+    separated = values[:, 1] - values[:, 0] > 1e-6 * values[:, 2]
+    assert fitted.all() and separated.mean() > 0.99
+    assert np.abs(np.einsum("ij,ij->i", normals, vectors[:, :, 0]))[separated].min() > 1 - 1e-9
+
+    cameras = rng.normal(size=(5, 3)) * 10
+    visibility = rng.random((5, len(points))) < 0.5
+    towards = cameras[:, None] - points[None]
+    cos = np.einsum("vni,ni->vn", towards, normals) / np.linalg.norm(towards, axis=2)
+    assert np.allclose(_vote(points, normals, cameras, visibility), (cos * visibility).sum(axis=0))
 
 
 def test_plane_fit_far_from_the_origin_is_exact():

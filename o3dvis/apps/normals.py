@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 
 from .camera import cloud_points, viewpoints_around
 from ..methods import resolve_method
-from .triangulation import DEFAULT_EDGE_FACTOR, local_spacing, triangle_normals, visible_triangles
+from .triangulation import DEFAULT_EDGE_FACTOR, facing_triangles, local_spacing
 
 __all__ = ["estimate_normals_neural", "orient_normals_neural", "multiview_normals",
            "covisible_normals", "neighbourhoods"]
@@ -61,25 +61,24 @@ def _add_triangle_normals(total: np.ndarray, points: np.ndarray, cameras: np.nda
                           progress: bool, desc: str) -> None:
     """Adds to ``total`` the unit normals of the triangles each view makes at each point.
 
-    The views are triangulated on all cores (Qhull releases the GIL) and added in order.
+    The views are triangulated on all cores (Qhull releases the GIL), each worker also
+    making its triangles' unit normals, and added in order.
     """
     from tqdm import tqdm
 
-    def triangulate(view: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    def triangulate(view: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         cam, vis = view
-        return visible_triangles(points, cam, np.flatnonzero(vis if subset is None else vis & subset),
-                                 max_edge)
+        triangles, normals = facing_triangles(
+            points, cam, np.flatnonzero(vis if subset is None else vis & subset), max_edge)
+        length = np.linalg.norm(normals, axis=1)
+        ok = length > 0
+        slots = (3 * triangles[ok].ravel()[:, None] + np.arange(3)).ravel()  # (corner, component) pairs
+        return slots, np.repeat(normals[ok] / length[ok, None], 3, axis=0).ravel()
 
     with ThreadPoolExecutor(max(1, min(len(cameras), os.cpu_count() or 1))) as pool:
-        for triangles in tqdm(pool.map(triangulate, zip(cameras, visibility)), total=len(cameras),
-                              disable=not progress, desc=desc, unit="view"):
-            normals = triangle_normals(points, triangles)
-            length = np.linalg.norm(normals, axis=1)
-            ok = length > 0
-            unit, corners = normals[ok] / length[ok, None], triangles[ok].ravel()
-            slots = (3 * corners[:, None] + np.arange(3)).ravel()  # (corner, component) pairs
-            total += np.bincount(slots, np.repeat(unit, 3, axis=0).ravel(),
-                                 minlength=total.size).reshape(total.shape)
+        for slots, values in tqdm(pool.map(triangulate, zip(cameras, visibility)), total=len(cameras),
+                                  disable=not progress, desc=desc, unit="view"):
+            total += np.bincount(slots, values, minlength=total.size).reshape(total.shape)
 
 
 def neighbourhoods(points: np.ndarray, search_param, tree: cKDTree | None = None) -> np.ndarray:

@@ -9,7 +9,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from .camera import look_at
 
-__all__ = ["local_spacing", "delaunay_surface", "visible_triangles", "triangle_normals"]
+__all__ = ["local_spacing", "delaunay_surface", "visible_triangles", "facing_triangles", "triangle_normals"]
 
 DEFAULT_EDGE_FACTOR = 3.0
 
@@ -81,10 +81,16 @@ def visible_triangles(points: np.ndarray, camera_location: np.ndarray, indices: 
         (T, 3) int64 indices into ``points``, ordered counter-clockwise as seen
         from the camera (their normals point towards it).
     """
+    return facing_triangles(points, camera_location, indices, max_edge)[0]
+
+
+def facing_triangles(points: np.ndarray, camera_location: np.ndarray, indices: np.ndarray,
+                     max_edge: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`visible_triangles` and their :func:`triangle_normals` (towards the camera), (T, 3) each."""
     indices = np.asarray(indices, dtype=np.int64)
     sub = points[indices]
     if len(sub) < 3:
-        return np.zeros((0, 3), dtype=np.int64)
+        return np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3))
     extrinsic = look_at(camera_location, sub.mean(axis=0))
     cam = sub @ extrinsic[:3, :3].T + extrinsic[:3, 3]
     front = cam[:, 2] > 1e-12 * max(1.0, float(np.abs(cam).max()))
@@ -93,4 +99,5 @@ def visible_triangles(points: np.ndarray, camera_location: np.ndarray, indices: 
     normals = triangle_normals(points, triangles)
     away = np.einsum("ij,ij->i", normals, camera_location - points[triangles[:, 0]]) < 0
     triangles[away] = triangles[away][:, [0, 2, 1]]
-    return triangles
+    normals[away] *= -1  # the normal of the reversed triangle
+    return triangles, normals

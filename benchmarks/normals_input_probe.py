@@ -8,7 +8,10 @@ normals model and three kinds of normals on the validation clouds (16 views):
 * ``true``: the mesh normals of the sampled points;
 * ``PCA``: Open3D's ``estimate_normals`` over each point's ``k`` nearest neighbours,
   oriented by the true normal (an oracle orientation no network has);
-* ``PCA, f flipped``: the same with a random share ``f`` of them reversed.
+* ``PCA, f flipped``: the same with a random share ``f`` of them reversed;
+* ``o3dvis``: ``estimate_normals_neural``'s normals (26 views of the points-only
+  default, triangulated), which a points-only pipeline can have: default ->
+  normals -> normals model. The default's own accuracy is the first column.
 
     python3 benchmarks/normals_input_probe.py --data data/val --points 2048,8192
 """
@@ -26,6 +29,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from o3dvis import NeuralVisibility
+from o3dvis.apps.normals import multiview_normals
 from o3dvis.data.prepare import load_sample
 from o3dvis.evaluate import Counts, eval_cloud, list_samples
 
@@ -44,24 +48,28 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=16)
     parser.add_argument("--k", type=int, default=10, help="neighbours of the PCA normals")
     parser.add_argument("--flip", type=float, default=0.1, help="share of PCA normals reversed")
+    parser.add_argument("--noise", type=float, default=0.0, help="noise level, share of the bbox diagonal")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    model = NeuralVisibility.pretrained("normals")
+    model, default = NeuralVisibility.pretrained("normals"), NeuralVisibility.pretrained("default")
     files = list_samples(args.data)
-    kinds = ["true", "PCA", f"PCA, {100 * args.flip:g} % flipped"]
-    print(f"{len(files)} files, {args.views} views, normals model, PCA with k = {args.k}\n\n"
-          "| points | " + " | ".join(f"{kind} normals: accuracy %" for kind in kinds) + " |\n"
-          "|---|" + "---|" * len(kinds))
+    kinds = ["true", "PCA", f"PCA, {100 * args.flip:g} % flipped", "o3dvis"]
+    print(f"{len(files)} files, {args.views} views, {100 * args.noise:g} % noise, normals model, PCA with "
+          f"k = {args.k}\n\n| points | default (no normals): accuracy % | "
+          + " | ".join(f"{kind} normals: accuracy %" for kind in kinds) + " |\n"
+          "|---|" + "---|" * (len(kinds) + 1))
     for n in map(int, args.points.split(",")):
         rng = np.random.default_rng(0)
-        counts = [Counts() for _ in kinds]
+        counts = [Counts() for _ in range(len(kinds) + 1)]
         for f in files:
-            cloud = eval_cloud(load_sample(f), n, 0.0, 0, args.views)
+            cloud = eval_cloud(load_sample(f), n, args.noise, 0, args.views)
+            counts[0] += Counts.of(default.encode(cloud.points).query(cloud.cameras), cloud.labels)
             pca = pca_normals(cloud.points, args.k)
             pca *= np.where((pca * cloud.normals).sum(axis=1, keepdims=True) < 0, -1, 1)
             flipped = pca * np.where(rng.random((len(pca), 1)) < args.flip, -1, 1)
-            for i, normals in enumerate((cloud.normals, pca, flipped)):
+            estimated = multiview_normals(cloud.points, default)
+            for i, normals in enumerate((cloud.normals, pca, flipped, estimated), start=1):
                 counts[i] += Counts.of(model.encode(cloud.points, normals=normals).query(cloud.cameras),
                                        cloud.labels)
         print(f"| {n:,} | " + " | ".join(f"{100 * c.accuracy:.1f}" for c in counts) + " |", flush=True)

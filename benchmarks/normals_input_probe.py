@@ -3,7 +3,7 @@
 The points-only default trails tuned HPR on clean clouds while the normals model
 beats it. Could the default estimate normals itself (a head of its U-Net) and
 feed them to the predictor? This bounds that idea from above with the shipped
-normals model and three kinds of normals on the validation clouds (16 views):
+normals model and four kinds of normals on the validation clouds (16 views):
 
 * ``true``: the mesh normals of the sampled points;
 * ``PCA``: Open3D's ``estimate_normals`` over each point's ``k`` nearest neighbours,

@@ -64,11 +64,12 @@ def main() -> None:
         counts = [Counts() for _ in range(len(kinds) + 1)]
         for f in files:
             cloud = eval_cloud(load_sample(f), n, args.noise, 0, args.views)
-            counts[0] += Counts.of(default.encode(cloud.points).query(cloud.cameras), cloud.labels)
+            field = default.encode(cloud.points)  # the U-Net once, for both uses of the default
+            counts[0] += Counts.of(field.query(cloud.cameras), cloud.labels)
             pca = pca_normals(cloud.points, args.k)
             pca *= np.where((pca * cloud.normals).sum(axis=1, keepdims=True) < 0, -1, 1)
             flipped = pca * np.where(rng.random((len(pca), 1)) < args.flip, -1, 1)
-            estimated = multiview_normals(cloud.points, default)
+            estimated = multiview_normals(cloud.points, field)
             for i, normals in enumerate((cloud.normals, pca, flipped, estimated), start=1):
                 counts[i] += Counts.of(model.encode(cloud.points, normals=normals).query(cloud.cameras),
                                        cloud.labels)

@@ -28,6 +28,7 @@ from .clouds import cloud_arrays, cloud_device, unit_normals
 from .data.dataset import random_rotation
 from . import models
 from .models import available_models, load_model, torch_device
+from .nn import native
 from .nn.calibration import calibration_terms
 from .nn.network import VisibilityNetwork
 from .nn.octree import bounding_box, morton_order, normalize_points
@@ -231,21 +232,23 @@ class VisibilityField:
 
     def _frame_probabilities(self, features: Tensor, points: Tensor, normals: Tensor | None,
                              cameras: Tensor | None, directions: Tensor | None, batch: slice,
-                             rows: Tensor | None, n: int) -> Tensor:
+                             rows: Tensor | None, n: int, workers: int = 1) -> Tensor:
         """(v, n) probabilities of the views ``batch`` in one frame (features, points and views
-        of that frame), streaming the points ``rows`` (None: all n) in cache-sized chunks."""
+        of that frame), streaming the points ``rows`` (None: all n) in cache-sized chunks, on
+        ``workers`` threads side by side."""
         projections = [self.network.view(points, None if cameras is None else cameras[i],
                                          None if directions is None else directions[i])
                        for i in range(batch.start, batch.stop)]
-        step, chunks = min(n, self.chunk_size), []
-        for a in range(0, n, step):
+        step = min(n, self.chunk_size)
+
+        def chunk_margin(a: int) -> Tensor:
             chunk = slice(a, a + step) if rows is None else rows[a:a + step]
-            inputs = [self.network.view_inputs(view, chunk, normals) for view in projections]
-            dirs, cues = ((inputs[0][0][None], inputs[0][1][None]) if len(inputs) == 1 else
-                          (torch.stack([d for d, _ in inputs]), torch.stack([c for _, c in inputs])))
-            chunks.append(self.network.predictor.margin(features[chunk], dirs, cues, self.matmul_dtype))
+            return self.network.view_margin(projections, chunk, features, normals, self.matmul_dtype)
+
+        starts = range(0, n, step)
+        margin = torch.cat(list(_threaded_map(chunk_margin, starts, workers) if workers > 1 else
+                                map(chunk_margin, starts)), dim=1)
         del projections
-        margin = torch.cat(chunks, dim=1)
         if self.calibration is not None:
             scale, shift = self.calibration
             margin.mul_(scale).add_(shift)
@@ -272,11 +275,11 @@ class VisibilityField:
         per_batch = max(1, self.chunk_size // n)
         batches = [slice(start, min(total, start + per_batch)) for start in range(0, total, per_batch)]
 
-        def answer(batch: slice) -> Tensor:
-            probs = self._frame_probabilities(*frames[0], batch, rows, n)
+        def answer(batch: slice, workers: int = 1) -> Tensor:
+            probs = self._frame_probabilities(*frames[0], batch, rows, n, workers)
             if frames[1:]:  # the mean over the frames
                 for frame in frames[1:]:
-                    probs = probs + self._frame_probabilities(*frame, batch, rows, n)
+                    probs = probs + self._frame_probabilities(*frame, batch, rows, n, workers)
                 probs = probs / len(frames)
             if clear is not None:  # a flat cloud seen from off its plane or line hides nothing
                 probs = torch.where(clear[batch, None], torch.ones_like(probs), probs)
@@ -289,12 +292,17 @@ class VisibilityField:
                 probs = probs * keep
             return probs if unsort is None else torch.gather(probs, 1, unsort.expand(len(probs), -1))
 
-        # views side by side on the CPU's threads when each view is more than one chunk of points:
-        # 25-31 against 31-45 ms per view at 200 k points on two cores; for smaller clouds a view
-        # is a few large ops that split well over the threads, and there is nothing to gain
-        workers = min(torch.get_num_threads(), len(batches))
-        parallel = (workers > 1 and n > self.chunk_size and self.device.type == "cpu"
-                    and not torch.is_grad_enabled())
+        # Views side by side on the CPU's threads, each on one: per-view ops are many and small, and
+        # the C kernels (o3dvis.nn.native) run on one thread each. Without the kernels, a view of at
+        # most one chunk of points is a few large torch ops that split well over the threads, and
+        # is left to them. A single batch of views has its chunks side by side instead.
+        threads = torch.get_num_threads()
+        free = threads > 1 and self.device.type == "cpu" and not torch.is_grad_enabled()
+        if free and len(batches) == 1 and n > self.chunk_size:
+            yield batches[0], answer(batches[0], threads)
+            return
+        workers = min(threads, len(batches))
+        parallel = free and workers > 1 and (n > self.chunk_size or native.usable(self.features))
         yield from zip(batches, _threaded_map(answer, batches, workers) if parallel else map(answer, batches))
 
     def probabilities(self, cameras=None, direction=None, *, frustum: bool = True,

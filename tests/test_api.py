@@ -131,14 +131,14 @@ def test_batched_query_equals_one_call_per_camera(network, points, monkeypatch):
     np.testing.assert_array_equal(mask, np.concatenate(singles))
     np.testing.assert_array_equal(mask, batched.numpy() > threshold)
     # Small chunks: several point chunks per view, and several views per MLP call.
-    rows, margin = [], network.predictor.margin
+    rows, margin = [], network.view_margin
 
     def counted(*args):
         out = margin(*args)
         rows.append(out.numel())
         return out
 
-    monkeypatch.setattr(network.predictor, "margin", counted)
+    monkeypatch.setattr(network, "view_margin", counted)
     for chunk in (1000, 7000):
         rows.clear()
         small = o3dvis.NeuralVisibility(network, chunk_size=chunk).encode(points)

@@ -164,7 +164,7 @@ def test_views_answered_side_by_side_on_the_threads_as_one_at_a_time(scenes, mon
 
         calls = []
 
-        def fail(self, features, points, normals, cameras, directions, batch, rows, n):
+        def fail(self, features, points, normals, cameras, directions, batch, rows, n, workers=1):
             calls.append(batch.start)
             if batch.start == 0:
                 raise RuntimeError("a worker failed")
@@ -176,5 +176,35 @@ def test_views_answered_side_by_side_on_the_threads_as_one_at_a_time(scenes, mon
             field.query(many)
         assert len(calls) < 10  # the views not yet started when the first failed were dropped
         assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_one_view_answered_in_chunks_side_by_side(scenes, monkeypatch):
+    """A single view of a cloud of several chunks has its chunks answered on the worker threads
+    when the caller has several: the same answers as on the caller's thread alone."""
+    pcd = scenes[0][0]
+    view = _camera(pcd, 7)
+    field = o3dvis.NeuralVisibility.pretrained(precision="float32").encode(pcd)
+    field.chunk_size = 300  # four chunks of the 1 200 points
+    ran_on = []
+    margin = field.network.view_margin
+
+    def spy(*args, **kwargs):
+        ran_on.append(threading.current_thread())
+        return margin(*args, **kwargs)
+
+    monkeypatch.setattr(field.network, "view_margin", spy)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        side_by_side = field.probabilities(view)
+        assert len(ran_on) == 4 and all(t.name.startswith("o3dvis-views") for t in ran_on)
+        assert torch.get_num_threads() == 2
+        ran_on.clear()
+        torch.set_num_threads(1)
+        alone = field.probabilities(view)
+        assert ran_on == [threading.current_thread()] * 4
+        torch.testing.assert_close(side_by_side, alone, atol=0, rtol=0)
     finally:
         torch.set_num_threads(threads)

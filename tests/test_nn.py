@@ -202,7 +202,7 @@ def test_view_cues_flag_the_far_side_of_a_sphere():
 
 
 @pytest.mark.parametrize("planes", [False, True])
-def test_view_cues_same_in_chunks_and_with_or_without_autograd(planes):
+def test_view_cues_same_in_chunks_and_with_or_without_autograd(planes, torch_ops):
     torch.manual_seed(0)
     p = torch.nn.functional.normalize(torch.randn(5000, 3), dim=1) * torch.rand(5000, 1)
     cam = torch.tensor([2.0, 1.0, -0.5], requires_grad=True)
@@ -406,7 +406,9 @@ def test_teacher_targets_and_the_mixed_loss():
 
 
 @pytest.mark.parametrize("added", [{"use_normals": True}, {"noise_cues": True}, {"plane_cues": True}])
-def test_warm_start_with_added_inputs_keeps_the_function(added):
+def test_warm_start_with_added_inputs_keeps_the_function(added, torch_ops):
+    # the torch ops on both sides: the plane cues' projection has no C kernel, whose pixels can
+    # differ at the borders by float32 rounding, which these untrained weights blow up
     from o3dvis.train import warm_start
 
     torch.manual_seed(0)

@@ -24,6 +24,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from . import native
+
 __all__ = ["ViewProjection", "view_cues", "num_cues", "DEFAULT_SCALES"]
 
 DEFAULT_SCALES = (1, 2, 4, 8)
@@ -55,6 +57,19 @@ _RIDGE = 0.1  # pulls the slope of a plane fitted to fewer than 3 pixels' points
 
 def num_cues(scales: Sequence[int] = DEFAULT_SCALES, planes: bool = False) -> int:
     return (10 if planes else 9) * len(scales)
+
+
+def _sides(num_points: int, scales: Sequence[int]) -> list[int]:
+    """The depth buffers' resolutions: ``ceil(sqrt(N))`` pixels a side (at least 4) over each scale."""
+    finest = max(4, math.ceil(math.sqrt(num_points)))
+    return [max(2, math.ceil(finest / scale)) for scale in scales]
+
+
+def _write_patches(padded: Tensor, rows: Tensor) -> None:
+    """Writes the 3x3 neighbourhoods of the pixels of a (R + 2, R + 2) bordered image into (R, R, 9) rows."""
+    res = rows.shape[0]
+    for k in range(9):  # nine slice copies: several times faster than copying an unfold
+        rows[:, :, k] = padded[k // 3:k // 3 + res, k % 3:k % 3 + res]
 
 
 def _frame(forward: Tensor) -> tuple[Tensor, Tensor]:
@@ -142,7 +157,9 @@ class ViewProjection:
     Built once per view in linear time; :meth:`cues` then assembles the cues of
     any rows of points, so that a caller can stream a large cloud through the
     predictor in cache-sized chunks. Differentiable in the camera (the pixel
-    assignment itself is piecewise constant).
+    assignment itself is piecewise constant). Without autograd on the CPU it is
+    built by the C kernels of :mod:`o3dvis.nn.native` where they are available
+    (``native`` is then True), which also write the predictor's inputs (:meth:`inputs`).
 
     Args:
         points: (N, 3) points (normalised coordinates).
@@ -161,6 +178,17 @@ class ViewProjection:
                  scales: Sequence[int] = DEFAULT_SCALES, planes: bool = False):
         if (camera is None) == (direction is None):
             raise ValueError("give exactly one of camera and direction")
+        sides = _sides(points.shape[0], scales)
+        self.native = not planes and points.shape[0] > 0 and native.usable(points, camera, direction)
+        if self.native:  # the bordered buffers and each point's 3x3 corner in them; the tables on demand
+            if direction is not None:
+                direction = direction / direction.norm()
+            dirs, self.depth, self.buffers, self.corners, inv = native.project(
+                points.contiguous(), camera, direction, sides)
+            self.dirs = dirs if direction is None else direction.expand_as(points)
+            self.inv_footprint, self.planes, self.image = inv[:, :, None], None, None
+            self.sides, self.patches, self.pixels = sides, None, None
+            return
         if direction is None:
             offset = points - camera
             depth = offset.norm(dim=1).clamp_min(1e-12)
@@ -180,9 +208,7 @@ class ViewProjection:
             u, v, depth = (points @ right).detach(), (points @ up).detach(), points @ forward
             footprint = torch.ones_like(depth)
         half = torch.maximum(u.abs().amax(), v.abs().amax()) * (1 + 1e-6) + 1e-12
-        finest = max(4, math.ceil(math.sqrt(points.shape[0])))
         self.dirs, self.depth = dirs, depth
-        sides = [max(2, math.ceil(finest / scale)) for scale in scales]
         # the 3x3 neighbourhoods of the pixels of all scales in one table, NaN where a pixel is
         # empty or off the image; row pixels[i, s] of it is point i's at scale s. Each scale's
         # patches are written into their rows in place (no concatenation of copies).
@@ -211,15 +237,35 @@ class ViewProjection:
                 self.planes[start:start + res * res] = _fit_planes(
                     zbuf.view(res, res), nearest[:-1].view(res, res, 2), ref, pixel)
             zbuf = torch.where(torch.isinf(zbuf), float("nan"), zbuf).view(res, res)
-            padded = F.pad(zbuf, (1, 1, 1, 1), value=float("nan"))
-            rows = self.patches[start:start + res * res].view(res, res, 9)
-            for k in range(9):  # nine slice copies: several times faster than copying an unfold
-                rows[:, :, k] = padded[k // 3:k // 3 + res, k % 3:k % 3 + res]
+            _write_patches(F.pad(zbuf, (1, 1, 1, 1), value=float("nan")),
+                           self.patches[start:start + res * res].view(res, res, 9))
             torch.add(index, start, out=self.pixels[:, s])
             start += res * res
-        self.pixel_sizes = torch.stack(pixel_sizes)
         # -1 / (pixel size x footprint): the scale of a depth residual, (N, S, 1)
-        self.inv_footprint = (-1 / (footprint[:, None] * self.pixel_sizes))[:, :, None]
+        self.inv_footprint = (-1 / (footprint[:, None] * torch.stack(pixel_sizes)))[:, :, None]
+
+    def inputs(self, rows: slice | Tensor, projected: Tensor, num_frequencies: int, out: Tensor) -> None:
+        """Writes the predictor's first-layer inputs of ``points[rows]`` into ``out``, channels
+        first (only when ``native``; see :func:`o3dvis.nn.native.view_inputs`)."""
+        native.view_inputs(rows, self.dirs, projected, num_frequencies, self.buffers, self.corners, self.sides,
+                           self.depth, self.inv_footprint[:, :, 0], _EMPTY_RESIDUAL, out)
+
+    def _tables(self) -> tuple[Tensor, Tensor]:
+        """The 3x3 patches and each point's row of them (see ``__init__``) from a native
+        view's bordered buffers, for :meth:`cues`."""
+        if self.patches is None:
+            patches = self.depth.new_empty(sum(res * res for res in self.sides), 9)
+            pixels = torch.empty_like(self.corners)
+            start = first = 0  # the scale's first row of patches and first pixel in the buffers
+            for s, res in enumerate(self.sides):
+                width = res + 2
+                _write_patches(self.buffers[first:first + width * width].view(width, width),
+                               patches[start:start + res * res].view(res, res, 9))
+                corner = self.corners[:, s] - first
+                torch.add(corner // width * res + corner % width, start, out=pixels[:, s])
+                start, first = start + res * res, first + width * width
+            self.patches, self.pixels = patches, pixels
+        return self.patches, self.pixels
 
     def cues(self, rows: slice = slice(None)) -> Tensor:
         """(n, 9 * len(scales)) cues of ``points[rows]``, (n, 10 * len(scales)) with planes.
@@ -229,8 +275,9 @@ class ViewProjection:
         ``_EMPTY`` where that pixel is empty; with planes, then for each scale
         ``asinh`` of its residual to its pixel's plane at its image position.
         """
-        pixels = self.pixels[rows]
-        near = self.patches.index_select(0, pixels.reshape(-1)).view(*pixels.shape, 9)
+        patches, pixels = self._tables()
+        pixels = pixels[rows]
+        near = patches.index_select(0, pixels.reshape(-1)).view(*pixels.shape, 9)
         depth, inv = self.depth[rows, None, None], self.inv_footprint[rows]
         if torch.is_grad_enabled():  # out of place, and no NaN through which to back-propagate
             empty = torch.isnan(near)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -11,6 +12,7 @@ from torch import Tensor, nn
 
 from .calibration import CloudCalibration
 from .conv import octree_interpolate
+from . import native
 from .cues import DEFAULT_SCALES, ViewProjection, num_cues
 from .noise import NUM_NOISE_CUES, noise_cues
 from .octree import Octree
@@ -126,15 +128,48 @@ class VisibilityNetwork(nn.Module):
         """The projection of one cloud for one camera position or viewing direction."""
         return ViewProjection(points, camera, direction, self.config.cue_scales, self.config.plane_cues)
 
-    def view_inputs(self, view: ViewProjection, rows: slice = slice(None),
+    def view_inputs(self, view: ViewProjection, rows: slice | Tensor = slice(None),
                     normals: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """(n, 3) view directions and (n, Z) cues of ``points[rows]`` for one view."""
         dirs, cues = view.dirs[rows], view.cues(rows)
         if self.config.use_normals:
-            if normals is None:
-                raise ValueError("this model needs normals")
-            cues = torch.cat([cues, -(normals[rows] * dirs).sum(dim=1, keepdim=True)], dim=1)
+            cues = torch.cat([cues, self._normal_cue(normals, rows, dirs)[:, None]], dim=1)
         return dirs, cues
+
+    def _normal_cue(self, normals: Tensor | None, rows: slice | Tensor, dirs: Tensor) -> Tensor:
+        """(n,) cosine between the normals of ``points[rows]`` and the reversed view directions."""
+        if normals is None:
+            raise ValueError("this model needs normals")
+        return -(normals[rows] * dirs).sum(dim=1)
+
+    def view_margin(self, views: Sequence[ViewProjection], rows: slice | Tensor, projected: Tensor,
+                    normals: Tensor | None = None, dtype: torch.dtype | None = None) -> Tensor:
+        """(V, n) margins (see :meth:`VisibilityPredictor.margin`) of ``points[rows]`` for ``views``.
+
+        Args:
+            views: the views' projections of the cloud.
+            rows: the points, a slice or a (n,) long tensor.
+            projected: (N, E) the cloud's :meth:`encode` output.
+            normals: (N, 3) the cloud's unit normals, for a normals model.
+            dtype: the dtype of the matrix products (None: ``projected``'s); for
+                views built by the C kernels (:attr:`ViewProjection.native`) the
+                inputs come from one more pass of C.
+        """
+        predictor = self.predictor
+        dtype = dtype or projected.dtype
+        if dtype in (torch.float32, torch.bfloat16) and all(v.native for v in views) and native.usable(projected):
+            n = len(range(*rows.indices(projected.shape[0]))) if isinstance(rows, slice) else len(rows)
+            inputs = predictor.embedding.dim + num_cues(self.config.cue_scales)
+            x = projected.new_empty(len(views), inputs + self.config.use_normals, n, dtype=dtype)
+            for j, view in enumerate(views):
+                view.inputs(rows, projected, predictor.embedding.num_frequencies, x[j, :inputs])
+                if self.config.use_normals:
+                    x[j, inputs] = self._normal_cue(normals, rows, view.dirs[rows])
+            return predictor.margin_from_inputs(x)
+        inputs = [self.view_inputs(view, rows, normals) for view in views]
+        dirs, cues = ((inputs[0][0][None], inputs[0][1][None]) if len(inputs) == 1 else
+                      (torch.stack([d for d, _ in inputs]), torch.stack([c for _, c in inputs])))
+        return predictor.margin(projected[rows], dirs, cues, dtype)
 
     def predict(self, features: Tensor, points: Tensor, camera: Tensor | None = None,
                 direction: Tensor | None = None, normals: Tensor | None = None) -> Tensor:

@@ -1,0 +1,296 @@
+/* The per-view work of the visibility predictor in plain C, for queries on the CPU.
+ *
+ * o3dvis_project builds a view's projection (o3dvis/nn/cues.py, ViewProjection:
+ * view directions, depths, the multi-scale min-depth buffers and their 3x3
+ * patches) in three passes over the points instead of some sixty torch ops.
+ *
+ * One pass over a chunk of points writes the first MLP layer's input, channels
+ * first: the view embedding times the projected feature, then the asinh of the
+ * depth residuals to the 3x3 pixels around each point at every cue scale. This is what o3dvis/nn/cues.py (ViewProjection.cues) and
+ * o3dvis/nn/predictor.py (ViewEmbedding, the product with the features)
+ * compute in a dozen eager torch ops, each a pass over memory. The arithmetic
+ * is the same, op for op, but sin, cos, log and atan2, which are short
+ * polynomials here (a few float32 ulps from the torch ones), and the mean view
+ * direction, summed in double. Values are written as float32
+ * or as bfloat16 (rounded to nearest even, as torch rounds).
+ *
+ * Plain C with no dependency, loaded with ctypes (o3dvis/nn/native.py), which
+ * releases the GIL: the view workers run it side by side. Every buffer is
+ * allocated by the caller. Built with
+ * -fno-math-errno -fno-trapping-math -ffp-contract=off, so that the loops
+ * vectorise and rounding follows torch's op order.
+ */
+
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+#define BLOCK 64          /* points per block: the block's buffers stay in L1 */
+#define MAX_CUES 64       /* scales x 9 */
+#define MAX_EMBED 64      /* 3 + 6 x frequencies */
+
+static inline uint32_t bits_of(float x) { uint32_t u; memcpy(&u, &x, 4); return u; }
+static inline float float_of(uint32_t u) { float x; memcpy(&x, &u, 4); return x; }
+
+/* log(u) for finite u >= 1: the exponent, and a polynomial on the mantissa
+   reduced to [sqrt(1/2) - 1, sqrt(2) - 1] (Cephes' logf scheme) */
+static inline float log_ge1(float u) {
+    uint32_t b = bits_of(u);
+    float e = (float)((int32_t)(b >> 23) - 126);
+    float m = float_of((b & 0x007fffffu) | 0x3f000000u); /* [0.5, 1) */
+    int low = m < 0.707106781186547524f;
+    e = low ? e - 1.0f : e;
+    float f = low ? m + m - 1.0f : m - 1.0f;
+    float z = f * f;
+    float p = 7.0376836292e-2f;
+    p = p * f - 1.1514610310e-1f;
+    p = p * f + 1.1676998740e-1f;
+    p = p * f - 1.2420140846e-1f;
+    p = p * f + 1.4249322787e-1f;
+    p = p * f - 1.6668057665e-1f;
+    p = p * f + 2.0000714765e-1f;
+    p = p * f - 2.4999993993e-1f;
+    p = p * f + 3.3333331174e-1f;
+    float r = f * z * p;
+    r = r - 2.12194440e-4f * e;
+    r = r - 0.5f * z;
+    return f + r + 0.693359375f * e;
+}
+
+/* asinh(x) = sign(x) log1p(|x| - 1 + sqrt(x^2 + 1)), as cues.py's _asinh_, with
+   log1p(y) = log(1 + y) y / ((1 + y) - 1), exact where 1 + y rounds to 1 */
+static void asinh_inplace(float *restrict x, int64_t n) {
+    for (int64_t i = 0; i < n; i++) {
+        float v = x[i], a = fabsf(v);
+        float y = sqrtf(a * a + 1.0f) + (a - 1.0f);
+        float u = 1.0f + y, d = u - 1.0f;
+        float l = d == 0.0f ? y : log_ge1(u) * (y / d);
+        x[i] = copysignf(l, v);
+    }
+}
+
+/* sin(pi t) for |t| <= 1/2: Taylor series to degree 13 (error below 1e-11) */
+static inline float sin_pi_half(float t) {
+    float w = 3.14159265358979f * t, w2 = w * w;
+    float p = 1.6059043836821613e-10f;
+    p = p * w2 - 2.5052108385441720e-8f;
+    p = p * w2 + 2.7557319223985893e-6f;
+    p = p * w2 - 1.9841269841269841e-4f;
+    p = p * w2 + 8.3333333333333333e-3f;
+    p = p * w2 - 1.6666666666666667e-1f;
+    return w + w * w2 * p;
+}
+
+static inline uint16_t bf16_of(float x) { /* round to nearest even; x is finite */
+    uint32_t u = bits_of(x);
+    return (uint16_t)((u + 0x7fffu + ((u >> 16) & 1u)) >> 16);
+}
+
+/* atan(t) for 0 <= t <= 1: reduced to |t| <= tan(pi / 8), then an odd polynomial (Cephes' atanf) */
+static inline float atan_01(float t) {
+    int big = t > 0.414213562373095f;
+    float x = big ? (t - 1.0f) / (t + 1.0f) : t;
+    float z = x * x;
+    float p = 8.05374449538e-2f;
+    p = p * z - 1.38776856032e-1f;
+    p = p * z + 1.99777106478e-1f;
+    p = p * z - 3.33329491539e-1f;
+    float r = x + x * z * p;
+    return big ? r + 0.785398163397448f : r;
+}
+
+/* atan2(s, z) for s >= 0, in [0, pi] */
+static inline float atan2_pos(float s, float z) {
+    float az = fabsf(z);
+    int steep = s > az;
+    float t = steep ? az / s : (az > 0.0f ? s / az : 0.0f);
+    float a = atan_01(t);
+    a = steep ? 1.57079632679490f - a : a;
+    return z < 0.0f ? 3.14159265358979f - a : a;
+}
+
+static void cross(const double *a, const double *b, double *out) {
+    out[0] = a[1] * b[2] - a[2] * b[1];
+    out[1] = a[2] * b[0] - a[0] * b[2];
+    out[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+/* Two unit vectors orthogonal to the unit vector forward, as cues.py's _frame */
+static void frame(const double *forward, double *right, double *up) {
+    double helper[3] = {0.0, 0.0, 1.0};
+    if (fabs(forward[2]) > 0.9) { helper[0] = 1.0; helper[2] = 0.0; }
+    cross(forward, helper, right);
+    double norm = sqrt(right[0] * right[0] + right[1] * right[1] + right[2] * right[2]);
+    for (int a = 0; a < 3; a++) right[a] /= norm;
+    cross(forward, right, up);
+}
+
+/* Builds one view's projection of n points (n >= 1).
+ *
+ * points: (n, 3); camera: (3,) camera position, or NULL with direction: (3,)
+ * unit viewing direction. sides: (scales,) the buffers' resolutions. Writes
+ * dirs: (n, 3) unit vectors from the camera (camera only); depth: (n,); uv:
+ * (n, 2) scratch; zbufs: each scale's min-depth buffer inside a border, rows
+ * sides[s] + 2 apart, one after the other, NaN where empty and on the border;
+ * corners: (n, scales) the index in zbufs of the top-left pixel of the 3x3
+ * around each point's pixel; inv: (n, scales) -1 / (pixel size x footprint),
+ * footprint the depth for a camera, else 1.
+ */
+void o3dvis_project(int64_t n, const float *points, const float *camera, const float *direction,
+                    int32_t scales, const int64_t *sides, float *dirs, float *depth, float *uv,
+                    float *zbufs, int64_t *corners, float *inv) {
+    double forward[3], right[3], up[3];
+    if (camera) {
+        double sum[3] = {0.0, 0.0, 0.0};
+        for (int64_t i = 0; i < n; i++) {
+            float o[3], d2 = 0.0f;
+            for (int a = 0; a < 3; a++) { o[a] = points[3 * i + a] - camera[a]; d2 += o[a] * o[a]; }
+            float d = sqrtf(d2);
+            d = d < 1e-12f ? 1e-12f : d;
+            depth[i] = d;
+            for (int a = 0; a < 3; a++) { dirs[3 * i + a] = o[a] / d; sum[a] += dirs[3 * i + a]; }
+        }
+        double norm = sqrt(sum[0] * sum[0] + sum[1] * sum[1] + sum[2] * sum[2]);
+        norm = norm < 1e-12 * n ? 1e-12 * n : norm;
+        for (int a = 0; a < 3; a++) forward[a] = sum[a] / norm;
+    } else {
+        for (int a = 0; a < 3; a++) forward[a] = direction[a];
+    }
+    frame(forward, right, up);
+    const float rf[3] = {(float)right[0], (float)right[1], (float)right[2]};
+    const float uf[3] = {(float)up[0], (float)up[1], (float)up[2]};
+    const float ff[3] = {(float)forward[0], (float)forward[1], (float)forward[2]};
+    float half = 0.0f;
+    for (int64_t i = 0; i < n; i++) {
+        float u, v;
+        if (camera) { /* azimuthal-equidistant around forward */
+            const float *d = dirs + 3 * i;
+            float a = d[0] * rf[0] + d[1] * rf[1] + d[2] * rf[2];
+            float b = d[0] * uf[0] + d[1] * uf[1] + d[2] * uf[2];
+            float z = d[0] * ff[0] + d[1] * ff[1] + d[2] * ff[2];
+            float s = sqrtf(a * a + b * b + 1e-24f);
+            float k = atan2_pos(s, z) / s;
+            u = a * k, v = b * k;
+        } else { /* parallel */
+            const float *p = points + 3 * i;
+            u = p[0] * rf[0] + p[1] * rf[1] + p[2] * rf[2];
+            v = p[0] * uf[0] + p[1] * uf[1] + p[2] * uf[2];
+            depth[i] = p[0] * ff[0] + p[1] * ff[1] + p[2] * ff[2];
+        }
+        uv[2 * i] = u, uv[2 * i + 1] = v;
+        float m = fabsf(u) > fabsf(v) ? fabsf(u) : fabsf(v);
+        half = m > half ? m : half;
+    }
+    half = half * (1.0f + 1e-6f) + 1e-12f;
+    for (int64_t i = 0; i < 2 * n; i++) uv[i] += half;
+    int64_t start = 0;
+    for (int s = 0; s < scales; s++) {
+        const int64_t res = sides[s], w = res + 2;
+        const float pixel = 2.0f * half / (float)res;
+        float *zbuf = zbufs + start;
+        for (int64_t q = 0; q < w * w; q++) zbuf[q] = NAN;
+        for (int64_t r = 1; r <= res; r++)
+            for (int64_t c = 1; c <= res; c++) zbuf[r * w + c] = INFINITY;
+        for (int64_t i = 0; i < n; i++) {
+            /* truncated and clamped to the image as torch's .long().clamp_(); NaN goes to 0 */
+            float fu = uv[2 * i] / pixel, fv = uv[2 * i + 1] / pixel;
+            fu = fu >= 0.0f ? fu : 0.0f, fv = fv >= 0.0f ? fv : 0.0f;
+            const int64_t iu = fu < (float)(res - 1) ? (int64_t)fu : res - 1;
+            const int64_t iv = fv < (float)(res - 1) ? (int64_t)fv : res - 1;
+            float *z = zbuf + (iu + 1) * w + iv + 1;
+            *z = depth[i] < *z ? depth[i] : *z;
+            corners[i * scales + s] = start + iu * w + iv;
+            inv[i * scales + s] = -1.0f / ((camera ? depth[i] : 1.0f) * pixel);
+        }
+        for (int64_t q = 0; q < w * w; q++) zbuf[q] = zbuf[q] == INFINITY ? NAN : zbuf[q];
+        start += w * w;
+    }
+}
+
+/* Writes the inputs of n points; returns 0, or -1 when the sizes exceed the buffers.
+ *
+ * rows: the points' rows (NULL: start, start + 1, ...); dirs: (N, 3) view
+ * directions, rows dirs_stride apart (0: one direction for all); proj: the
+ * projected features, channel j of row i at proj[j * proj_ld + i]; zbufs,
+ * corners, depth: as o3dvis_project writes them, widths: (scales,) the
+ * buffers' row lengths, sides + 2; inv: (N, scales) -1 / (pixel size x
+ * footprint); empty: the residual that an empty pixel takes before asinh.
+ * out: 3 + 6 frequencies + 9 scales channels of n values, out_ld elements
+ * apart, float32 or bfloat16.
+ */
+int o3dvis_view_inputs(int64_t n, const int64_t *rows, int64_t start,
+                       const float *dirs, int64_t dirs_stride,
+                       const float *proj, int64_t proj_ld, int32_t frequencies,
+                       const float *zbufs, const int64_t *corners, const int64_t *widths,
+                       const float *depth, const float *inv, int32_t scales, float empty,
+                       void *out, int64_t out_ld, int32_t out_bf16) {
+    const int ne = 3 + 6 * frequencies, nc = 9 * scales;
+    /* zeroed: asinh runs over whole blocks, the unused tail of the last one included */
+    float cue[MAX_CUES * BLOCK] = {0}, emb[MAX_EMBED][BLOCK], dep[BLOCK], k[BLOCK];
+    int64_t idx[BLOCK];
+    if (frequencies < 0 || scales < 1 || ne > MAX_EMBED || nc > MAX_CUES) return -1;
+    for (int64_t b0 = 0; b0 < n; b0 += BLOCK) {
+        const int m = n - b0 < BLOCK ? (int)(n - b0) : BLOCK;
+        for (int b = 0; b < m; b++) idx[b] = rows ? rows[b0 + b] : start + b0 + b;
+        /* the 3x3 depths around each point's pixels (channels first: the arithmetic below runs
+           along contiguous rows), then its residuals to them in pixel footprints, clamped, with
+           empty pixels marked; the buffers' rows are fetched for the whole block first */
+        for (int b = 0; b < m; b++)
+            for (int s = 0; s < scales; s++)
+                for (int r = 0; r < 3; r++) __builtin_prefetch(zbufs + corners[idx[b] * scales + s] + r * widths[s]);
+        for (int b = 0; b < m; b++)
+            for (int s = 0; s < scales; s++) {
+                const float *z = zbufs + corners[idx[b] * scales + s];
+                for (int j = 0; j < 9; j++) cue[(9 * s + j) * BLOCK + b] = z[(j / 3) * widths[s] + j % 3];
+            }
+        for (int b = 0; b < m; b++) dep[b] = depth[idx[b]];
+        for (int s = 0; s < scales; s++) {
+            for (int b = 0; b < m; b++) k[b] = inv[idx[b] * scales + s];
+            for (int j = 0; j < 9; j++) {
+                float *c = cue + (9 * s + j) * BLOCK;
+                for (int b = 0; b < m; b++) {
+                    float r = (c[b] - dep[b]) * k[b];
+                    r = r < -50.0f ? -50.0f : r;
+                    r = r > 50.0f ? 50.0f : r;
+                    c[b] = r != r ? empty : r;
+                }
+            }
+        }
+        asinh_inplace(cue, (int64_t)BLOCK * nc);
+        /* embedding [d, sin(pi d), cos(pi d), sin(2 pi d), ...], channels first */
+        for (int a = 0; a < 3; a++) {
+            for (int b = 0; b < m; b++) emb[a][b] = dirs[idx[b] * dirs_stride + a];
+            if (!frequencies) continue;
+            for (int b = 0; b < m; b++) {
+                const float d = emb[a][b];
+                const float t = d > 0.5f ? 1.0f - d : (d < -0.5f ? -1.0f - d : d);
+                emb[3 + a][b] = sin_pi_half(t);
+                emb[6 + a][b] = sin_pi_half(0.5f - fabsf(d));
+            }
+            for (int f = 1; f < frequencies; f++) {
+                const float *s = emb[6 * f - 3 + a], *c = emb[6 * f + a];
+                float *s2 = emb[6 * f + 3 + a], *c2 = emb[6 * f + 6 + a];
+                for (int b = 0; b < m; b++) {
+                    s2[b] = s[b] * c[b] * 2.0f;
+                    c2[b] = s[b] * s[b] * -2.0f + 1.0f;
+                }
+            }
+        }
+        for (int j = 0; j < ne; j++) {
+            const float *p = proj + j * proj_ld;
+            if (rows) for (int b = 0; b < m; b++) emb[j][b] *= p[idx[b]];
+            else for (int b = 0; b < m; b++) emb[j][b] *= p[start + b0 + b];
+        }
+        /* the channels: embedding x feature, then the cues */
+        for (int j = 0; j < ne + nc; j++) {
+            const float *x = j < ne ? emb[j] : cue + (j - ne) * BLOCK;
+            if (out_bf16) {
+                uint16_t *o = (uint16_t *)out + j * out_ld + b0;
+                for (int b = 0; b < m; b++) o[b] = bf16_of(x[b]);
+            } else {
+                memcpy((float *)out + j * out_ld + b0, x, sizeof(float) * m);
+            }
+        }
+    }
+    return 0;
+}

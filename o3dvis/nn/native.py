@@ -1,0 +1,202 @@
+"""A view's projection and the predictor's inputs in a few passes of C, for queries on the CPU.
+
+``kernels.c`` computes what :class:`~o3dvis.nn.cues.ViewProjection` and the view
+embedding times the projected features compute in some seventy eager torch
+ops, each a pass over memory (see the README for what it saves).
+It is plain C with no dependency, built on first use with the system's C
+compiler (``$CC``, else ``cc``) for this CPU and kept in a cache folder
+(``$O3DVIS_CACHE``, else ``$XDG_CACHE_HOME/o3dvis`` or ``~/.cache/o3dvis``),
+and called through ``ctypes``, which releases the GIL. Where no compiler is
+found, or with ``O3DVIS_NATIVE=0`` in the environment, queries run the torch
+ops instead, with a warning; gradients, CUDA and the plane cues always do.
+This module only checks shapes and passes pointers; the callers own the tensors.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import subprocess
+import tempfile
+import threading
+import warnings
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+
+__all__ = ["available", "usable", "project", "view_inputs"]
+
+_SOURCE = Path(__file__).with_name("kernels.c")
+# vectorisable loops (no errno, no traps) whose rounding follows torch's op order (no FMA contraction)
+_FLAGS = ["-O3", "-fPIC", "-shared", "-fno-math-errno", "-fno-trapping-math", "-ffp-contract=off"]
+_I64, _I32, _PTR = ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
+_SIGNATURES = {  # name: (argument types, result type)
+    "o3dvis_project": ([_I64, _PTR, _PTR, _PTR, _I32, _PTR] + [_PTR] * 6, None),
+    "o3dvis_view_inputs": ([_I64, _PTR, _I64, _PTR, _I64, _PTR, _I64, _I32, _PTR, _PTR, _PTR, _PTR, _PTR, _I32,
+                            ctypes.c_float, _PTR, _I64, _I32], ctypes.c_int),
+}
+_lock = threading.Lock()
+_library: list = []  # [the loaded library, or None where it could not be built], once tried
+
+
+def _cache_dir() -> Path:
+    if os.environ.get("O3DVIS_CACHE"):
+        return Path(os.environ["O3DVIS_CACHE"])
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "o3dvis"
+
+
+def _cpu() -> str:
+    """What identifies this CPU's instruction set (the library is built with ``-march=native``)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            flags = next((line for line in f if line.startswith(("flags", "Features"))), "")
+    except OSError:
+        flags = ""
+    return f"{platform.machine()} {platform.processor()} {flags}"
+
+
+def _build() -> ctypes.CDLL:
+    """Loads the library, compiling it into the cache folder first if it is not there."""
+    compiler = os.environ.get("CC", "cc")
+    source = _SOURCE.read_bytes()
+    key = hashlib.sha256(b"\0".join([source, compiler.encode(), " ".join(_FLAGS).encode(),
+                                     _cpu().encode()])).hexdigest()[:16]
+    folder = _cache_dir()
+    path = folder / f"kernels-{key}.so"
+    if not path.exists():
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=folder) as tmp:
+            built = Path(tmp) / path.name
+            errors = []
+            for arch in (["-march=native"], []):  # some compilers know no -march=native
+                run = subprocess.run([compiler, *_FLAGS, *arch, str(_SOURCE), "-o", str(built)],
+                                     capture_output=True, text=True)
+                if run.returncode == 0:
+                    break
+                errors.append(run.stderr.strip())
+            else:
+                raise OSError("\n".join(errors))
+            os.replace(built, path)  # atomic: another process sees the whole file or none
+    return ctypes.CDLL(str(path))
+
+
+def _loaded() -> ctypes.CDLL | None:
+    with _lock:
+        if not _library:
+            try:
+                if os.environ.get("O3DVIS_NATIVE", "1") == "0":
+                    raise OSError("O3DVIS_NATIVE=0")
+                library = _build()
+                for name, (args, result) in _SIGNATURES.items():
+                    function = getattr(library, name)
+                    function.argtypes, function.restype = args, result
+                _library.append(library)
+            except (OSError, AttributeError, subprocess.SubprocessError) as e:
+                warnings.warn(f"o3dvis: queries run their per-view steps as torch ops, which is slower, "
+                              f"because the C kernels could not be built or loaded: {e}", RuntimeWarning)
+                _library.append(None)
+        return _library[0]
+
+
+def available() -> bool:
+    """Whether the C kernels are built and loaded (builds them on the first call)."""
+    return _loaded() is not None
+
+
+def usable(*tensors: Tensor | None) -> bool:
+    """Whether the kernels can stand in for torch ops on these tensors: float32 on the CPU,
+    no gradient asked for (autograd on, or a tensor that requires one), and the kernels built."""
+    given = [t for t in tensors if t is not None]
+    return (not torch.is_grad_enabled() and all(t.device.type == "cpu" and t.dtype == torch.float32 for t in given)
+            and available())
+
+
+def _check(name: str, t: Tensor, shape: tuple[int, ...], dtype: torch.dtype = torch.float32) -> None:
+    if t.shape != shape or t.dtype != dtype or not t.is_contiguous() or t.device.type != "cpu":
+        raise ValueError(f"{name} must be a contiguous {shape} {dtype} CPU tensor, got "
+                         f"{tuple(t.shape)} {t.dtype} on {t.device}")
+
+
+def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,
+            sides: list[int]) -> tuple[Tensor | None, Tensor, Tensor, Tensor, Tensor]:
+    """One view's projection (see :class:`~o3dvis.nn.cues.ViewProjection`).
+
+    Args:
+        points: (N, 3) float32 points, N >= 1.
+        camera: (3,) camera position, or None with ``direction``: (3,) unit viewing direction.
+        sides: the depth buffers' resolutions, one per scale.
+
+    Returns:
+        ``dirs`` (N, 3) unit vectors from the camera (None with ``direction``),
+        ``depth`` (N,), ``buffers`` each scale's min-depth image inside a
+        border, (side + 2)^2 values in rows of side + 2, one after the other,
+        NaN where empty and on the border, ``corners`` (N, S) the index in
+        ``buffers`` of the top-left pixel of the 3x3 around each point's pixel,
+        ``inv`` (N, S) -1 / (pixel size x footprint).
+    """
+    n, scales = points.shape[0], len(sides)
+    _check("points", points, (n, 3))
+    view = camera if camera is not None else direction
+    _check("camera" if camera is not None else "direction", view, (3,))
+    if n < 1 or not sides or min(sides) < 1:
+        raise ValueError(f"need points and positive sides, got {n} points, sides {sides}")
+    dirs = points.new_empty(n, 3) if camera is not None else None
+    depth, uv = points.new_empty(n), points.new_empty(n, 2)
+    buffers = points.new_empty(sum((res + 2) ** 2 for res in sides))
+    corners, inv = torch.empty(n, scales, dtype=torch.long), points.new_empty(n, scales)
+    sizes = torch.tensor(sides, dtype=torch.long)  # referenced until the call has returned
+    _loaded().o3dvis_project(n, points.data_ptr(), camera.data_ptr() if camera is not None else None,
+                             direction.data_ptr() if direction is not None else None, scales,
+                             sizes.data_ptr(),
+                             dirs.data_ptr() if dirs is not None else None, depth.data_ptr(), uv.data_ptr(),
+                             buffers.data_ptr(), corners.data_ptr(), inv.data_ptr())
+    return dirs, depth, buffers, corners, inv
+
+
+def view_inputs(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies: int, buffers: Tensor,
+                corners: Tensor, sides: list[int], depth: Tensor, inv: Tensor, empty: float, out: Tensor) -> None:
+    """Writes the first layer's inputs of the points ``rows`` for one view into ``out``, channels first.
+
+    Args:
+        rows: the points, a slice with step 1 or a (n,) long tensor.
+        dirs: (N, 3) view directions, rows contiguous (a direction expanded to N rows will do).
+        projected: (N, E) projected features (:meth:`VisibilityPredictor.project`),
+            E = 3 + 6 ``num_frequencies``.
+        buffers, corners, depth, inv: the view's, as :func:`project` returns them for ``sides``.
+        empty: the residual an empty pixel takes before ``asinh``.
+        out: (E + 9 S, n) float32 or bfloat16, rows contiguous: ``projected[rows]``
+            times the view embedding of ``dirs[rows]``, then the depth-buffer cues.
+    """
+    n_points, scales = corners.shape
+    if isinstance(rows, slice):
+        start, stop, step = rows.indices(n_points)
+        if step != 1:
+            raise ValueError("rows must be a slice with step 1 or an index tensor")
+        n, rows_pointer = max(0, stop - start), None
+    else:
+        rows = rows.to(torch.long).contiguous()  # referenced until the call has returned
+        n, start, rows_pointer = len(rows), 0, rows.data_ptr()
+    e = 3 + 6 * num_frequencies
+    if out.shape != (e + 9 * scales, n) or out.stride(1) != 1 or out.dtype not in (torch.float32, torch.bfloat16):
+        raise ValueError(f"out must be ({e + 9 * scales}, {n}) float32 or bfloat16 with contiguous rows, "
+                         f"got {tuple(out.shape)} {out.dtype} strides {out.stride()}")
+    if projected.shape != (n_points, e) or dirs.shape != (n_points, 3) or dirs.stride(1) != 1:
+        raise ValueError(f"projected must be ({n_points}, {e}) and dirs ({n_points}, 3) with contiguous rows, "
+                         f"got {tuple(projected.shape)} and {tuple(dirs.shape)} strides {dirs.stride()}")
+    if projected.stride(0) != 1:  # the kernel reads each channel as a contiguous row
+        projected = projected.T.contiguous().T
+    _check("buffers", buffers, (sum((res + 2) ** 2 for res in sides),))
+    _check("corners", corners, (n_points, len(sides)), torch.long)
+    _check("depth", depth, (n_points,))
+    _check("inv", inv, (n_points, scales))
+    widths = torch.tensor([res + 2 for res in sides], dtype=torch.long)
+    if _loaded().o3dvis_view_inputs(n, rows_pointer, start, dirs.data_ptr(), dirs.stride(0), projected.data_ptr(),
+                                    projected.stride(1), num_frequencies, buffers.data_ptr(), corners.data_ptr(),
+                                    widths.data_ptr(), depth.data_ptr(), inv.data_ptr(), scales, empty,
+                                    out.data_ptr(), out.stride(0), out.dtype == torch.bfloat16):
+        raise ValueError(f"the C kernel takes at most 10 frequencies and 7 scales, "
+                         f"got {num_frequencies} and {scales}")

@@ -1,0 +1,157 @@
+"""The C kernels of o3dvis.nn.native against the torch ops they stand in for."""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import open3d as o3d
+import pytest
+import torch
+
+import o3dvis
+from o3dvis.nn import native
+from o3dvis.nn.cues import ViewProjection
+from o3dvis.nn.predictor import ViewEmbedding
+
+_CAMERA = torch.tensor([2.0, 1.0, -0.5])
+_DIRECTION = torch.tensor([-0.3, 0.2, 1.0])
+
+
+def _points(n: int = 6000, seed: int = 0) -> torch.Tensor:
+    """A bumpy sphere with a point inside: surfaces that hide each other, empty pixels around."""
+    g = torch.Generator().manual_seed(seed)
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1)
+    r = 0.8 + 0.1 * torch.sin(5 * d[:, :1]) * torch.cos(3 * d[:, 1:2])
+    r[: n // 10] *= 0.5
+    return d * r
+
+
+def _views(points: torch.Tensor, **view) -> tuple[ViewProjection, ViewProjection]:
+    """The same view built by the C kernels and by torch ops."""
+    with torch.inference_mode():
+        fast = ViewProjection(points, **view)
+    with torch.no_grad(), pytest.MonkeyPatch.context() as mp:
+        mp.setattr(native, "usable", lambda *tensors: False)
+        slow = ViewProjection(points, **view)
+    assert fast.native and not slow.native
+    return fast, slow
+
+
+def test_the_kernels_build_here():
+    """The C compiler of this machine builds them (CI runs where it does)."""
+    assert os.environ.get("O3DVIS_NATIVE") == "0" or native.available()
+
+
+@pytest.mark.parametrize("view", [{"camera": _CAMERA}, {"direction": _DIRECTION}])
+def test_projection_equals_the_torch_one(view):
+    points = _points()
+    fast, slow = _views(points, **view)
+    torch.testing.assert_close(fast.depth, slow.depth, atol=1e-6, rtol=1e-6)
+    torch.testing.assert_close(fast.dirs, slow.dirs, atol=1e-6, rtol=0)
+    torch.testing.assert_close(fast.inv_footprint, slow.inv_footprint, atol=0, rtol=1e-5)
+    patches, pixels = fast._tables()
+    assert patches.shape == slow.patches.shape
+    # a point on a pixel border may fall on either side by float32 rounding (the mean view
+    # direction is summed in double, atan2 is a polynomial): a few in ten thousand at most
+    same = (pixels == slow.pixels).all(dim=1)
+    assert same.float().mean() > 0.999
+    with torch.inference_mode():  # depths an ulp apart, times up to ~200 / pixel footprint
+        torch.testing.assert_close(fast.cues()[same], slow.cues()[same], atol=1e-4, rtol=0)
+        assert (fast.cues() == -5.0).any()  # empty neighbours are marked
+
+
+@pytest.mark.parametrize("rows", [slice(None), slice(1000, 4321), "indices"])
+@pytest.mark.parametrize("view", [{"camera": _CAMERA}, {"direction": _DIRECTION}])
+def test_inputs_equal_the_embedding_times_the_features_then_the_cues(view, rows):
+    points = _points()
+    if rows == "indices":
+        rows = torch.randperm(len(points), generator=torch.Generator().manual_seed(1))[:2500]
+    projected = torch.randn(27, len(points)).T  # stored channels first, as encode() stores it
+    embedding = ViewEmbedding(4)
+    fast, _ = _views(points, **view)
+    n = len(points[rows])
+    with torch.inference_mode():
+        expected = torch.cat([embedding(fast.dirs[rows].T) * projected[rows].T, fast.cues(rows).T])
+        out = torch.empty(63, n)
+        fast.inputs(rows, projected, 4, out)
+        torch.testing.assert_close(out, expected, atol=1e-5, rtol=1e-5)
+        low = torch.empty(63, n, dtype=torch.bfloat16)
+        fast.inputs(rows, projected.contiguous(), 4, low)  # features stored by rows work too
+    # bfloat16: torch's rounding of the float32 values, but where they lie a few float32 ulps
+    # from a rounding boundary
+    assert (low == expected.to(torch.bfloat16)).float().mean() > 0.999
+    torch.testing.assert_close(low.float(), expected, atol=1e-5, rtol=2 ** -7)
+
+
+def test_inputs_reject_what_the_kernel_cannot_take():
+    points = _points(500)
+    fast, _ = _views(points, camera=_CAMERA)
+    projected = torch.randn(500, 27)
+    with torch.inference_mode():
+        with pytest.raises(ValueError, match=r"out must be \(63, 500\)"):
+            fast.inputs(slice(None), projected, 4, torch.empty(62, 500))
+        with pytest.raises(ValueError, match="out must be"):
+            fast.inputs(slice(None), projected, 4, torch.empty(500, 63).T)  # rows not contiguous
+        with pytest.raises(ValueError, match="step 1"):
+            fast.inputs(slice(0, 500, 2), projected, 4, torch.empty(63, 250))
+        with pytest.raises(ValueError, match="projected must be"):
+            fast.inputs(slice(None), projected[:, :21], 4, torch.empty(63, 500))
+        with pytest.raises(ValueError, match="at most 10 frequencies"):
+            fast.inputs(slice(None), torch.randn(500, 69), 11, torch.empty(69 + 36, 500))
+        with pytest.raises(ValueError, match="need points"):
+            native.project(torch.empty(0, 3), _CAMERA, None, [4])
+        with pytest.raises(ValueError, match="camera must be"):
+            native.project(points, _CAMERA.double(), None, [4])
+
+
+def _cloud(normals: bool) -> o3d.geometry.PointCloud:
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(_points(40_000).double().numpy()))
+    if normals:
+        pcd.estimate_normals()
+        pcd.orient_normals_towards_camera_location(np.zeros(3))
+        pcd.normals = o3d.utility.Vector3dVector(-np.asarray(pcd.normals))
+    return pcd
+
+
+@pytest.mark.parametrize("precision", ["float32", "bfloat16"])
+@pytest.mark.parametrize("normals", [False, True])
+def test_answers_equal_those_of_the_torch_ops(precision, normals, monkeypatch):
+    """The shipped models, both input paths: the same answers but for points on a pixel border."""
+    pcd = _cloud(normals)
+    cameras = np.array([[3.0, 0.5, 0.2], [-0.4, 2.5, 1.0], [0.3, -0.2, -3.0]])
+    vis = o3dvis.NeuralVisibility.pretrained(precision=precision)
+    fast = vis.encode(pcd)
+    assert (fast.normals is not None) == normals
+    probs = fast.probabilities(cameras)
+    monkeypatch.setattr(native, "usable", lambda *tensors: False)
+    slow = vis.encode(pcd).probabilities(cameras)
+    assert ((probs > 0.5) == (slow > 0.5)).float().mean() > 0.999
+    assert (probs - slow).abs().mean() < 1e-4
+
+
+def _python(code: str, **env) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-W", "always", "-c", code], capture_output=True, text=True,
+                          env={**os.environ, **env}, timeout=300)
+
+
+def test_built_on_first_use_into_the_cache_folder(tmp_path):
+    run = _python("from o3dvis.nn import native; print(native.available())", O3DVIS_CACHE=str(tmp_path))
+    assert run.returncode == 0 and run.stdout.strip() == "True", run.stderr
+    assert len(list(tmp_path.glob("kernels-*.so"))) == 1
+    again = _python("from o3dvis.nn import native; print(native.available())", O3DVIS_CACHE=str(tmp_path))
+    assert again.stdout.strip() == "True" and "RuntimeWarning" not in again.stderr
+
+
+@pytest.mark.parametrize("env", [{"O3DVIS_NATIVE": "0"}, {"CC": "/nonexistent/cc"}])
+def test_without_the_kernels_queries_run_the_torch_ops_with_a_warning(env, tmp_path):
+    code = ("import numpy as np, open3d as o3d, o3dvis\n"
+            "from o3dvis.nn import native\n"
+            "pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.random.default_rng(0).normal(size=(3000, 3))))\n"
+            "_, idx = o3dvis.hidden_point_removal_neural(pcd, [0, 0, 10])\n"
+            "print(native.available(), 0 < len(idx) < 3000)")
+    run = _python(code, O3DVIS_CACHE=str(tmp_path), **env)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["False", "True"]
+    assert "RuntimeWarning" in run.stderr and "torch ops" in run.stderr
+    assert not list(tmp_path.glob("kernels-*.so"))

@@ -254,9 +254,11 @@ class VisibilityField:
             margin.mul_(scale).add_(shift)
         return torch.sigmoid(margin)
 
-    def _batches(self, views: Views, rows: Tensor | None = None) -> Iterator[tuple[slice, Tensor]]:
+    def _batches(self, views: Views, rows: Tensor | None = None,
+                 finish: Callable[[Tensor], Tensor] | None = None) -> Iterator[tuple[slice, Tensor]]:
         """Yields ``(views slice, (v, M) probabilities)`` of the points ``rows`` (None: all),
-        with frustum culling applied. Every point occludes, whichever rows are asked for."""
+        with frustum culling applied, or ``finish`` of them (done on the thread that answered
+        the views). Every point occludes, whichever rows are asked for."""
         cameras, directions = self._normalised(views)
         clear = self._off_the_hull(views)
         n, total = self.num_points if rows is None else len(rows), len(views)
@@ -267,7 +269,8 @@ class VisibilityField:
             else:
                 rows = self.rank[rows]
         if n == 0:
-            yield slice(0, total), self.features.new_zeros(total, 0)
+            empty = self.features.new_zeros(total, 0)
+            yield slice(0, total), empty if finish is None else finish(empty)
             return
         asked = self.points_n if rows is None else self.points_n[rows]
         frames = [(self.features, self.points_n, self.normals, cameras, directions)] + [
@@ -290,7 +293,8 @@ class VisibilityField:
                 for j, mask in masks:
                     keep[j] = mask
                 probs = probs * keep
-            return probs if unsort is None else torch.gather(probs, 1, unsort.expand(len(probs), -1))
+            probs = probs if unsort is None else torch.gather(probs, 1, unsort.expand(len(probs), -1))
+            return probs if finish is None else finish(probs)
 
         # Views side by side on the CPU's threads, each on one: per-view ops are many and small, and
         # the C kernels (o3dvis.nn.native) run on one thread each. Without the kernels, a view of at
@@ -299,7 +303,12 @@ class VisibilityField:
         threads = torch.get_num_threads()
         free = threads > 1 and self.device.type == "cpu" and not torch.is_grad_enabled()
         if free and len(batches) == 1 and n > self.chunk_size:
-            yield batches[0], answer(batches[0], threads)
+            torch.set_num_threads(1)  # no OpenMP team of the caller's to spin beside the workers
+            try:
+                result = answer(batches[0], threads)
+            finally:
+                torch.set_num_threads(threads)
+            yield batches[0], result
             return
         workers = min(threads, len(batches))
         parallel = free and workers > 1 and (n > self.chunk_size or native.usable(self.features))
@@ -366,8 +375,10 @@ class VisibilityField:
         rows = self._rows(indices)
         out = np.empty((len(views), self.num_points if rows is None else len(rows)), dtype=bool)
         with torch.inference_mode():
-            for batch, probs in self._batches(views, rows):
-                out[batch] = (probs > threshold).cpu().numpy()
+            # thresholded on the threads that answer: an op here, on the caller's thread, would wake
+            # the caller's OpenMP threads, which then spin for a while on the cores the workers use
+            for batch, visible in self._batches(views, rows, lambda probs: (probs > threshold).cpu()):
+                out[batch] = visible.numpy()
         return out
 
 

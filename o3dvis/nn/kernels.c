@@ -10,8 +10,9 @@
  * o3dvis/nn/predictor.py (ViewEmbedding, the product with the features)
  * compute in a dozen eager torch ops, each a pass over memory. The arithmetic
  * is the same, op for op, but sin, cos, log and atan2, which are short
- * polynomials here (a few float32 ulps from the torch ones), and the mean view
- * direction, summed in double. Values are written as float32
+ * polynomials here (a few float32 ulps from the torch ones, evaluated with fused
+ * multiply-adds where the CPU has them), and the mean view direction, summed in
+ * double. Values are written as float32
  * or as bfloat16 (rounded to nearest even, as torch rounds).
  *
  * Plain C with no dependency, loaded with ctypes (o3dvis/nn/native.py), which
@@ -29,6 +30,13 @@
 #define MAX_CUES 64       /* scales x 9 */
 #define MAX_EMBED 64      /* 3 + 6 x frequencies */
 
+/* a * b + c, fused where the CPU has fused multiply-adds (the polynomials below) */
+#ifdef FP_FAST_FMAF
+#define MADD(a, b, c) fmaf(a, b, c)
+#else
+#define MADD(a, b, c) ((a) * (b) + (c))
+#endif
+
 static inline uint32_t bits_of(float x) { uint32_t u; memcpy(&u, &x, 4); return u; }
 static inline float float_of(uint32_t u) { float x; memcpy(&x, &u, 4); return x; }
 
@@ -43,14 +51,14 @@ static inline float log_ge1(float u) {
     float f = low ? m + m - 1.0f : m - 1.0f;
     float z = f * f;
     float p = 7.0376836292e-2f;
-    p = p * f - 1.1514610310e-1f;
-    p = p * f + 1.1676998740e-1f;
-    p = p * f - 1.2420140846e-1f;
-    p = p * f + 1.4249322787e-1f;
-    p = p * f - 1.6668057665e-1f;
-    p = p * f + 2.0000714765e-1f;
-    p = p * f - 2.4999993993e-1f;
-    p = p * f + 3.3333331174e-1f;
+    p = MADD(p, f, -1.1514610310e-1f);
+    p = MADD(p, f, 1.1676998740e-1f);
+    p = MADD(p, f, -1.2420140846e-1f);
+    p = MADD(p, f, 1.4249322787e-1f);
+    p = MADD(p, f, -1.6668057665e-1f);
+    p = MADD(p, f, 2.0000714765e-1f);
+    p = MADD(p, f, -2.4999993993e-1f);
+    p = MADD(p, f, 3.3333331174e-1f);
     float r = f * z * p;
     r = r - 2.12194440e-4f * e;
     r = r - 0.5f * z;
@@ -73,11 +81,11 @@ static void asinh_inplace(float *restrict x, int64_t n) {
 static inline float sin_pi_half(float t) {
     float w = 3.14159265358979f * t, w2 = w * w;
     float p = 1.6059043836821613e-10f;
-    p = p * w2 - 2.5052108385441720e-8f;
-    p = p * w2 + 2.7557319223985893e-6f;
-    p = p * w2 - 1.9841269841269841e-4f;
-    p = p * w2 + 8.3333333333333333e-3f;
-    p = p * w2 - 1.6666666666666667e-1f;
+    p = MADD(p, w2, -2.5052108385441720e-8f);
+    p = MADD(p, w2, 2.7557319223985893e-6f);
+    p = MADD(p, w2, -1.9841269841269841e-4f);
+    p = MADD(p, w2, 8.3333333333333333e-3f);
+    p = MADD(p, w2, -1.6666666666666667e-1f);
     return w + w * w2 * p;
 }
 
@@ -92,9 +100,9 @@ static inline float atan_01(float t) {
     float x = big ? (t - 1.0f) / (t + 1.0f) : t;
     float z = x * x;
     float p = 8.05374449538e-2f;
-    p = p * z - 1.38776856032e-1f;
-    p = p * z + 1.99777106478e-1f;
-    p = p * z - 3.33329491539e-1f;
+    p = MADD(p, z, -1.38776856032e-1f);
+    p = MADD(p, z, 1.99777106478e-1f);
+    p = MADD(p, z, -3.33329491539e-1f);
     float r = x + x * z * p;
     return big ? r + 0.785398163397448f : r;
 }

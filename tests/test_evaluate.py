@@ -270,6 +270,10 @@ def test_benchmark_times_methods_against_open3d(capsys):
     text = capsys.readouterr().out
     assert "| 2,048 | 2 | Open3D HPR |" in text and "| 2,048 | 2 | hpr |" in text
     assert "neural: absent" in text
+    from o3dvis.nn import native
+
+    said = "C kernels (o3dvis.nn.native)" if native.available() else "torch ops (no C kernels built)"
+    assert f"per-view steps of the neural methods on the CPU: {said}" in text
 
 
 def test_peak_memory_sees_a_transient_allocation():

@@ -97,6 +97,10 @@ def test_inputs_reject_what_the_kernel_cannot_take():
             fast.inputs(slice(0, 500, 2), projected, 4, torch.empty(63, 250))
         with pytest.raises(ValueError, match="projected must be"):
             fast.inputs(slice(None), projected[:, :21], 4, torch.empty(63, 500))
+        with pytest.raises(IndexError, match=r"rows must lie in \[0, 500\)"):
+            fast.inputs(torch.tensor([0, 500]), projected, 4, torch.empty(63, 2))
+        with pytest.raises(ValueError, match="float32 on the CPU"):
+            fast.inputs(slice(None), projected.double(), 4, torch.empty(63, 500))
         with pytest.raises(ValueError, match="at most 10 frequencies"):
             fast.inputs(slice(None), torch.randn(500, 69), 11, torch.empty(69 + 36, 500))
         with pytest.raises(ValueError, match="need points"):

@@ -160,17 +160,21 @@ def run_eval(args) -> int:
 
 def run_bench(args) -> int:
     """``o3dvis bench``: prints the timing table; ``--out`` also writes JSON."""
+    from ..nn import native
     from ..speed import benchmark, markdown_table
 
     # one setting per baseline: Open3D's usual radius (k = 2) and a mid-grid kernel exponent
     methods, absent = _methods(args, {"hpr": [2.0], "hpr-exp": [-0.01]})
     single = {name: next(iter(sweep.values())) for name, sweep in methods.items()}
     rows = benchmark(single, args.points, args.views, args.repeats, args.seed)
+    kernels = native.available()
     report = {"settings": {"points": args.points, "views": args.views, "repeats": args.repeats,
-                           "threads": args.threads, "seed": args.seed,
+                           "threads": args.threads, "seed": args.seed, "c_kernels": kernels,
                            "methods": {n: getattr(m, "__name__", n) for n, m in single.items()}},
               "absent": absent, "results": rows}
-    markdown = markdown_table(rows) + "".join(f"\n{n}: absent ({r})" for n, r in absent.items())
+    markdown = (markdown_table(rows) + "".join(f"\n{n}: absent ({r})" for n, r in absent.items())
+                + "\nper-view steps of the neural methods on the CPU: "
+                + ("C kernels (o3dvis.nn.native)\n" if kernels else "torch ops (no C kernels built)\n"))
     _write(args.out, report, markdown)
     return 0
 

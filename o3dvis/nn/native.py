@@ -31,7 +31,8 @@ from torch import Tensor
 __all__ = ["available", "usable", "project", "view_inputs"]
 
 _SOURCE = Path(__file__).with_name("kernels.c")
-# vectorisable loops (no errno, no traps) whose rounding follows torch's op order (no FMA contraction)
+# vectorisable loops (no errno, no traps) whose rounding follows torch's op order (no contraction into
+# fused multiply-adds but the polynomials' own, see kernels.c)
 _FLAGS = ["-O3", "-fPIC", "-shared", "-fno-math-errno", "-fno-trapping-math", "-ffp-contract=off"]
 _I64, _I32, _PTR = ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
 _SIGNATURES = {  # name: (argument types, result type)
@@ -74,7 +75,7 @@ def _build() -> ctypes.CDLL:
             errors = []
             for arch in (["-march=native"], []):  # some compilers know no -march=native
                 run = subprocess.run([compiler, *_FLAGS, *arch, str(_SOURCE), "-o", str(built)],
-                                     capture_output=True, text=True)
+                                     capture_output=True, text=True, timeout=300)
                 if run.returncode == 0:
                     break
                 errors.append(run.stderr.strip())
@@ -87,18 +88,19 @@ def _build() -> ctypes.CDLL:
 def _loaded() -> ctypes.CDLL | None:
     with _lock:
         if not _library:
-            try:
-                if os.environ.get("O3DVIS_NATIVE", "1") == "0":
-                    raise OSError("O3DVIS_NATIVE=0")
-                library = _build()
-                for name, (args, result) in _SIGNATURES.items():
-                    function = getattr(library, name)
-                    function.argtypes, function.restype = args, result
-                _library.append(library)
-            except (OSError, AttributeError, subprocess.SubprocessError) as e:
-                warnings.warn(f"o3dvis: queries run their per-view steps as torch ops, which is slower, "
-                              f"because the C kernels could not be built or loaded: {e}", RuntimeWarning)
-                _library.append(None)
+            library, reason = None, "the C kernels are turned off (O3DVIS_NATIVE=0)"
+            if os.environ.get("O3DVIS_NATIVE", "1") != "0":
+                try:
+                    library = _build()
+                    for name, (args, result) in _SIGNATURES.items():
+                        function = getattr(library, name)
+                        function.argtypes, function.restype = args, result
+                except (OSError, AttributeError, RuntimeError, KeyError, subprocess.SubprocessError) as e:
+                    library, reason = None, f"the C kernels could not be built or loaded: {e}"
+            if library is None:
+                warnings.warn(f"o3dvis: queries run their per-view steps as torch ops, which is slower; "
+                              f"{reason}", RuntimeWarning)
+            _library.append(library)
         return _library[0]
 
 
@@ -109,7 +111,7 @@ def available() -> bool:
 
 def usable(*tensors: Tensor | None) -> bool:
     """Whether the kernels can stand in for torch ops on these tensors: float32 on the CPU,
-    no gradient asked for (autograd on, or a tensor that requires one), and the kernels built."""
+    autograd off (``no_grad`` or ``inference_mode``), and the kernels built."""
     given = [t for t in tensors if t is not None]
     return (not torch.is_grad_enabled() and all(t.device.type == "cpu" and t.dtype == torch.float32 for t in given)
             and available())
@@ -178,15 +180,20 @@ def view_inputs(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequ
             raise ValueError("rows must be a slice with step 1 or an index tensor")
         n, rows_pointer = max(0, stop - start), None
     else:
-        rows = rows.to(torch.long).contiguous()  # referenced until the call has returned
+        rows = rows.to(device="cpu", dtype=torch.long).contiguous()  # referenced until the call has returned
+        if len(rows) and (int(rows.min()) < 0 or int(rows.max()) >= n_points):
+            raise IndexError(f"rows must lie in [0, {n_points})")
         n, start, rows_pointer = len(rows), 0, rows.data_ptr()
     e = 3 + 6 * num_frequencies
-    if out.shape != (e + 9 * scales, n) or out.stride(1) != 1 or out.dtype not in (torch.float32, torch.bfloat16):
-        raise ValueError(f"out must be ({e + 9 * scales}, {n}) float32 or bfloat16 with contiguous rows, "
-                         f"got {tuple(out.shape)} {out.dtype} strides {out.stride()}")
-    if projected.shape != (n_points, e) or dirs.shape != (n_points, 3) or dirs.stride(1) != 1:
+    if (out.shape != (e + 9 * scales, n) or out.stride(1) != 1 or out.device.type != "cpu"
+            or out.dtype not in (torch.float32, torch.bfloat16)):
+        raise ValueError(f"out must be ({e + 9 * scales}, {n}) float32 or bfloat16 on the CPU with contiguous "
+                         f"rows, got {tuple(out.shape)} {out.dtype} strides {out.stride()} on {out.device}")
+    if (projected.shape != (n_points, e) or dirs.shape != (n_points, 3) or dirs.stride(1) != 1
+            or any(t.dtype != torch.float32 or t.device.type != "cpu" for t in (projected, dirs))):
         raise ValueError(f"projected must be ({n_points}, {e}) and dirs ({n_points}, 3) with contiguous rows, "
-                         f"got {tuple(projected.shape)} and {tuple(dirs.shape)} strides {dirs.stride()}")
+                         f"float32 on the CPU, got {tuple(projected.shape)} {projected.dtype} and "
+                         f"{tuple(dirs.shape)} {dirs.dtype} strides {dirs.stride()}")
     if projected.stride(0) != 1:  # the kernel reads each channel as a contiguous row
         projected = projected.T.contiguous().T
     _check("buffers", buffers, (sum((res + 2) ** 2 for res in sides),))

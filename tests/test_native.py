@@ -145,6 +145,11 @@ def test_built_on_first_use_into_the_cache_folder(tmp_path):
     assert len(list(tmp_path.glob("kernels-*.so"))) == 1
     again = _python("from o3dvis.nn import native; print(native.available())", O3DVIS_CACHE=str(tmp_path))
     assert again.stdout.strip() == "True" and "RuntimeWarning" not in again.stderr
+    built = next(tmp_path.glob("kernels-*.so"))
+    built.write_bytes(b"not a library")  # a build cut short: replaced, not used
+    broken = _python("from o3dvis.nn import native; print(native.available())", O3DVIS_CACHE=str(tmp_path))
+    assert broken.stdout.strip() == "True" and "RuntimeWarning" not in broken.stderr
+    assert not built.read_bytes().startswith(b"not a library")
 
 
 @pytest.mark.parametrize("env", [{"O3DVIS_NATIVE": "0"}, {"CC": "/nonexistent/cc"}])

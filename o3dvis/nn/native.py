@@ -61,27 +61,32 @@ def _cpu() -> str:
 
 
 def _build() -> ctypes.CDLL:
-    """Loads the library, compiling it into the cache folder first if it is not there."""
+    """Loads the library, compiling it into the cache folder first if it is not there (or is not
+    a library: a build cut short)."""
     compiler = os.environ.get("CC", "cc")
     source = _SOURCE.read_bytes()
     key = hashlib.sha256(b"\0".join([source, compiler.encode(), " ".join(_FLAGS).encode(),
                                      _cpu().encode()])).hexdigest()[:16]
     folder = _cache_dir()
     path = folder / f"kernels-{key}.so"
-    if not path.exists():
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(dir=folder) as tmp:
-            built = Path(tmp) / path.name
-            errors = []
-            for arch in (["-march=native"], []):  # some compilers know no -march=native
-                run = subprocess.run([compiler, *_FLAGS, *arch, str(_SOURCE), "-o", str(built)],
-                                     capture_output=True, text=True, timeout=300)
-                if run.returncode == 0:
-                    break
-                errors.append(run.stderr.strip())
-            else:
-                raise OSError("\n".join(errors))
-            os.replace(built, path)  # atomic: another process sees the whole file or none
+    if path.exists():
+        try:
+            return ctypes.CDLL(str(path))
+        except OSError:  # a truncated or foreign file: built anew below
+            path.unlink(missing_ok=True)
+    folder.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=folder) as tmp:
+        built = Path(tmp) / path.name
+        errors = []
+        for arch in (["-march=native"], []):  # some compilers know no -march=native
+            run = subprocess.run([compiler, *_FLAGS, *arch, str(_SOURCE), "-o", str(built)],
+                                 capture_output=True, text=True, timeout=300)
+            if run.returncode == 0:
+                break
+            errors.append(run.stderr.strip())
+        else:
+            raise OSError("\n".join(errors))
+        os.replace(built, path)  # atomic: another process sees the whole file or none
     return ctypes.CDLL(str(path))
 
 

@@ -27,7 +27,8 @@
 #include <string.h>
 
 #define BLOCK 64          /* points per block: the block's buffers stay in L1 */
-#define MAX_CUES 64       /* scales x 9 */
+#define MAX_SCALES 7      /* depth-buffer scales */
+#define MAX_CUES (9 * MAX_SCALES)
 #define MAX_EMBED 64      /* 3 + 6 x frequencies */
 
 /* a * b + c, fused where the CPU has fused multiply-adds (the polynomials below) */
@@ -133,7 +134,8 @@ static void frame(const double *forward, double *right, double *up) {
     cross(forward, right, up);
 }
 
-/* Builds one view's projection of n points (n >= 1).
+/* Builds one view's projection of n points (n >= 1); returns 0, or -1 for more than
+ * MAX_SCALES scales.
  *
  * points: (n, 3); camera: (3,) camera position, or NULL with direction: (3,)
  * unit viewing direction. sides: (scales,) the buffers' resolutions. Writes
@@ -144,20 +146,23 @@ static void frame(const double *forward, double *right, double *up) {
  * around each point's pixel; inv: (n, scales) -1 / (pixel size x footprint),
  * footprint the depth for a camera, else 1.
  */
-void o3dvis_project(int64_t n, const float *points, const float *camera, const float *direction,
-                    int32_t scales, const int64_t *sides, float *dirs, float *depth, float *uv,
-                    float *zbufs, int64_t *corners, float *inv) {
+int o3dvis_project(int64_t n, const float *points, const float *camera, const float *direction,
+                   int32_t scales, const int64_t *sides, float *dirs, float *depth, float *uv,
+                   float *zbufs, int64_t *corners, float *inv) {
     double forward[3], right[3], up[3];
+    if (scales < 1 || scales > MAX_SCALES) return -1;
     if (camera) {
-        double sum[3] = {0.0, 0.0, 0.0};
-        for (int64_t i = 0; i < n; i++) {
+        for (int64_t i = 0; i < n; i++) { /* no reduction in this loop: it vectorises */
             float o[3], d2 = 0.0f;
             for (int a = 0; a < 3; a++) { o[a] = points[3 * i + a] - camera[a]; d2 += o[a] * o[a]; }
             float d = sqrtf(d2);
             d = d < 1e-12f ? 1e-12f : d;
             depth[i] = d;
-            for (int a = 0; a < 3; a++) { dirs[3 * i + a] = o[a] / d; sum[a] += dirs[3 * i + a]; }
+            for (int a = 0; a < 3; a++) dirs[3 * i + a] = o[a] / d;
         }
+        double sum[3] = {0.0, 0.0, 0.0};
+        for (int64_t i = 0; i < n; i++)
+            for (int a = 0; a < 3; a++) sum[a] += dirs[3 * i + a];
         double norm = sqrt(sum[0] * sum[0] + sum[1] * sum[1] + sum[2] * sum[2]);
         norm = norm < 1e-12 * n ? 1e-12 * n : norm;
         for (int a = 0; a < 3; a++) forward[a] = sum[a] / norm;
@@ -168,51 +173,61 @@ void o3dvis_project(int64_t n, const float *points, const float *camera, const f
     const float rf[3] = {(float)right[0], (float)right[1], (float)right[2]};
     const float uf[3] = {(float)up[0], (float)up[1], (float)up[2]};
     const float ff[3] = {(float)forward[0], (float)forward[1], (float)forward[2]};
-    float half = 0.0f;
-    for (int64_t i = 0; i < n; i++) {
-        float u, v;
-        if (camera) { /* azimuthal-equidistant around forward */
+    if (camera) { /* azimuthal-equidistant around forward */
+        for (int64_t i = 0; i < n; i++) {
             const float *d = dirs + 3 * i;
             float a = d[0] * rf[0] + d[1] * rf[1] + d[2] * rf[2];
             float b = d[0] * uf[0] + d[1] * uf[1] + d[2] * uf[2];
             float z = d[0] * ff[0] + d[1] * ff[1] + d[2] * ff[2];
             float s = sqrtf(a * a + b * b + 1e-24f);
             float k = atan2_pos(s, z) / s;
-            u = a * k, v = b * k;
-        } else { /* parallel */
+            uv[2 * i] = a * k, uv[2 * i + 1] = b * k;
+        }
+    } else { /* parallel */
+        for (int64_t i = 0; i < n; i++) {
             const float *p = points + 3 * i;
-            u = p[0] * rf[0] + p[1] * rf[1] + p[2] * rf[2];
-            v = p[0] * uf[0] + p[1] * uf[1] + p[2] * uf[2];
+            uv[2 * i] = p[0] * rf[0] + p[1] * rf[1] + p[2] * rf[2];
+            uv[2 * i + 1] = p[0] * uf[0] + p[1] * uf[1] + p[2] * uf[2];
             depth[i] = p[0] * ff[0] + p[1] * ff[1] + p[2] * ff[2];
         }
-        uv[2 * i] = u, uv[2 * i + 1] = v;
-        float m = fabsf(u) > fabsf(v) ? fabsf(u) : fabsf(v);
-        half = m > half ? m : half;
     }
+    float lanes[16] = {0}, half = 0.0f; /* the largest |u|, |v|, in 16 lanes that vectorise */
+    for (int64_t i = 0; i < 2 * n; i++) {
+        const float m = fabsf(uv[i]);
+        lanes[i % 16] = m > lanes[i % 16] ? m : lanes[i % 16];
+    }
+    for (int j = 0; j < 16; j++) half = lanes[j] > half ? lanes[j] : half;
     half = half * (1.0f + 1e-6f) + 1e-12f;
     for (int64_t i = 0; i < 2 * n; i++) uv[i] += half;
     int64_t start = 0;
+    float rpix[MAX_SCALES];
     for (int s = 0; s < scales; s++) {
         const int64_t res = sides[s], w = res + 2;
-        const float pixel = 2.0f * half / (float)res;
+        /* a product with the reciprocal instead of torch's division by the pixel size: no
+           division per point (they are most of the pass), the same pixel but within an ulp */
+        rpix[s] = (float)res / (2.0f * half);
         float *zbuf = zbufs + start;
         for (int64_t q = 0; q < w * w; q++) zbuf[q] = NAN;
         for (int64_t r = 1; r <= res; r++)
             for (int64_t c = 1; c <= res; c++) zbuf[r * w + c] = INFINITY;
         for (int64_t i = 0; i < n; i++) {
             /* truncated and clamped to the image as torch's .long().clamp_(); NaN goes to 0 */
-            float fu = uv[2 * i] / pixel, fv = uv[2 * i + 1] / pixel;
+            float fu = uv[2 * i] * rpix[s], fv = uv[2 * i + 1] * rpix[s];
             fu = fu >= 0.0f ? fu : 0.0f, fv = fv >= 0.0f ? fv : 0.0f;
             const int64_t iu = fu < (float)(res - 1) ? (int64_t)fu : res - 1;
             const int64_t iv = fv < (float)(res - 1) ? (int64_t)fv : res - 1;
             float *z = zbuf + (iu + 1) * w + iv + 1;
             *z = depth[i] < *z ? depth[i] : *z;
             corners[i * scales + s] = start + iu * w + iv;
-            inv[i * scales + s] = -1.0f / ((camera ? depth[i] : 1.0f) * pixel);
         }
         for (int64_t q = 0; q < w * w; q++) zbuf[q] = zbuf[q] == INFINITY ? NAN : zbuf[q];
         start += w * w;
     }
+    for (int64_t i = 0; i < n; i++) { /* -1 / (footprint x pixel size), one division per point */
+        const float k = camera ? -1.0f / depth[i] : -1.0f;
+        for (int s = 0; s < scales; s++) inv[i * scales + s] = k * rpix[s];
+    }
+    return 0;
 }
 
 /* Writes the inputs of n points; returns 0, or -1 when the sizes exceed the buffers.

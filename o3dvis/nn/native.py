@@ -36,7 +36,7 @@ _SOURCE = Path(__file__).with_name("kernels.c")
 _FLAGS = ["-O3", "-fPIC", "-shared", "-fno-math-errno", "-fno-trapping-math", "-ffp-contract=off"]
 _I64, _I32, _PTR = ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
 _SIGNATURES = {  # name: (argument types, result type)
-    "o3dvis_project": ([_I64, _PTR, _PTR, _PTR, _I32, _PTR] + [_PTR] * 6, None),
+    "o3dvis_project": ([_I64, _PTR, _PTR, _PTR, _I32, _PTR] + [_PTR] * 6, ctypes.c_int),
     "o3dvis_view_inputs": ([_I64, _PTR, _I64, _PTR, _I64, _PTR, _I64, _I32, _PTR, _PTR, _PTR, _PTR, _PTR, _I32,
                             ctypes.c_float, _PTR, _I64, _I32], ctypes.c_int),
 }
@@ -156,11 +156,12 @@ def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,
     buffers = points.new_empty(sum((res + 2) ** 2 for res in sides))
     corners, inv = torch.empty(n, scales, dtype=torch.long), points.new_empty(n, scales)
     sizes = torch.tensor(sides, dtype=torch.long)  # referenced until the call has returned
-    _loaded().o3dvis_project(n, points.data_ptr(), camera.data_ptr() if camera is not None else None,
-                             direction.data_ptr() if direction is not None else None, scales,
-                             sizes.data_ptr(),
-                             dirs.data_ptr() if dirs is not None else None, depth.data_ptr(), uv.data_ptr(),
-                             buffers.data_ptr(), corners.data_ptr(), inv.data_ptr())
+    if _loaded().o3dvis_project(n, points.data_ptr(), camera.data_ptr() if camera is not None else None,
+                                direction.data_ptr() if direction is not None else None, scales,
+                                sizes.data_ptr(),
+                                dirs.data_ptr() if dirs is not None else None, depth.data_ptr(), uv.data_ptr(),
+                                buffers.data_ptr(), corners.data_ptr(), inv.data_ptr()):
+        raise ValueError(f"the C kernel takes at most 7 scales, got {scales}")
     return dirs, depth, buffers, corners, inv
 
 

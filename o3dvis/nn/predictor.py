@@ -33,6 +33,15 @@ def resolve_precision(precision: str, device: torch.device) -> torch.dtype:
     return torch.bfloat16 if any(check is not None and check() for check in native) else torch.float32
 
 
+def _relu_(x: Tensor) -> Tensor:
+    """``x.relu_()``; in bfloat16 as ``clamp_(min=0)`` of its bits read as int16 (a set sign bit is
+    a negative int16; -0 becomes +0): 21 against 126 us per 32 k x 32 values here."""
+    if x.dtype == torch.bfloat16:
+        x.view(torch.int16).clamp_(min=0)
+        return x
+    return x.relu_()
+
+
 class ViewEmbedding(nn.Module):
     """NeRF-style embedding ``[d, sin(2^k pi d), cos(2^k pi d)]`` for k < ``num_frequencies``.
 
@@ -161,7 +170,7 @@ class VisibilityPredictor(nn.Module):
 
         h = x.transpose(1, 2)  # (B, n, E + Z), a view
         for layer in self.mlp[:-1:2]:  # the hidden layers, each followed by a ReLU
-            h = product(h, layer.weight, layer.bias).relu_()
+            h = _relu_(product(h, layer.weight, layer.bias))
         return product(h, weight, bias).float()[..., 0]
 
     def _hidden(self, projected: Tensor, dirs: Tensor, cues: Tensor) -> Tensor:

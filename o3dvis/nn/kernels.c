@@ -266,11 +266,13 @@ int o3dvis_view_inputs(int64_t n, const int64_t *rows, int64_t start,
            empty pixels marked; the buffers' rows are fetched for the whole block first */
         for (int b = 0; b < m; b++)
             for (int s = 0; s < scales; s++)
-                for (int r = 0; r < 3; r++) __builtin_prefetch(zbufs + corners[idx[b] * scales + s] + r * widths[s]);
+                for (int r = 0; r < 3; r++)
+                    __builtin_prefetch(zbufs + corners[idx[b] * scales + s] + r * widths[s]);
         for (int b = 0; b < m; b++)
             for (int s = 0; s < scales; s++) {
                 const float *z = zbufs + corners[idx[b] * scales + s];
-                for (int j = 0; j < 9; j++) cue[(9 * s + j) * BLOCK + b] = z[(j / 3) * widths[s] + j % 3];
+                for (int j = 0; j < 9; j++)
+                    cue[(9 * s + j) * BLOCK + b] = z[(j / 3) * widths[s] + j % 3];
             }
         for (int b = 0; b < m; b++) dep[b] = depth[idx[b]];
         for (int s = 0; s < scales; s++) {

@@ -16,6 +16,8 @@ from o3dvis.nn.predictor import ViewEmbedding
 
 _CAMERA = torch.tensor([2.0, 1.0, -0.5])
 _DIRECTION = torch.tensor([-0.3, 0.2, 1.0])
+# the comparisons need the kernels; test_the_kernels_build_here fails where they should be and are not
+needs_kernels = pytest.mark.skipif(not native.available(), reason="C kernels turned off (O3DVIS_NATIVE=0)")
 
 
 def _points(n: int = 6000, seed: int = 0) -> torch.Tensor:
@@ -43,6 +45,7 @@ def test_the_kernels_build_here():
     assert os.environ.get("O3DVIS_NATIVE") == "0" or native.available()
 
 
+@needs_kernels
 @pytest.mark.parametrize("view", [{"camera": _CAMERA}, {"direction": _DIRECTION}])
 def test_projection_equals_the_torch_one(view):
     points = _points()
@@ -61,6 +64,7 @@ def test_projection_equals_the_torch_one(view):
         assert (fast.cues() == -5.0).any()  # empty neighbours are marked
 
 
+@needs_kernels
 @pytest.mark.parametrize("rows", [slice(None), slice(1000, 4321), "indices"])
 @pytest.mark.parametrize("view", [{"camera": _CAMERA}, {"direction": _DIRECTION}])
 def test_inputs_equal_the_embedding_times_the_features_then_the_cues(view, rows):
@@ -84,6 +88,7 @@ def test_inputs_equal_the_embedding_times_the_features_then_the_cues(view, rows)
     torch.testing.assert_close(low.float(), expected, atol=1e-5, rtol=2 ** -7)
 
 
+@needs_kernels
 def test_inputs_reject_what_the_kernel_cannot_take():
     points = _points(500)
     fast, _ = _views(points, camera=_CAMERA)
@@ -118,6 +123,7 @@ def _cloud(normals: bool) -> o3d.geometry.PointCloud:
     return pcd
 
 
+@needs_kernels
 @pytest.mark.parametrize("precision", ["float32", "bfloat16"])
 @pytest.mark.parametrize("normals", [False, True])
 def test_answers_equal_those_of_the_torch_ops(precision, normals, monkeypatch):
@@ -139,6 +145,7 @@ def _python(code: str, **env) -> subprocess.CompletedProcess:
                           env={**os.environ, **env}, timeout=300)
 
 
+@needs_kernels
 def test_built_on_first_use_into_the_cache_folder(tmp_path):
     run = _python("from o3dvis.nn import native; print(native.available())", O3DVIS_CACHE=str(tmp_path))
     assert run.returncode == 0 and run.stdout.strip() == "True", run.stderr

@@ -128,8 +128,7 @@ class VisibilityPredictor(nn.Module):
         ``dtype`` (e.g. ``torch.bfloat16``): run the matrix products in it, accumulated in
         float32, when no gradient is needed (see :meth:`_reduced_margin`); None: in the inputs' dtype.
         """
-        last = self.mlp[-1]
-        weight, bias = last.weight[1:] - last.weight[:1], last.bias[1:] - last.bias[:1]
+        weight, bias = self._margin_layer()
         grad = torch.is_grad_enabled() and any(t.requires_grad for t in (projected, dirs, cues, weight))
         if dtype is not None and dtype != projected.dtype and not grad:
             return self._reduced_margin(projected, dirs, cues, dtype)
@@ -162,8 +161,7 @@ class VisibilityPredictor(nn.Module):
                 ``x``'s dtype as one batched ``baddbmm`` that accumulates in
                 float32 and rounds its output to that dtype.
         """
-        last = self.mlp[-1]
-        weight, bias = last.weight[1:] - last.weight[:1], last.bias[1:] - last.bias[:1]
+        weight, bias = self._margin_layer()
 
         def product(h: Tensor, w: Tensor, b: Tensor) -> Tensor:
             return torch.baddbmm(b.to(x.dtype), h, w.to(x.dtype).T.expand(h.shape[0], -1, -1))
@@ -172,6 +170,11 @@ class VisibilityPredictor(nn.Module):
         for layer in self.mlp[:-1:2]:  # the hidden layers, each followed by a ReLU
             h = _relu_(product(h, layer.weight, layer.bias))
         return product(h, weight, bias).float()[..., 0]
+
+    def _margin_layer(self) -> tuple[Tensor, Tensor]:
+        """The last layer's (1, H) weight and (1,) bias of "visible" minus "hidden"."""
+        last = self.mlp[-1]
+        return last.weight[1:] - last.weight[:1], last.bias[1:] - last.bias[:1]
 
     def _hidden(self, projected: Tensor, dirs: Tensor, cues: Tensor) -> Tensor:
         """The activations before the last layer.

@@ -81,7 +81,9 @@ def test_inputs_equal_the_embedding_times_the_features_then_the_cues(view, rows)
         fast.inputs(rows, projected, 4, out)
         torch.testing.assert_close(out, expected, atol=1e-5, rtol=1e-5)
         low = torch.empty(63, n, dtype=torch.bfloat16)
-        fast.inputs(rows, projected.contiguous(), 4, low)  # features stored by rows work too
+        fast.inputs(rows, projected, 4, low)
+        with pytest.raises(ValueError, match="stored channels first"):  # no hidden copy of all N per chunk
+            fast.inputs(rows, projected.contiguous(), 4, low)
     # bfloat16: torch's rounding of the float32 values, but where they lie a few float32 ulps
     # from a rounding boundary
     assert (low == expected.to(torch.bfloat16)).float().mean() > 0.999
@@ -92,7 +94,7 @@ def test_inputs_equal_the_embedding_times_the_features_then_the_cues(view, rows)
 def test_inputs_reject_what_the_kernel_cannot_take():
     points = _points(500)
     fast, _ = _views(points, camera=_CAMERA)
-    projected = torch.randn(500, 27)
+    projected = torch.randn(27, 500).T  # channels first, as encode() stores it
     with torch.inference_mode():
         with pytest.raises(ValueError, match=r"out must be \(63, 500\)"):
             fast.inputs(slice(None), projected, 4, torch.empty(62, 500))
@@ -107,7 +109,7 @@ def test_inputs_reject_what_the_kernel_cannot_take():
         with pytest.raises(ValueError, match="float32 on the CPU"):
             fast.inputs(slice(None), projected.double(), 4, torch.empty(63, 500))
         with pytest.raises(ValueError, match="at most 10 frequencies"):
-            fast.inputs(slice(None), torch.randn(500, 69), 11, torch.empty(69 + 36, 500))
+            fast.inputs(slice(None), torch.randn(69, 500).T, 11, torch.empty(69 + 36, 500))
         with pytest.raises(ValueError, match="need points"):
             native.project(torch.empty(0, 3), _CAMERA, None, [4])
         with pytest.raises(ValueError, match="camera must be"):

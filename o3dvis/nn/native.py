@@ -173,7 +173,7 @@ def view_inputs(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequ
         rows: the points, a slice with step 1 or a (n,) long tensor.
         dirs: (N, 3) view directions, rows contiguous (a direction expanded to N rows will do).
         projected: (N, E) projected features (:meth:`VisibilityPredictor.project`),
-            E = 3 + 6 ``num_frequencies``.
+            E = 3 + 6 ``num_frequencies``, stored channels first (strides (1, N)).
         buffers, corners, depth, inv: the view's, as :func:`project` returns them for ``sides``.
         empty: the residual an empty pixel takes before ``asinh``.
         out: (E + 9 S, n) float32 or bfloat16, rows contiguous: ``projected[rows]``
@@ -195,13 +195,15 @@ def view_inputs(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequ
             or out.dtype not in (torch.float32, torch.bfloat16)):
         raise ValueError(f"out must be ({e + 9 * scales}, {n}) float32 or bfloat16 on the CPU with contiguous "
                          f"rows, got {tuple(out.shape)} {out.dtype} strides {out.stride()} on {out.device}")
-    if (projected.shape != (n_points, e) or dirs.shape != (n_points, 3) or dirs.stride(1) != 1
+    # the kernel reads each channel of the features as a contiguous row (as encode() stores them):
+    # copying other layouts here would copy all N points for every chunk
+    if (projected.shape != (n_points, e) or projected.stride(0) != 1 or dirs.shape != (n_points, 3)
+            or dirs.stride(1) != 1
             or any(t.dtype != torch.float32 or t.device.type != "cpu" for t in (projected, dirs))):
-        raise ValueError(f"projected must be ({n_points}, {e}) and dirs ({n_points}, 3) with contiguous rows, "
-                         f"float32 on the CPU, got {tuple(projected.shape)} {projected.dtype} and "
+        raise ValueError(f"projected must be ({n_points}, {e}) stored channels first (strides (1, N)) and dirs "
+                         f"({n_points}, 3) with contiguous rows, float32 on the CPU, got "
+                         f"{tuple(projected.shape)} {projected.dtype} strides {projected.stride()} and "
                          f"{tuple(dirs.shape)} {dirs.dtype} strides {dirs.stride()}")
-    if projected.stride(0) != 1:  # the kernel reads each channel as a contiguous row
-        projected = projected.T.contiguous().T
     _check("buffers", buffers, (sum((res + 2) ** 2 for res in sides),))
     _check("corners", corners, (n_points, len(sides)), torch.long)
     _check("depth", depth, (n_points,))

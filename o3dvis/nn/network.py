@@ -157,7 +157,8 @@ class VisibilityNetwork(nn.Module):
         """
         predictor = self.predictor
         dtype = dtype or projected.dtype
-        if dtype in (torch.float32, torch.bfloat16) and all(v.native for v in views) and native.usable(projected):
+        if (dtype in (torch.float32, torch.bfloat16) and all(v.native for v in views) and native.usable(projected)
+                and projected.stride(0) == 1):  # stored channels first, as encode() stores it
             n = len(range(*rows.indices(projected.shape[0]))) if isinstance(rows, slice) else len(rows)
             inputs = predictor.embedding.dim + num_cues(self.config.cue_scales)
             x = projected.new_empty(len(views), inputs + self.config.use_normals, n, dtype=dtype)

@@ -5,14 +5,17 @@ view is timed alone (best of ``--repeats``), over chunks of the field's chunk si
 
 * projection: ``VisibilityNetwork.view`` (projection, depth buffers);
 * inputs + products: ``VisibilityNetwork.view_margin`` over all chunks;
-* products: ``VisibilityPredictor.margin_from_inputs`` alone on prepared inputs (the same
-  function on both paths with bfloat16 products; with float32 ones the torch path multiplies
-  by ``F.linear`` instead, and its inputs row is then only roughly the difference);
+* products: ``VisibilityPredictor.margin_from_inputs`` alone on prepared inputs, where the
+  path runs it (with float32 products the torch path multiplies by ``F.linear`` instead, and
+  its inputs row is then only roughly the difference);
 * inputs: the difference of the two;
 * query: ``VisibilityField.query`` of the one view, as a user calls it.
 
-The torch column runs the same code with the kernels switched off (``native.usable`` false),
-the path of ``O3DVIS_NATIVE=0``. Timings move with the host's load: compare columns of one run.
+Three paths, in one run: the torch ops (the kernels switched off, ``native.usable`` false, the
+path of ``O3DVIS_NATIVE=0``); the C inputs kernel with torch's products (``native.has_view_margin``
+false, the path of a CPU without AVX512-BF16 or of float32 products); and the fused C kernel,
+inputs and products in one pass (``o3dvis_view_margin``, the default here), whose two pieces
+are not timed apart. Timings move with the host's load: compare columns of one run.
 
     python3 benchmarks/per_view_profile.py                      # 200 k points, one thread
     python3 benchmarks/per_view_profile.py --threads 2 --out benchmarks/results/per_view_profile.md
@@ -48,7 +51,7 @@ def _best_ms(fn: Callable[[], object], repeats: int) -> float:
     return 1e3 * best
 
 
-def profile(field: o3dvis.VisibilityField, camera, repeats: int) -> dict[str, float]:
+def profile(field: o3dvis.VisibilityField, camera, repeats: int, fused: bool) -> dict[str, float]:
     """Milliseconds of each piece of one view of ``field`` from ``camera`` (see the module)."""
     network, points, features = field.network, field.points_n, field.features
     cameras, _ = field._normalised(as_views(camera))
@@ -56,21 +59,21 @@ def profile(field: o3dvis.VisibilityField, camera, repeats: int) -> dict[str, fl
     chunks = [slice(a, min(n, a + step)) for a in range(0, n, step)]
     with torch.inference_mode():
         view = network.view(points, cameras[0])
-        inputs = network.predictor.embedding.dim + num_cues(network.config.cue_scales)
-        x = features.new_zeros(1, inputs, step, dtype=field.matmul_dtype)  # zeros: no NaN to slow a product down
-        if view.native:  # real inputs where the kernels can write them
-            for c in chunks:
-                view.inputs(c, features, network.predictor.embedding.num_frequencies, x[0, :, :c.stop - c.start])
         times = {
             "projection": _best_ms(lambda: network.view(points, cameras[0]), repeats),
             "inputs + products": _best_ms(
                 lambda: [network.view_margin([view], c, features, None, field.matmul_dtype) for c in chunks],
                 repeats),
-            "products": _best_ms(
-                lambda: [network.predictor.margin_from_inputs(x[:, :, :c.stop - c.start]) for c in chunks],
-                repeats),
         }
-    times["inputs"] = times["inputs + products"] - times["products"]
+        if not fused:
+            inputs = network.predictor.embedding.dim + num_cues(network.config.cue_scales)
+            x = features.new_zeros(1, inputs, step, dtype=field.matmul_dtype)  # zeros: no NaN to slow a product
+            if view.native:  # real inputs where the kernels can write them
+                for c in chunks:
+                    view.inputs(c, features, network.predictor.embedding.num_frequencies, x[0, :, :c.stop - c.start])
+            times["products"] = _best_ms(
+                lambda: [network.predictor.margin_from_inputs(x[:, :, :c.stop - c.start]) for c in chunks], repeats)
+            times["inputs"] = times["inputs + products"] - times["products"]
     times["query"] = _best_ms(lambda: field.query(camera), repeats)
     return times
 
@@ -90,18 +93,30 @@ def main() -> None:
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud.points))
     vis = o3dvis.NeuralVisibility.pretrained(precision=args.precision)
     field = vis.encode(pcd)
-    kernels = profile(field, cloud.cameras[:1], args.repeats)
-    usable = native.usable
-    native.usable = lambda *tensors: False
-    try:
-        ops = profile(field, cloud.cameras[:1], args.repeats)
-    finally:
-        native.usable = usable
+    fused = field.matmul_dtype == torch.bfloat16 and native.has_view_margin()
+    # each path: the switch of o3dvis.nn.native turned off for it, if any
+    paths = {"torch ops": ("usable", lambda *tensors: False),
+             "C inputs, torch products": ("has_view_margin", lambda: False)}
+    if fused:
+        paths["C, fused"] = None
+    columns = {}
+    for name, switch in paths.items():
+        saved = switch and getattr(native, switch[0])
+        if switch:
+            setattr(native, *switch)
+        try:
+            columns[name] = profile(field, cloud.cameras[:1], args.repeats, fused=switch is None)
+        finally:
+            if switch:
+                setattr(native, switch[0], saved)
+    names = list(columns)
     lines = [f"One view of {args.points:,} points, {args.threads} thread(s), {field.matmul_dtype} products, "
-             f"best of {args.repeats} (ms):", "",
-             "| piece | torch ops | C kernels | ratio |", "|---|---|---|---|"]
+             f"best of {args.repeats} (ms; ratio: the torch ops over the last path that times the piece):", "",
+             "| piece | " + " | ".join(names) + " | ratio |", "|---|" + "---|" * (len(names) + 1)]
     for piece in ("projection", "inputs", "products", "inputs + products", "query"):
-        lines.append(f"| {piece} | {ops[piece]:.2f} | {kernels[piece]:.2f} | {ops[piece] / kernels[piece]:.2f}x |")
+        cells = [f"{columns[c][piece]:.2f}" if piece in columns[c] else "(fused)" for c in names]
+        last = columns[names[-1]].get(piece, columns[names[-2]].get(piece))
+        lines.append(f"| {piece} | " + " | ".join(cells) + f" | {columns[names[0]][piece] / last:.2f}x |")
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:

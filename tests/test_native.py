@@ -116,6 +116,81 @@ def test_inputs_reject_what_the_kernel_cannot_take():
             native.project(points, _CAMERA.double(), None, [4])
 
 
+needs_view_margin = pytest.mark.skipif(not native.available() or not native.has_view_margin(),
+                                       reason="no fused kernel here (C kernels off, or no AVX512-BF16)")
+
+
+@needs_view_margin
+@pytest.mark.parametrize("config", [{}, {"use_normals": True}, {"num_frequencies": 2, "hidden": (24, 40, 17)}])
+@pytest.mark.parametrize("rows", [slice(None), slice(1000, 4321), "indices"])
+def test_view_margin_equals_the_inputs_then_the_products(config, rows):
+    """One pass of C for a view's margins: the bfloat16 products of margin_from_inputs on the
+    inputs the C kernel writes, summed in another order (odd inputs and hidden widths that are
+    no multiple of 16 padded with zero weights)."""
+    from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
+
+    torch.manual_seed(0)
+    network = VisibilityNetwork(NetworkConfig(channels=(8, 8), **config)).eval()
+    points = _points()
+    normals = torch.nn.functional.normalize(points, dim=1) if config.get("use_normals") else None
+    if rows == "indices":
+        rows = torch.randperm(len(points), generator=torch.Generator().manual_seed(1))[:2500]
+    fast, _ = _views(points, camera=_CAMERA)
+    predictor = network.predictor
+    projected = torch.randn(predictor.embedding.dim, len(points)).T  # channels first, as encode() stores it
+    n = len(points[rows])
+    with torch.inference_mode():
+        margin = network.view_margin([fast], rows, projected, normals, torch.bfloat16)[0]
+        inputs = predictor.embedding.dim + 36
+        x = torch.empty(1, inputs + (normals is not None), n, dtype=torch.bfloat16)
+        fast.inputs(rows, projected, predictor.embedding.num_frequencies, x[0, :inputs])
+        if normals is not None:
+            x[0, inputs] = network._normal_cue(normals, rows, fast.dirs[rows])
+        expected = predictor.margin_from_inputs(x)[0]
+    assert margin.shape == (n,) and margin.dtype == torch.float32
+    # both round each layer's output to bfloat16; a sum in another order may round the other way
+    assert (margin == expected).float().mean() > 0.95
+    scale = expected.abs().max()
+    torch.testing.assert_close(margin, expected, atol=0.02 * scale, rtol=0)
+    assert ((margin > 0) == (expected > 0)).float().mean() > 0.998
+
+
+@needs_view_margin
+def test_view_margin_rejects_what_the_kernel_cannot_take():
+    from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
+
+    network = VisibilityNetwork(NetworkConfig(channels=(8, 8))).eval()
+    points = _points(500)
+    fast, _ = _views(points, camera=_CAMERA)
+    projected = torch.randn(27, 500).T
+    mlp = network.predictor.packed_mlp()
+    with torch.inference_mode():
+        with pytest.raises(ValueError, match="does not match the view's inputs"):  # inputs for 2 frequencies
+            fast.margin(slice(None), torch.randn(15, 500).T, 2, None, mlp, torch.empty(500))
+        with pytest.raises(ValueError, match=r"out must be a contiguous \(500,\)"):
+            fast.margin(slice(None), projected, 4, None, mlp, torch.empty(499))
+        with pytest.raises(ValueError, match="normals must be"):
+            fast.margin(slice(None), projected, 4, torch.empty(499, 3), mlp, torch.empty(500))
+        with pytest.raises(ValueError, match="wider than 128"):
+            wide = native.pack_mlp([(torch.randn(144, 63), torch.randn(144)), (torch.randn(1, 144), torch.randn(1))])
+            fast.margin(slice(None), projected, 4, None, wide, torch.empty(500))
+    with pytest.raises(ValueError, match="one output"):
+        native.pack_mlp([(torch.randn(2, 63), torch.randn(2))])
+
+
+def test_packed_mlp_follows_the_weights():
+    """Packed once, again after an optimiser step changes the weights in place."""
+    from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
+
+    predictor = VisibilityNetwork(NetworkConfig(channels=(8, 8))).predictor
+    packed = predictor.packed_mlp()
+    assert predictor.packed_mlp() is packed
+    assert packed.sizes.tolist() == [64, 32, 32]  # 63 inputs padded to 64, two hidden layers of 32
+    with torch.no_grad():
+        predictor.mlp[0].weight.add_(1.0)
+    assert predictor.packed_mlp() is not packed
+
+
 def _cloud(normals: bool) -> o3d.geometry.PointCloud:
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(_points(40_000).double().numpy()))
     if normals:

@@ -33,6 +33,8 @@
 #define MAX_SCALES 7      /* depth-buffer scales */
 #define MAX_CUES (9 * MAX_SCALES)
 #define MAX_EMBED 64      /* 3 + 6 x frequencies */
+#define MAX_INPUTS (MAX_EMBED + MAX_CUES + 1)
+#define MAX_WIDTH 128     /* the widest hidden layer of the fused MLP */
 
 /* a * b + c, fused where the CPU has fused multiply-adds (the polynomials below) */
 #ifdef FP_FAST_FMAF
@@ -236,6 +238,106 @@ int o3dvis_project(int64_t n, const float *points, const float *camera, const fl
     return 0;
 }
 
+/* What the two kernels below read of a view and its points (see o3dvis_view_inputs). */
+struct view {
+    const int64_t *rows;
+    int64_t start;
+    const float *dirs;
+    int64_t dirs_stride;
+    const float *proj;
+    int64_t proj_ld;
+    int frequencies;
+    const float *zbufs;
+    const int64_t *corners;
+    const int64_t *widths;
+    const float *depth;
+    const float *inv;
+    int scales;
+    float empty;
+    const float *normals;
+};
+
+/* Writes the 3x3 depths around the pixels of m <= BLOCK points (rows idx) at every scale into
+ * cue, channels first: row 9 s + 3 r + j holds the pixel at row r, column j of the 3x3 at scale s. */
+static void gather_patches(const struct view *v, const int64_t *idx, int m, float *cue) {
+    for (int s = 0; s < v->scales; s++) {
+        const int64_t w = v->widths[s];
+        float *c = cue + 9 * s * BLOCK;
+        for (int b = 0; b < m; b++) {
+            const float *z = v->zbufs + v->corners[idx[b] * v->scales + s];
+            for (int r = 0; r < 3; r++)
+                for (int j = 0; j < 3; j++) c[(3 * r + j) * BLOCK + b] = z[r * w + j];
+        }
+    }
+}
+
+/* Writes the first layer's inputs of the block of m <= BLOCK points from the b0-th, as rows of
+ * BLOCK floats: the embedding times the feature (3 + 6 frequencies rows), the cues (9 scales
+ * rows), then with normals the cosine of the normal and the reversed view direction. Rows past m
+ * hold finite values of no meaning. */
+static void block_inputs(const struct view *v, int64_t b0, int m, float *in) {
+    const int ne = 3 + 6 * v->frequencies, nc = 9 * v->scales, scales = v->scales;
+    float *cue = in + ne * BLOCK, dep[BLOCK], k[BLOCK];
+    const float empty = v->empty; /* a local: the stores below could otherwise change it */
+    int64_t idx[BLOCK];
+    for (int b = 0; b < m; b++) idx[b] = v->rows ? v->rows[b0 + b] : v->start + b0 + b;
+    /* the 3x3 depths around each point's pixels (channels first: the arithmetic below runs
+       along contiguous rows), then its residuals to them in pixel footprints, clamped, with
+       empty pixels marked */
+    gather_patches(v, idx, m, cue);
+    for (int b = 0; b < m; b++) dep[b] = v->depth[idx[b]];
+    for (int s = 0; s < scales; s++) {
+        for (int b = 0; b < m; b++) k[b] = v->inv[idx[b] * scales + s];
+        for (int j = 0; j < 9; j++) {
+            float *c = cue + (9 * s + j) * BLOCK;
+            for (int b = 0; b < m; b++) {
+                float r = (c[b] - dep[b]) * k[b];
+                r = r < -50.0f ? -50.0f : r;
+                r = r > 50.0f ? 50.0f : r;
+                c[b] = r != r ? empty : r;
+            }
+        }
+    }
+    asinh_inplace(cue, (int64_t)BLOCK * nc);
+    /* embedding [d, sin(pi d), cos(pi d), sin(2 pi d), ...], channels first */
+    for (int a = 0; a < 3; a++) {
+        float *d = in + a * BLOCK;
+        for (int b = 0; b < m; b++) d[b] = v->dirs[idx[b] * v->dirs_stride + a];
+        if (!v->frequencies) continue;
+        for (int b = 0; b < m; b++) {
+            const float t = d[b] > 0.5f ? 1.0f - d[b] : (d[b] < -0.5f ? -1.0f - d[b] : d[b]);
+            in[(3 + a) * BLOCK + b] = sin_pi_half(t);
+            in[(6 + a) * BLOCK + b] = sin_pi_half(0.5f - fabsf(d[b]));
+        }
+        for (int f = 1; f < v->frequencies; f++) {
+            const float *s = in + (6 * f - 3 + a) * BLOCK, *c = in + (6 * f + a) * BLOCK;
+            float *s2 = in + (6 * f + 3 + a) * BLOCK, *c2 = in + (6 * f + 6 + a) * BLOCK;
+            for (int b = 0; b < m; b++) {
+                s2[b] = s[b] * c[b] * 2.0f;
+                c2[b] = s[b] * s[b] * -2.0f + 1.0f;
+            }
+        }
+    }
+    if (v->normals) { /* -(n . d), before the directions are multiplied by the features */
+        float *c = in + (ne + nc) * BLOCK;
+        for (int b = 0; b < m; b++) {
+            const float *nrm = v->normals + 3 * idx[b];
+            c[b] = -(nrm[0] * in[b] + nrm[1] * in[BLOCK + b] + nrm[2] * in[2 * BLOCK + b]);
+        }
+    }
+    for (int j = 0; j < ne; j++) {
+        const float *p = v->proj + j * v->proj_ld;
+        float *e = in + j * BLOCK;
+        if (v->rows) {
+            for (int b = 0; b < m; b++) e[b] *= p[idx[b]];
+        } else { /* the next block's features fetched now: the CPU's own prefetcher follows
+                    fewer streams than the 3 + 6 frequencies rows read side by side here */
+            for (int l = 0; l < BLOCK; l += 16) __builtin_prefetch(p + v->start + b0 + BLOCK + l);
+            for (int b = 0; b < m; b++) e[b] *= p[v->start + b0 + b];
+        }
+    }
+}
+
 /* Writes the inputs of n points; returns 0, or -1 when the sizes exceed the buffers.
  *
  * rows: the points' rows (NULL: start, start + 1, ...); dirs: (N, 3) view
@@ -253,68 +355,16 @@ int o3dvis_view_inputs(int64_t n, const int64_t *rows, int64_t start,
                        const float *zbufs, const int64_t *corners, const int64_t *widths,
                        const float *depth, const float *inv, int32_t scales, float empty,
                        void *out, int64_t out_ld, int32_t out_bf16) {
-    const int ne = 3 + 6 * frequencies, nc = 9 * scales;
-    /* zeroed: asinh runs over whole blocks, the unused tail of the last one included */
-    float cue[MAX_CUES * BLOCK] = {0}, emb[MAX_EMBED][BLOCK], dep[BLOCK], k[BLOCK];
-    int64_t idx[BLOCK];
-    if (frequencies < 0 || scales < 1 || ne > MAX_EMBED || nc > MAX_CUES) return -1;
+    const struct view v = {rows, start, dirs, dirs_stride, proj, proj_ld, frequencies, zbufs, corners, widths,
+                           depth, inv, scales, empty, NULL};
+    const int channels = 3 + 6 * frequencies + 9 * scales;
+    float in[MAX_INPUTS * BLOCK] = {0}; /* zeroed: asinh runs over whole blocks */
+    if (frequencies < 0 || scales < 1 || 3 + 6 * frequencies > MAX_EMBED || scales > MAX_SCALES) return -1;
     for (int64_t b0 = 0; b0 < n; b0 += BLOCK) {
         const int m = n - b0 < BLOCK ? (int)(n - b0) : BLOCK;
-        for (int b = 0; b < m; b++) idx[b] = rows ? rows[b0 + b] : start + b0 + b;
-        /* the 3x3 depths around each point's pixels (channels first: the arithmetic below runs
-           along contiguous rows), then its residuals to them in pixel footprints, clamped, with
-           empty pixels marked; the buffers' rows are fetched for the whole block first */
-        for (int b = 0; b < m; b++)
-            for (int s = 0; s < scales; s++)
-                for (int r = 0; r < 3; r++)
-                    __builtin_prefetch(zbufs + corners[idx[b] * scales + s] + r * widths[s]);
-        for (int b = 0; b < m; b++)
-            for (int s = 0; s < scales; s++) {
-                const float *z = zbufs + corners[idx[b] * scales + s];
-                for (int j = 0; j < 9; j++)
-                    cue[(9 * s + j) * BLOCK + b] = z[(j / 3) * widths[s] + j % 3];
-            }
-        for (int b = 0; b < m; b++) dep[b] = depth[idx[b]];
-        for (int s = 0; s < scales; s++) {
-            for (int b = 0; b < m; b++) k[b] = inv[idx[b] * scales + s];
-            for (int j = 0; j < 9; j++) {
-                float *c = cue + (9 * s + j) * BLOCK;
-                for (int b = 0; b < m; b++) {
-                    float r = (c[b] - dep[b]) * k[b];
-                    r = r < -50.0f ? -50.0f : r;
-                    r = r > 50.0f ? 50.0f : r;
-                    c[b] = r != r ? empty : r;
-                }
-            }
-        }
-        asinh_inplace(cue, (int64_t)BLOCK * nc);
-        /* embedding [d, sin(pi d), cos(pi d), sin(2 pi d), ...], channels first */
-        for (int a = 0; a < 3; a++) {
-            for (int b = 0; b < m; b++) emb[a][b] = dirs[idx[b] * dirs_stride + a];
-            if (!frequencies) continue;
-            for (int b = 0; b < m; b++) {
-                const float d = emb[a][b];
-                const float t = d > 0.5f ? 1.0f - d : (d < -0.5f ? -1.0f - d : d);
-                emb[3 + a][b] = sin_pi_half(t);
-                emb[6 + a][b] = sin_pi_half(0.5f - fabsf(d));
-            }
-            for (int f = 1; f < frequencies; f++) {
-                const float *s = emb[6 * f - 3 + a], *c = emb[6 * f + a];
-                float *s2 = emb[6 * f + 3 + a], *c2 = emb[6 * f + 6 + a];
-                for (int b = 0; b < m; b++) {
-                    s2[b] = s[b] * c[b] * 2.0f;
-                    c2[b] = s[b] * s[b] * -2.0f + 1.0f;
-                }
-            }
-        }
-        for (int j = 0; j < ne; j++) {
-            const float *p = proj + j * proj_ld;
-            if (rows) for (int b = 0; b < m; b++) emb[j][b] *= p[idx[b]];
-            else for (int b = 0; b < m; b++) emb[j][b] *= p[start + b0 + b];
-        }
-        /* the channels: embedding x feature, then the cues */
-        for (int j = 0; j < ne + nc; j++) {
-            const float *x = j < ne ? emb[j] : cue + (j - ne) * BLOCK;
+        block_inputs(&v, b0, m, in);
+        for (int j = 0; j < channels; j++) {
+            const float *x = in + j * BLOCK;
             if (out_bf16) {
                 uint16_t *o = (uint16_t *)out + j * out_ld + b0;
                 for (int b = 0; b < m; b++) o[b] = bf16_of(x[b]);
@@ -324,4 +374,107 @@ int o3dvis_view_inputs(int64_t n, const int64_t *rows, int64_t start,
         }
     }
     return 0;
+}
+
+/* Whether this build has o3dvis_view_margin: it needs the CPU's bfloat16 dot products. */
+int o3dvis_has_view_margin(void) {
+#ifdef __AVX512BF16__
+    return 1;
+#else
+    return 0;
+#endif
+}
+
+#ifdef __AVX512BF16__
+#include <immintrin.h>
+
+/* x: k rows of 16 values (row j at rows + j * ld) -> (k + 1) / 2 rows of 16 pairs of bfloat16,
+   rows 2i and 2i + 1 in pair i (a zero after an odd last row) */
+static void pair_rows(const float *rows, int64_t ld, int k, uint32_t *x) {
+    for (int i = 0; i < k / 2; i++) {
+        const float *a = rows + 2 * i * ld, *b = a + ld;
+        for (int l = 0; l < 16; l++) x[16 * i + l] = bf16_of(a[l]) | (uint32_t)bf16_of(b[l]) << 16;
+    }
+    if (k % 2)
+        for (int l = 0; l < 16; l++) x[16 * (k / 2) + l] = bf16_of(rows[(k - 1) * ld + l]);
+}
+
+/* One layer for 16 points: y (outputs rows of 16) = relu(bias + W x), x as pair_rows writes it,
+   pairs rows; w: (pairs, outputs) pairs of bfloat16, outputs a multiple of 16 */
+static void dense_relu(const uint32_t *x, int pairs, const uint32_t *w, const float *bias, int outputs,
+                       float *y) {
+    for (int o0 = 0; o0 < outputs; o0 += 16) {
+        __m512 acc[16];
+#pragma GCC unroll 16
+        for (int j = 0; j < 16; j++) acc[j] = _mm512_set1_ps(bias[o0 + j]);
+        for (int i = 0; i < pairs; i++) {
+            const __m512bh a = (__m512bh)_mm512_loadu_si512(x + 16 * i);
+            const uint32_t *wi = w + (int64_t)i * outputs + o0;
+#pragma GCC unroll 16
+            for (int j = 0; j < 16; j++)
+                acc[j] = _mm512_dpbf16_ps(acc[j], a, (__m512bh)_mm512_set1_epi32((int)wi[j]));
+        }
+#pragma GCC unroll 16
+        for (int j = 0; j < 16; j++) _mm512_storeu_ps(y + 16 * (o0 + j), _mm512_max_ps(acc[j], _mm512_setzero_ps()));
+    }
+}
+#endif
+
+/* Writes the margins of n points for one view: the predictor's MLP (o3dvis/nn/predictor.py,
+ * VisibilityPredictor.margin_from_inputs) on the inputs o3dvis_view_inputs writes, each product in
+ * bfloat16 with float32 sums, each layer's output rounded to bfloat16 as torch rounds it. Returns 0,
+ * -1 when the sizes exceed the buffers or do not match, -2 in a build without o3dvis_has_view_margin.
+ *
+ * The view's arguments are o3dvis_view_inputs's; normals: (N, 3), or NULL for a model without the
+ * normal cue. layers: the hidden layers; sizes: (layers + 1,) the inputs, padded to even, then
+ * each hidden layer's outputs, padded to a multiple of 16; weights: each layer's (sizes[l] / 2,
+ * sizes[l + 1]) pairs of bfloat16 along its inputs, then the last layer's (sizes[layers] / 2,);
+ * biases: each layer's sizes[l + 1] float32, then the last layer's one. Padding weighs zero.
+ * out: (n,) float32.
+ */
+int o3dvis_view_margin(int64_t n, const int64_t *rows, int64_t start,
+                       const float *dirs, int64_t dirs_stride,
+                       const float *proj, int64_t proj_ld, int32_t frequencies,
+                       const float *zbufs, const int64_t *corners, const int64_t *widths,
+                       const float *depth, const float *inv, int32_t scales, float empty,
+                       const float *normals, int32_t layers, const int32_t *sizes,
+                       const uint32_t *weights, const float *biases, float *out) {
+#ifdef __AVX512BF16__
+    const struct view v = {rows, start, dirs, dirs_stride, proj, proj_ld, frequencies, zbufs, corners, widths,
+                           depth, inv, scales, empty, normals};
+    const int channels = 3 + 6 * frequencies + 9 * scales + (normals != NULL);
+    float in[MAX_INPUTS * BLOCK] = {0}, y[MAX_WIDTH * 16];
+    uint32_t x[MAX_WIDTH / 2 * 16];
+    if (frequencies < 0 || scales < 1 || 3 + 6 * frequencies > MAX_EMBED || scales > MAX_SCALES
+        || layers < 0 || sizes[0] != channels + channels % 2) return -1;
+    for (int l = 1; l <= layers; l++)
+        if (sizes[l] < 16 || sizes[l] % 16 || sizes[l] > MAX_WIDTH) return -1;
+    for (int64_t b0 = 0; b0 < n; b0 += BLOCK) {
+        const int m = n - b0 < BLOCK ? (int)(n - b0) : BLOCK;
+        block_inputs(&v, b0, m, in);
+        for (int g = 0; g < m; g += 16) {
+            const uint32_t *w = weights;
+            const float *bias = biases;
+            pair_rows(in + g, BLOCK, channels, x);
+            for (int l = 0; l < layers; l++) {
+                dense_relu(x, sizes[l] / 2, w, bias, sizes[l + 1], y);
+                w += sizes[l] / 2 * sizes[l + 1], bias += sizes[l + 1];
+                pair_rows(y, 16, sizes[l + 1], x);
+            }
+            __m512 acc = _mm512_set1_ps(bias[0]);
+            for (int i = 0; i < sizes[layers] / 2; i++)
+                acc = _mm512_dpbf16_ps(acc, (__m512bh)_mm512_loadu_si512(x + 16 * i),
+                                       (__m512bh)_mm512_set1_epi32((int)w[i]));
+            float margin[16];
+            _mm512_storeu_ps(margin, acc);
+            for (int l = 0; l < 16 && g + l < m; l++) out[b0 + g + l] = float_of((uint32_t)bf16_of(margin[l]) << 16);
+        }
+    }
+    return 0;
+#else
+    (void)n, (void)rows, (void)start, (void)dirs, (void)dirs_stride, (void)proj, (void)proj_ld, (void)frequencies;
+    (void)zbufs, (void)corners, (void)widths, (void)depth, (void)inv, (void)scales, (void)empty, (void)normals;
+    (void)layers, (void)sizes, (void)weights, (void)biases, (void)out;
+    return -2;
+#endif
 }

@@ -22,23 +22,26 @@ import subprocess
 import tempfile
 import threading
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
 
-__all__ = ["available", "usable", "project", "view_inputs"]
+__all__ = ["available", "usable", "has_view_margin", "project", "view_inputs", "PackedMLP", "pack_mlp", "view_margin"]
 
 _SOURCE = Path(__file__).with_name("kernels.c")
 # vectorisable loops (no errno, no traps) whose rounding follows torch's op order (no contraction into
 # fused multiply-adds but the polynomials' own, see kernels.c)
 _FLAGS = ["-O3", "-fPIC", "-shared", "-fno-math-errno", "-fno-trapping-math", "-ffp-contract=off"]
 _I64, _I32, _PTR = ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
+_VIEW = [_I64, _PTR, _I64, _PTR, _I64, _PTR, _I64, _I32, _PTR, _PTR, _PTR, _PTR, _PTR, _I32, ctypes.c_float]
 _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_project": ([_I64, _PTR, _PTR, _PTR, _I32, _PTR] + [_PTR] * 6, ctypes.c_int),
-    "o3dvis_view_inputs": ([_I64, _PTR, _I64, _PTR, _I64, _PTR, _I64, _I32, _PTR, _PTR, _PTR, _PTR, _PTR, _I32,
-                            ctypes.c_float, _PTR, _I64, _I32], ctypes.c_int),
+    "o3dvis_view_inputs": (_VIEW + [_PTR, _I64, _I32], ctypes.c_int),
+    "o3dvis_has_view_margin": ([], ctypes.c_int),
+    "o3dvis_view_margin": (_VIEW + [_PTR, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
 }
 _lock = threading.Lock()
 _library: list = []  # [the loaded library, or None where it could not be built], once tried
@@ -128,6 +131,11 @@ def _check(name: str, t: Tensor, shape: tuple[int, ...], dtype: torch.dtype = to
                          f"{tuple(t.shape)} {t.dtype} on {t.device}")
 
 
+def _buffers_size(sides: list[int]) -> int:
+    """The length of a view's bordered depth buffers and the one float after them (see :func:`project`)."""
+    return sum((res + 2) ** 2 for res in sides) + 1
+
+
 def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,
             sides: list[int]) -> tuple[Tensor | None, Tensor, Tensor, Tensor, Tensor]:
     """One view's projection (see :class:`~o3dvis.nn.cues.ViewProjection`).
@@ -141,7 +149,8 @@ def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,
         ``dirs`` (N, 3) unit vectors from the camera (None with ``direction``),
         ``depth`` (N,), ``buffers`` each scale's min-depth image inside a
         border, (side + 2)^2 values in rows of side + 2, one after the other,
-        NaN where empty and on the border, ``corners`` (N, S) the index in
+        NaN where empty and on the border, then one more NaN (the kernels load
+        four floats at a time from a patch's rows of three), ``corners`` (N, S) the index in
         ``buffers`` of the top-left pixel of the 3x3 around each point's pixel,
         ``inv`` (N, S) -1 / (pixel size x footprint).
     """
@@ -153,7 +162,7 @@ def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,
         raise ValueError(f"need points and positive sides, got {n} points, sides {sides}")
     dirs = points.new_empty(n, 3) if camera is not None else None
     depth, uv = points.new_empty(n), points.new_empty(n, 2)
-    buffers = points.new_empty(sum((res + 2) ** 2 for res in sides))
+    buffers = points.new_empty(_buffers_size(sides))
     corners, inv = torch.empty(n, scales, dtype=torch.long), points.new_empty(n, scales)
     sizes = torch.tensor(sides, dtype=torch.long)  # referenced until the call has returned
     if _loaded().o3dvis_project(n, points.data_ptr(), camera.data_ptr() if camera is not None else None,
@@ -163,6 +172,53 @@ def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,
                                 buffers.data_ptr(), corners.data_ptr(), inv.data_ptr()):
         raise ValueError(f"the C kernel takes at most 7 scales, got {scales}")
     return dirs, depth, buffers, corners, inv
+
+
+def has_view_margin() -> bool:
+    """Whether :func:`view_margin` runs here: the kernels are built, for a CPU with bfloat16 dot
+    products (AVX512-BF16)."""
+    library = _loaded()
+    return library is not None and bool(library.o3dvis_has_view_margin())
+
+
+def _view_arguments(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies: int,
+                    buffers: Tensor, corners: Tensor, sides: list[int], depth: Tensor, inv: Tensor,
+                    empty: float) -> tuple[int, list, list[Tensor]]:
+    """The number of points, the kernels' view arguments and the tensors to keep referenced until
+    the call has returned (see :func:`view_inputs`)."""
+    n_points, scales = corners.shape
+    keep = []  # referenced by the caller until the call has returned
+    if isinstance(rows, slice):
+        start, stop, step = rows.indices(n_points)
+        if step != 1:
+            raise ValueError("rows must be a slice with step 1 or an index tensor")
+        n, rows_pointer = max(0, stop - start), None
+    else:
+        rows = rows.to(device="cpu", dtype=torch.long).contiguous()
+        if len(rows) and (int(rows.min()) < 0 or int(rows.max()) >= n_points):
+            raise IndexError(f"rows must lie in [0, {n_points})")
+        n, start, rows_pointer = len(rows), 0, rows.data_ptr()
+        keep.append(rows)
+    e = 3 + 6 * num_frequencies
+    # the kernel reads each channel of the features as a contiguous row (as encode() stores them):
+    # copying other layouts here would copy all N points for every chunk
+    if (projected.shape != (n_points, e) or projected.stride(0) != 1 or dirs.shape != (n_points, 3)
+            or dirs.stride(1) != 1
+            or any(t.dtype != torch.float32 or t.device.type != "cpu" for t in (projected, dirs))):
+        raise ValueError(f"projected must be ({n_points}, {e}) stored channels first (strides (1, N)) and dirs "
+                         f"({n_points}, 3) with contiguous rows, float32 on the CPU, got "
+                         f"{tuple(projected.shape)} {projected.dtype} strides {projected.stride()} and "
+                         f"{tuple(dirs.shape)} {dirs.dtype} strides {dirs.stride()}")
+    _check("buffers", buffers, (_buffers_size(sides),))
+    _check("corners", corners, (n_points, len(sides)), torch.long)
+    _check("depth", depth, (n_points,))
+    _check("inv", inv, (n_points, scales))
+    widths = torch.tensor([res + 2 for res in sides], dtype=torch.long)
+    keep.append(widths)
+    arguments = [n, rows_pointer, start, dirs.data_ptr(), dirs.stride(0), projected.data_ptr(), projected.stride(1),
+                 num_frequencies, buffers.data_ptr(), corners.data_ptr(), widths.data_ptr(), depth.data_ptr(),
+                 inv.data_ptr(), scales, empty]
+    return n, arguments, keep
 
 
 def view_inputs(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies: int, buffers: Tensor,
@@ -179,39 +235,66 @@ def view_inputs(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequ
         out: (E + 9 S, n) float32 or bfloat16, rows contiguous: ``projected[rows]``
             times the view embedding of ``dirs[rows]``, then the depth-buffer cues.
     """
-    n_points, scales = corners.shape
-    if isinstance(rows, slice):
-        start, stop, step = rows.indices(n_points)
-        if step != 1:
-            raise ValueError("rows must be a slice with step 1 or an index tensor")
-        n, rows_pointer = max(0, stop - start), None
-    else:
-        rows = rows.to(device="cpu", dtype=torch.long).contiguous()  # referenced until the call has returned
-        if len(rows) and (int(rows.min()) < 0 or int(rows.max()) >= n_points):
-            raise IndexError(f"rows must lie in [0, {n_points})")
-        n, start, rows_pointer = len(rows), 0, rows.data_ptr()
-    e = 3 + 6 * num_frequencies
-    if (out.shape != (e + 9 * scales, n) or out.stride(1) != 1 or out.device.type != "cpu"
+    n, arguments, keep = _view_arguments(rows, dirs, projected, num_frequencies, buffers, corners, sides, depth,
+                                         inv, empty)
+    channels = 3 + 6 * num_frequencies + 9 * len(sides)
+    if (out.shape != (channels, n) or out.stride(1) != 1 or out.device.type != "cpu"
             or out.dtype not in (torch.float32, torch.bfloat16)):
-        raise ValueError(f"out must be ({e + 9 * scales}, {n}) float32 or bfloat16 on the CPU with contiguous "
+        raise ValueError(f"out must be ({channels}, {n}) float32 or bfloat16 on the CPU with contiguous "
                          f"rows, got {tuple(out.shape)} {out.dtype} strides {out.stride()} on {out.device}")
-    # the kernel reads each channel of the features as a contiguous row (as encode() stores them):
-    # copying other layouts here would copy all N points for every chunk
-    if (projected.shape != (n_points, e) or projected.stride(0) != 1 or dirs.shape != (n_points, 3)
-            or dirs.stride(1) != 1
-            or any(t.dtype != torch.float32 or t.device.type != "cpu" for t in (projected, dirs))):
-        raise ValueError(f"projected must be ({n_points}, {e}) stored channels first (strides (1, N)) and dirs "
-                         f"({n_points}, 3) with contiguous rows, float32 on the CPU, got "
-                         f"{tuple(projected.shape)} {projected.dtype} strides {projected.stride()} and "
-                         f"{tuple(dirs.shape)} {dirs.dtype} strides {dirs.stride()}")
-    _check("buffers", buffers, (sum((res + 2) ** 2 for res in sides),))
-    _check("corners", corners, (n_points, len(sides)), torch.long)
-    _check("depth", depth, (n_points,))
-    _check("inv", inv, (n_points, scales))
-    widths = torch.tensor([res + 2 for res in sides], dtype=torch.long)
-    if _loaded().o3dvis_view_inputs(n, rows_pointer, start, dirs.data_ptr(), dirs.stride(0), projected.data_ptr(),
-                                    projected.stride(1), num_frequencies, buffers.data_ptr(), corners.data_ptr(),
-                                    widths.data_ptr(), depth.data_ptr(), inv.data_ptr(), scales, empty,
-                                    out.data_ptr(), out.stride(0), out.dtype == torch.bfloat16):
+    if _loaded().o3dvis_view_inputs(*arguments, out.data_ptr(), out.stride(0), out.dtype == torch.bfloat16):
         raise ValueError(f"the C kernel takes at most 10 frequencies and 7 scales, "
-                         f"got {num_frequencies} and {scales}")
+                         f"got {num_frequencies} and {len(sides)}")
+
+
+@dataclass(frozen=True)
+class PackedMLP:
+    """An MLP's weights as :func:`view_margin` reads them (see :func:`pack_mlp`)."""
+
+    sizes: Tensor  # (layers + 1,) int32: the inputs (even), then each hidden layer's outputs (multiples of 16)
+    weights: Tensor  # int32: each layer's (inputs / 2, outputs) pairs of bfloat16 bits, then the last's
+    biases: Tensor  # float32: each layer's biases, rounded to bfloat16, then the last's one
+
+
+def pack_mlp(layers: list[tuple[Tensor, Tensor]]) -> PackedMLP:
+    """Packs ``[(weight (O, K), bias (O,)), ...]``, ReLU between layers and one output at the end,
+    for :func:`view_margin`: weights and biases rounded to bfloat16, each layer's inputs padded to
+    an even count and its outputs to a multiple of 16 with zero weights."""
+    if layers[-1][0].shape[0] != 1:
+        raise ValueError(f"the last layer must have one output, got {layers[-1][0].shape[0]}")
+    sizes, weights, biases = [], [], []
+    inputs = layers[0][0].shape[1] + layers[0][0].shape[1] % 2
+    for l, (weight, bias) in enumerate(layers):
+        outputs = 1 if l == len(layers) - 1 else -(-weight.shape[0] // 16) * 16
+        w = weight.detach().new_zeros(outputs, inputs)
+        w[:weight.shape[0], :weight.shape[1]] = weight.detach()
+        b = bias.detach().new_zeros(outputs)
+        b[:len(bias)] = bias.detach()
+        # a pair of bfloat16 read as one int32 is (first | second << 16) on a little-endian CPU,
+        # which every CPU with bfloat16 dot products is
+        pairs = w.to(torch.bfloat16).view(torch.int16).view(outputs, inputs // 2, 2).view(torch.int32)
+        sizes.append(inputs)
+        weights.append(pairs[..., 0].T.contiguous().flatten())
+        biases.append(b.to(torch.bfloat16).float())
+        inputs = outputs
+    return PackedMLP(torch.tensor(sizes, dtype=torch.int32), torch.cat(weights).cpu(), torch.cat(biases).cpu())
+
+
+def view_margin(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies: int, buffers: Tensor,
+                corners: Tensor, sides: list[int], depth: Tensor, inv: Tensor, empty: float,
+                normals: Tensor | None, mlp: PackedMLP, out: Tensor) -> None:
+    """Writes the margins of the points ``rows`` for one view into ``out`` (n,) float32: the MLP
+    ``mlp`` on the inputs :func:`view_inputs` writes, then with ``normals`` (N, 3) the normal cue,
+    in bfloat16 products with float32 sums (only where :func:`has_view_margin`)."""
+    n, arguments, keep = _view_arguments(rows, dirs, projected, num_frequencies, buffers, corners, sides, depth,
+                                         inv, empty)
+    if normals is not None:
+        _check("normals", normals, (corners.shape[0], 3))
+    _check("out", out, (n,))
+    if not has_view_margin():
+        raise RuntimeError("the C kernels here have no view_margin (it needs AVX512-BF16)")
+    if _loaded().o3dvis_view_margin(*arguments, normals.data_ptr() if normals is not None else None,
+                                    len(mlp.sizes) - 1, mlp.sizes.data_ptr(), mlp.weights.data_ptr(),
+                                    mlp.biases.data_ptr(), out.data_ptr()):
+        raise ValueError(f"the MLP (sizes {mlp.sizes.tolist()}) does not match the view's inputs, or it has a "
+                         f"hidden layer wider than 128")

@@ -160,10 +160,19 @@ class VisibilityNetwork(nn.Module):
         if (dtype in (torch.float32, torch.bfloat16) and all(v.native for v in views) and native.usable(projected)
                 and projected.stride(0) == 1):  # stored channels first, as encode() stores it
             n = len(range(*rows.indices(projected.shape[0]))) if isinstance(rows, slice) else len(rows)
+            frequencies = predictor.embedding.num_frequencies
+            if dtype == torch.bfloat16 and native.has_view_margin():  # inputs and products in one pass
+                if self.config.use_normals and normals is None:
+                    raise ValueError("this model needs normals")
+                mlp, out = predictor.packed_mlp(), projected.new_empty(len(views), n)
+                for j, view in enumerate(views):
+                    view.margin(rows, projected, frequencies, normals if self.config.use_normals else None, mlp,
+                                out[j])
+                return out
             inputs = predictor.embedding.dim + num_cues(self.config.cue_scales)
             x = projected.new_empty(len(views), inputs + self.config.use_normals, n, dtype=dtype)
             for j, view in enumerate(views):
-                view.inputs(rows, projected, predictor.embedding.num_frequencies, x[j, :inputs])
+                view.inputs(rows, projected, frequencies, x[j, :inputs])
                 if self.config.use_normals:
                     x[j, inputs] = self._normal_cue(normals, rows, view.dirs[rows])
             return predictor.margin_from_inputs(x)

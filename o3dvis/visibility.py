@@ -540,7 +540,7 @@ class NeuralVisibility:
         unit = None if unit is None else unit.to(self.device).index_select(0, order).float()
         calibrated = network.calibration is not None
         with torch.no_grad():
-            noise = network.cloud_noise(points_n) if network.config.noise_cues or calibrated else None
+            noise = network.cloud_noise(points_n, ordered=True) if network.config.noise_cues or calibrated else None
             features = network.encode(points_n, normals=unit, noise=noise)
             rotated = [self._rotated(network, points_n, unit, r) for r in self.rotations[1:]]
         calibration = (network.calibration.affine(calibration_terms(noise[0], len(points_n)))

@@ -444,6 +444,10 @@ def test_noise_cues_grow_with_noise_and_ignore_order():
     assert cues[0].max() < 0.05  # a smooth surface is thin and flat at this density
     p = _noisy_sphere(40_000, 0.003)
     torch.testing.assert_close(noise_cues(p[torch.randperm(len(p))]), noise_cues(p), atol=1e-6, rtol=0)
+    # points already in Morton order (as a VisibilityField stores them) need no sort: the same cues
+    torch.testing.assert_close(noise_cues(p[morton_order(p)], ordered=True), noise_cues(p), atol=1e-6, rtol=0)
+    shuffled = noise_cues(p[torch.randperm(len(p))], ordered=True)  # the flag is believed: runs of far points
+    assert shuffled[1] > 2 * noise_cues(p)[1]
 
 
 def test_noise_cues_do_not_depend_on_the_block_size(monkeypatch):

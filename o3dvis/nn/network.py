@@ -87,10 +87,12 @@ class VisibilityNetwork(nn.Module):
         return torch.cat([signal, noise.index_select(0, octree.batch_of(octree.depth))], dim=1)
 
     @staticmethod
-    def cloud_noise(points: Tensor, batch: Tensor | None = None, batch_size: int = 1) -> Tensor:
-        """(B, 2) noise cues of each cloud (see :func:`~o3dvis.nn.noise.noise_cues`)."""
+    def cloud_noise(points: Tensor, batch: Tensor | None = None, batch_size: int = 1,
+                    ordered: bool = False) -> Tensor:
+        """(B, 2) noise cues of each cloud (see :func:`~o3dvis.nn.noise.noise_cues`; ``ordered``:
+        one cloud's points in :func:`~o3dvis.nn.octree.morton_order`)."""
         if batch is None or batch_size == 1:
-            return noise_cues(points)[None]
+            return noise_cues(points, ordered)[None]
         return torch.stack([noise_cues(points[batch == b]) for b in range(batch_size)])
 
     def octree(self, points: Tensor, batch: Tensor | None = None, batch_size: int | None = None) -> Octree:

@@ -68,27 +68,30 @@ def _cell_thickness(points: Tensor) -> Tensor:
     return torch.quantile(thickness * n.sqrt() * (res / 2), _QUANTILE)
 
 
-def _run_flatness(points: Tensor) -> Tensor:
+def _run_flatness(points: Tensor, ordered: bool) -> Tensor:
     """Lower quartile of thickness / width of runs of points along the Morton curve."""
     num_runs = len(points) // _RUN
     if num_runs == 0:
         return torch.zeros((), dtype=torch.float64, device=points.device)
-    order = morton_order(points, depth=21)
     runs = torch.linspace(0, num_runs - 1, min(num_runs, _MAX_RUNS), device=points.device).long()
     index = (runs[:, None] * _RUN + torch.arange(_RUN, device=points.device)).flatten()
-    x = points.detach().index_select(0, order.index_select(0, index)).double().view(-1, _RUN, 3)
+    if not ordered:
+        index = morton_order(points).index_select(0, index)
+    x = points.detach().index_select(0, index).double().view(-1, _RUN, 3)
     x = x - x.mean(dim=1, keepdim=True)
     eig = _eigenvalues(torch.einsum("rki,rkj->rij", x, x))
     return torch.quantile((eig[:, 0] / eig[:, 1].clamp_min(torch.finfo(x.dtype).tiny)).sqrt(), _QUANTILE)
 
 
-def noise_cues(points: Tensor) -> Tensor:
+def noise_cues(points: Tensor, ordered: bool = False) -> Tensor:
     """(2,) noise cues of one cloud of normalised points (see the module's docstring).
 
     Args:
         points: (N, 3) points in [-1, 1]^3.
+        ordered: the points are in :func:`~o3dvis.nn.octree.morton_order` already (as a
+            :class:`~o3dvis.VisibilityField` stores them), which saves sorting them.
 
     Returns:
         (cell thickness in spacings, run thickness over width), in the points' dtype and device.
     """
-    return torch.stack([_cell_thickness(points), _run_flatness(points)]).to(points.dtype)
+    return torch.stack([_cell_thickness(points), _run_flatness(points, ordered)]).to(points.dtype)

@@ -101,11 +101,13 @@ def grid_cells(points: Tensor, depth: int) -> Tensor:
     return (points.detach() + 1).mul_(res / 2).long().clamp_(0, res - 1)  # truncation = floor here
 
 
-def morton_order(points: Tensor, depth: int = 10) -> Tensor:
+def morton_order(points: Tensor, depth: int = 21) -> Tensor:
     """The permutation that sorts normalised points along the Morton curve of a ``2^depth`` grid.
 
     Points close in space end up close in memory, which keeps the per-view
-    gathers and scatters of a cloud cache-friendly.
+    gathers and scatters of a cloud cache-friendly. At the default depth, the
+    finest, the order is also that of every coarser grid (an octree's levels)
+    and of the noise cues' runs (:func:`o3dvis.nn.noise.noise_cues`).
     """
     return torch.argsort(morton_encode(grid_cells(points, depth), depth))
 

@@ -13,9 +13,9 @@ view is timed alone (best of ``--repeats``), over chunks of the field's chunk si
 
 Three paths, in one run: the torch ops (the kernels switched off, ``native.usable`` false, the
 path of ``O3DVIS_NATIVE=0``); the C inputs kernel with torch's products (``native.has_view_margin``
-false, the path of a CPU without AVX512-BF16 or of float32 products); and the fused C kernel,
-inputs and products in one pass (``o3dvis_view_margin``, the default here), whose two pieces
-are not timed apart. Timings move with the host's load: compare columns of one run.
+false, the path of bfloat16 products asked for on a CPU without AVX512-BF16); and the fused C
+kernel, inputs and products in one pass (``o3dvis_view_margin_bf16`` or ``_f32``, the default),
+whose two pieces are not timed apart. Timings move with the host's load: compare columns of one run.
 
     python3 benchmarks/per_view_profile.py                      # 200 k points, one thread
     python3 benchmarks/per_view_profile.py --threads 2 --out benchmarks/results/per_view_profile.md
@@ -93,10 +93,10 @@ def main() -> None:
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud.points))
     vis = o3dvis.NeuralVisibility.pretrained(precision=args.precision)
     field = vis.encode(pcd)
-    fused = field.matmul_dtype == torch.bfloat16 and native.has_view_margin()
+    fused = native.has_view_margin(field.matmul_dtype)
     # each path: the switch of o3dvis.nn.native turned off for it, if any
     paths = {"torch ops": ("usable", lambda *tensors: False),
-             "C inputs, torch products": ("has_view_margin", lambda: False)}
+             "C inputs, torch products": ("has_view_margin", lambda dtype: False)}
     if fused:
         paths["C, fused"] = None
     columns = {}

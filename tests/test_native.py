@@ -116,19 +116,18 @@ def test_inputs_reject_what_the_kernel_cannot_take():
             native.project(points, _CAMERA.double(), None, [4])
 
 
-needs_view_margin = pytest.mark.skipif(not native.available() or not native.has_view_margin(),
-                                       reason="no fused kernel here (C kernels off, or no AVX512-BF16)")
-
-
-@needs_view_margin
+@needs_kernels
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
 @pytest.mark.parametrize("config", [{}, {"use_normals": True}, {"num_frequencies": 2, "hidden": (24, 40, 17)}])
 @pytest.mark.parametrize("rows", [slice(None), slice(1000, 4321), "indices"])
-def test_view_margin_equals_the_inputs_then_the_products(config, rows):
-    """One pass of C for a view's margins: the bfloat16 products of margin_from_inputs on the
-    inputs the C kernel writes, summed in another order (odd inputs and hidden widths that are
-    no multiple of 16 padded with zero weights)."""
+def test_view_margin_equals_the_inputs_then_the_products(config, rows, dtype):
+    """One pass of C for a view's margins: margin_from_inputs on the inputs the C kernel writes,
+    its products in ``dtype``, summed in another order (inputs and hidden widths that fit no
+    register padded with zero weights)."""
     from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
 
+    if not native.has_view_margin(dtype):
+        pytest.skip(f"no fused {dtype} kernel here (no AVX512-BF16)")
     torch.manual_seed(0)
     network = VisibilityNetwork(NetworkConfig(channels=(8, 8), **config)).eval()
     points = _points()
@@ -140,22 +139,24 @@ def test_view_margin_equals_the_inputs_then_the_products(config, rows):
     projected = torch.randn(predictor.embedding.dim, len(points)).T  # channels first, as encode() stores it
     n = len(points[rows])
     with torch.inference_mode():
-        margin = network.view_margin([fast], rows, projected, normals, torch.bfloat16)[0]
+        margin = network.view_margin([fast], rows, projected, normals, dtype)[0]
         inputs = predictor.embedding.dim + 36
-        x = torch.empty(1, inputs + (normals is not None), n, dtype=torch.bfloat16)
+        x = torch.empty(1, inputs + (normals is not None), n, dtype=dtype)
         fast.inputs(rows, projected, predictor.embedding.num_frequencies, x[0, :inputs])
         if normals is not None:
             x[0, inputs] = network._normal_cue(normals, rows, fast.dirs[rows])
         expected = predictor.margin_from_inputs(x)[0]
     assert margin.shape == (n,) and margin.dtype == torch.float32
-    # both round each layer's output to bfloat16; a sum in another order may round the other way
-    assert (margin == expected).float().mean() > 0.95
     scale = expected.abs().max()
-    torch.testing.assert_close(margin, expected, atol=0.02 * scale, rtol=0)
+    if dtype == torch.float32:
+        torch.testing.assert_close(margin, expected, atol=1e-5 * scale, rtol=1e-5)
+    else:  # both round each layer's output to bfloat16; a sum in another order may round the other way
+        assert (margin == expected).float().mean() > 0.95
+        torch.testing.assert_close(margin, expected, atol=0.02 * scale, rtol=0)
     assert ((margin > 0) == (expected > 0)).float().mean() > 0.998
 
 
-@needs_view_margin
+@needs_kernels
 def test_view_margin_rejects_what_the_kernel_cannot_take():
     from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
 
@@ -163,7 +164,7 @@ def test_view_margin_rejects_what_the_kernel_cannot_take():
     points = _points(500)
     fast, _ = _views(points, camera=_CAMERA)
     projected = torch.randn(27, 500).T
-    mlp = network.predictor.packed_mlp()
+    mlp = network.predictor.packed_mlp(torch.float32)
     with torch.inference_mode():
         with pytest.raises(ValueError, match="does not match the view's inputs"):  # inputs for 2 frequencies
             fast.margin(slice(None), torch.randn(15, 500).T, 2, None, mlp, torch.empty(500))
@@ -171,24 +172,28 @@ def test_view_margin_rejects_what_the_kernel_cannot_take():
             fast.margin(slice(None), projected, 4, None, mlp, torch.empty(499))
         with pytest.raises(ValueError, match="normals must be"):
             fast.margin(slice(None), projected, 4, torch.empty(499, 3), mlp, torch.empty(500))
+        wide = native.pack_mlp([(torch.randn(144, 63), torch.randn(144)), (torch.randn(1, 144), torch.randn(1))],
+                               torch.float32)
         with pytest.raises(ValueError, match="wider than 128"):
-            wide = native.pack_mlp([(torch.randn(144, 63), torch.randn(144)), (torch.randn(1, 144), torch.randn(1))])
             fast.margin(slice(None), projected, 4, None, wide, torch.empty(500))
     with pytest.raises(ValueError, match="one output"):
-        native.pack_mlp([(torch.randn(2, 63), torch.randn(2))])
+        native.pack_mlp([(torch.randn(2, 63), torch.randn(2))], torch.float32)
+    with pytest.raises(ValueError, match="float32 or bfloat16"):
+        native.pack_mlp([(torch.randn(1, 63), torch.randn(1))], torch.float64)
 
 
 def test_packed_mlp_follows_the_weights():
-    """Packed once, again after an optimiser step changes the weights in place."""
+    """Packed once per dtype, again after an optimiser step changes the weights in place."""
     from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
 
     predictor = VisibilityNetwork(NetworkConfig(channels=(8, 8))).predictor
-    packed = predictor.packed_mlp()
-    assert predictor.packed_mlp() is packed
-    assert packed.sizes.tolist() == [64, 32, 32]  # 63 inputs padded to 64, two hidden layers of 32
+    packed = predictor.packed_mlp(torch.bfloat16)
+    assert predictor.packed_mlp(torch.bfloat16) is packed
+    assert packed.sizes.tolist() == [64, 32, 32, 1]  # 63 inputs padded to 64, two hidden layers of 32
+    assert predictor.packed_mlp(torch.float32).sizes.tolist() == [63, 32, 32, 4]  # the margin and 3 of padding
     with torch.no_grad():
         predictor.mlp[0].weight.add_(1.0)
-    assert predictor.packed_mlp() is not packed
+    assert predictor.packed_mlp(torch.bfloat16) is not packed
 
 
 def _cloud(normals: bool) -> o3d.geometry.PointCloud:

@@ -253,7 +253,8 @@ class ViewProjection:
     def margin(self, rows: slice | Tensor, projected: Tensor, num_frequencies: int, normals: Tensor | None,
                mlp: native.PackedMLP, out: Tensor) -> None:
         """Writes the predictor's margins of ``points[rows]`` into ``out`` (only when ``native``
-        and :func:`o3dvis.nn.native.has_view_margin`; see :func:`o3dvis.nn.native.view_margin`)."""
+        and :func:`o3dvis.nn.native.has_view_margin` of ``mlp.dtype``; see
+        :func:`o3dvis.nn.native.view_margin`)."""
         native.view_margin(rows, self.dirs, projected, num_frequencies, self.buffers, self.corners, self.sides,
                            self.depth, self.inv_footprint[:, :, 0], _EMPTY_RESIDUAL, normals, mlp, out)
 

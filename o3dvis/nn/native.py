@@ -40,8 +40,9 @@ _VIEW = [_I64, _PTR, _I64, _PTR, _I64, _PTR, _I64, _I32, _PTR, _PTR, _PTR, _PTR,
 _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_project": ([_I64, _PTR, _PTR, _PTR, _I32, _PTR] + [_PTR] * 6, ctypes.c_int),
     "o3dvis_view_inputs": (_VIEW + [_PTR, _I64, _I32], ctypes.c_int),
-    "o3dvis_has_view_margin": ([], ctypes.c_int),
-    "o3dvis_view_margin": (_VIEW + [_PTR, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
+    "o3dvis_has_view_margin_bf16": ([], ctypes.c_int),
+    "o3dvis_view_margin_bf16": (_VIEW + [_PTR, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
+    "o3dvis_view_margin_f32": (_VIEW + [_PTR, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
 }
 _lock = threading.Lock()
 _library: list = []  # [the loaded library, or None where it could not be built], once tried
@@ -174,11 +175,13 @@ def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,
     return dirs, depth, buffers, corners, inv
 
 
-def has_view_margin() -> bool:
-    """Whether :func:`view_margin` runs here: the kernels are built, for a CPU with bfloat16 dot
-    products (AVX512-BF16)."""
+def has_view_margin(dtype: torch.dtype) -> bool:
+    """Whether :func:`view_margin` runs here in ``dtype``: the kernels are built, and for
+    bfloat16 this CPU has bfloat16 dot products (AVX512-BF16)."""
     library = _loaded()
-    return library is not None and bool(library.o3dvis_has_view_margin())
+    if library is None or dtype not in (torch.float32, torch.bfloat16):
+        return False
+    return dtype == torch.float32 or bool(library.o3dvis_has_view_margin_bf16())
 
 
 def _view_arguments(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies: int,
@@ -251,33 +254,41 @@ def view_inputs(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequ
 class PackedMLP:
     """An MLP's weights as :func:`view_margin` reads them (see :func:`pack_mlp`)."""
 
-    sizes: Tensor  # (layers + 1,) int32: the inputs (even), then each hidden layer's outputs (multiples of 16)
-    weights: Tensor  # int32: each layer's (inputs / 2, outputs) pairs of bfloat16 bits, then the last's
-    biases: Tensor  # float32: each layer's biases, rounded to bfloat16, then the last's one
+    dtype: torch.dtype  # of the products: float32 or bfloat16
+    sizes: Tensor  # (layers + 2,) int32: the inputs, each hidden layer's outputs, the last's (padded)
+    weights: Tensor  # each layer's, float32 (outputs, inputs), or int32 (inputs / 2, outputs) pairs of bfloat16
+    biases: Tensor  # float32: each layer's (rounded to bfloat16 for bfloat16 products)
 
 
-def pack_mlp(layers: list[tuple[Tensor, Tensor]]) -> PackedMLP:
+def pack_mlp(layers: list[tuple[Tensor, Tensor]], dtype: torch.dtype) -> PackedMLP:
     """Packs ``[(weight (O, K), bias (O,)), ...]``, ReLU between layers and one output at the end,
-    for :func:`view_margin`: weights and biases rounded to bfloat16, each layer's inputs padded to
-    an even count and its outputs to a multiple of 16 with zero weights."""
+    for :func:`view_margin` in ``dtype`` (see ``kernels.c``): float32 with each layer's outputs
+    padded to a multiple of 4; bfloat16 with weights and biases rounded to it, the inputs padded
+    to an even count and the hidden outputs to a multiple of 16. Padding weighs zero."""
     if layers[-1][0].shape[0] != 1:
         raise ValueError(f"the last layer must have one output, got {layers[-1][0].shape[0]}")
-    sizes, weights, biases = [], [], []
-    inputs = layers[0][0].shape[1] + layers[0][0].shape[1] % 2
+    if dtype not in (torch.float32, torch.bfloat16):
+        raise ValueError(f"dtype must be float32 or bfloat16, got {dtype}")
+    pairs = dtype == torch.bfloat16
+    inputs = layers[0][0].shape[1] + (layers[0][0].shape[1] % 2 if pairs else 0)
+    sizes, weights, biases = [inputs], [], []
     for l, (weight, bias) in enumerate(layers):
-        outputs = 1 if l == len(layers) - 1 else -(-weight.shape[0] // 16) * 16
+        last = l == len(layers) - 1
+        outputs = (1 if last else -(-weight.shape[0] // 16) * 16) if pairs else -(-weight.shape[0] // 4) * 4
         w = weight.detach().new_zeros(outputs, inputs)
         w[:weight.shape[0], :weight.shape[1]] = weight.detach()
         b = bias.detach().new_zeros(outputs)
         b[:len(bias)] = bias.detach()
-        # a pair of bfloat16 read as one int32 is (first | second << 16) on a little-endian CPU,
-        # which every CPU with bfloat16 dot products is
-        pairs = w.to(torch.bfloat16).view(torch.int16).view(outputs, inputs // 2, 2).view(torch.int32)
-        sizes.append(inputs)
-        weights.append(pairs[..., 0].T.contiguous().flatten())
-        biases.append(b.to(torch.bfloat16).float())
+        if pairs:
+            # a pair of bfloat16 read as one int32 is (first | second << 16) on a little-endian CPU,
+            # which every CPU with bfloat16 dot products is
+            w = w.to(torch.bfloat16).view(torch.int16).view(outputs, inputs // 2, 2).view(torch.int32)[..., 0].T
+            b = b.to(torch.bfloat16).float()
+        sizes.append(outputs)
+        weights.append(w.contiguous().flatten())
+        biases.append(b)
         inputs = outputs
-    return PackedMLP(torch.tensor(sizes, dtype=torch.int32), torch.cat(weights).cpu(), torch.cat(biases).cpu())
+    return PackedMLP(dtype, torch.tensor(sizes, dtype=torch.int32), torch.cat(weights).cpu(), torch.cat(biases).cpu())
 
 
 def view_margin(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies: int, buffers: Tensor,
@@ -285,16 +296,16 @@ def view_margin(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequ
                 normals: Tensor | None, mlp: PackedMLP, out: Tensor) -> None:
     """Writes the margins of the points ``rows`` for one view into ``out`` (n,) float32: the MLP
     ``mlp`` on the inputs :func:`view_inputs` writes, then with ``normals`` (N, 3) the normal cue,
-    in bfloat16 products with float32 sums (only where :func:`has_view_margin`)."""
+    with products in ``mlp.dtype`` and float32 sums (only where :func:`has_view_margin`)."""
     n, arguments, keep = _view_arguments(rows, dirs, projected, num_frequencies, buffers, corners, sides, depth,
                                          inv, empty)
     if normals is not None:
         _check("normals", normals, (corners.shape[0], 3))
     _check("out", out, (n,))
-    if not has_view_margin():
-        raise RuntimeError("the C kernels here have no view_margin (it needs AVX512-BF16)")
-    if _loaded().o3dvis_view_margin(*arguments, normals.data_ptr() if normals is not None else None,
-                                    len(mlp.sizes) - 1, mlp.sizes.data_ptr(), mlp.weights.data_ptr(),
-                                    mlp.biases.data_ptr(), out.data_ptr()):
+    if not has_view_margin(mlp.dtype):
+        raise RuntimeError(f"the C kernels here have no view_margin in {mlp.dtype} (bfloat16 needs AVX512-BF16)")
+    kernel = _loaded().o3dvis_view_margin_bf16 if mlp.dtype == torch.bfloat16 else _loaded().o3dvis_view_margin_f32
+    if kernel(*arguments, normals.data_ptr() if normals is not None else None, len(mlp.sizes) - 2,
+              mlp.sizes.data_ptr(), mlp.weights.data_ptr(), mlp.biases.data_ptr(), out.data_ptr()):
         raise ValueError(f"the MLP (sizes {mlp.sizes.tolist()}) does not match the view's inputs, or it has a "
-                         f"hidden layer wider than 128")
+                         f"layer wider than 128")

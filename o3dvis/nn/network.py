@@ -163,10 +163,10 @@ class VisibilityNetwork(nn.Module):
                 and projected.stride(0) == 1):  # stored channels first, as encode() stores it
             n = len(range(*rows.indices(projected.shape[0]))) if isinstance(rows, slice) else len(rows)
             frequencies = predictor.embedding.num_frequencies
-            if dtype == torch.bfloat16 and native.has_view_margin():  # inputs and products in one pass
+            if native.has_view_margin(dtype):  # inputs and products in one pass
                 if self.config.use_normals and normals is None:
                     raise ValueError("this model needs normals")
-                mlp, out = predictor.packed_mlp(), projected.new_empty(len(views), n)
+                mlp, out = predictor.packed_mlp(dtype), projected.new_empty(len(views), n)
                 for j, view in enumerate(views):
                     view.margin(rows, projected, frequencies, normals if self.config.use_normals else None, mlp,
                                 out[j])

@@ -101,7 +101,7 @@ class VisibilityPredictor(nn.Module):
             width = h
         layers.append(nn.Linear(width, 2))
         self.mlp = nn.Sequential(*layers)
-        self._packed: tuple[tuple, native.PackedMLP] | None = None  # (weights' identity, packed_mlp())
+        self._packed: dict[torch.dtype, tuple[tuple, native.PackedMLP]] = {}  # dtype: (weights' identity, packed)
 
     def project(self, features: Tensor, points: Tensor, carry: Callable[[Tensor], Tensor]) -> Tensor:
         """Projects ``[feature, point]`` to the embedding's width, (N, E), stored channels first.
@@ -174,14 +174,14 @@ class VisibilityPredictor(nn.Module):
             h = _relu_(product(h, layer.weight, layer.bias))
         return product(h, weight, bias).float()[..., 0]
 
-    def packed_mlp(self) -> native.PackedMLP:
-        """The MLP of :meth:`margin` as :func:`o3dvis.nn.native.view_margin` reads it, packed
-        again only when a weight has changed."""
-        key = tuple((p.data_ptr(), p._version) for p in self.mlp.parameters())
-        if self._packed is None or self._packed[0] != key:
+    def packed_mlp(self, dtype: torch.dtype) -> native.PackedMLP:
+        """The MLP of :meth:`margin` as :func:`o3dvis.nn.native.view_margin` reads it for products
+        in ``dtype``, packed again only when a weight has changed."""
+        weights = tuple((p.data_ptr(), p._version) for p in self.mlp.parameters())
+        if dtype not in self._packed or self._packed[dtype][0] != weights:
             hidden = [(layer.weight, layer.bias) for layer in self.mlp[:-1:2]]
-            self._packed = key, native.pack_mlp(hidden + [self._margin_layer()])
-        return self._packed[1]
+            self._packed[dtype] = weights, native.pack_mlp(hidden + [self._margin_layer()], dtype)
+        return self._packed[dtype][1]
 
     def _margin_layer(self) -> tuple[Tensor, Tensor]:
         """The last layer's (1, H) weight and (1,) bias of "visible" minus "hidden"."""

@@ -238,7 +238,16 @@ int o3dvis_project(int64_t n, const float *points, const float *camera, const fl
     return 0;
 }
 
-/* What the two kernels below read of a view and its points (see o3dvis_view_inputs). */
+/* What the kernels below read of a view and its points, filled by the caller (native.py, _View).
+ *
+ * rows: the points' rows (NULL: start, start + 1, ...); dirs: (N, 3) view
+ * directions, rows dirs_stride apart (0: one direction for all); proj: the
+ * projected features, channel j of row i at proj[j * proj_ld + i]; zbufs,
+ * corners, depth: as o3dvis_project writes them, widths: (scales,) the
+ * buffers' row lengths, sides + 2; inv: (N, scales) -1 / (pixel size x
+ * footprint); empty: the residual that an empty pixel takes before asinh;
+ * normals: (N, 3) for a model with the normal cue, else NULL.
+ */
 struct view {
     const int64_t *rows;
     int64_t start;
@@ -338,31 +347,24 @@ static void block_inputs(const struct view *v, int64_t b0, int m, float *in) {
     }
 }
 
-/* Writes the inputs of n points; returns 0, or -1 when the sizes exceed the buffers.
- *
- * rows: the points' rows (NULL: start, start + 1, ...); dirs: (N, 3) view
- * directions, rows dirs_stride apart (0: one direction for all); proj: the
- * projected features, channel j of row i at proj[j * proj_ld + i]; zbufs,
- * corners, depth: as o3dvis_project writes them, widths: (scales,) the
- * buffers' row lengths, sides + 2; inv: (N, scales) -1 / (pixel size x
- * footprint); empty: the residual that an empty pixel takes before asinh.
- * out: 3 + 6 frequencies + 9 scales channels of n values, out_ld elements
- * apart, float32 or bfloat16.
+/* The number of input channels of a view's points, or -1 when they exceed the buffers. */
+static int channels_of(const struct view *v) {
+    if (v->frequencies < 0 || v->scales < 1 || 3 + 6 * v->frequencies > MAX_EMBED || v->scales > MAX_SCALES)
+        return -1;
+    return 3 + 6 * v->frequencies + 9 * v->scales + (v->normals != NULL);
+}
+
+/* Writes the inputs of n points of the view v, its normal cue aside; returns 0, or -1 when the
+ * sizes exceed the buffers. out: 3 + 6 frequencies + 9 scales channels of n values, out_ld
+ * elements apart, float32 or bfloat16.
  */
-int o3dvis_view_inputs(int64_t n, const int64_t *rows, int64_t start,
-                       const float *dirs, int64_t dirs_stride,
-                       const float *proj, int64_t proj_ld, int32_t frequencies,
-                       const float *zbufs, const int64_t *corners, const int64_t *widths,
-                       const float *depth, const float *inv, int32_t scales, float empty,
-                       void *out, int64_t out_ld, int32_t out_bf16) {
-    const struct view v = {rows, start, dirs, dirs_stride, proj, proj_ld, frequencies, zbufs, corners, widths,
-                           depth, inv, scales, empty, NULL};
-    const int channels = 3 + 6 * frequencies + 9 * scales;
+int o3dvis_view_inputs(int64_t n, const struct view *v, void *out, int64_t out_ld, int32_t out_bf16) {
+    const int channels = channels_of(v) - (v->normals != NULL);
     float in[MAX_INPUTS * BLOCK] = {0}; /* zeroed: asinh runs over whole blocks */
-    if (frequencies < 0 || scales < 1 || 3 + 6 * frequencies > MAX_EMBED || scales > MAX_SCALES) return -1;
+    if (channels < 0) return -1;
     for (int64_t b0 = 0; b0 < n; b0 += BLOCK) {
         const int m = n - b0 < BLOCK ? (int)(n - b0) : BLOCK;
-        block_inputs(&v, b0, m, in);
+        block_inputs(v, b0, m, in);
         for (int j = 0; j < channels; j++) {
             const float *x = in + j * BLOCK;
             if (out_bf16) {
@@ -426,32 +428,23 @@ static void dense_relu(const uint32_t *x, int pairs, const uint32_t *w, const fl
  * -1 when the sizes exceed the buffers or do not match, -2 in a build without
  * o3dvis_has_view_margin_bf16.
  *
- * The view's arguments are o3dvis_view_inputs's; normals: (N, 3), or NULL for a model without the
- * normal cue. layers: the hidden layers; sizes: (layers + 2,) the inputs, padded to even, each
+ * layers: the hidden layers; sizes: (layers + 2,) the inputs, padded to even, each
  * hidden layer's outputs, padded to a multiple of 16, then 1; weights: each layer's (sizes[l] / 2,
  * sizes[l + 1]) pairs of bfloat16 along its inputs; biases: each layer's sizes[l + 1] float32.
  * Padding weighs zero. out: (n,) float32.
  */
-int o3dvis_view_margin_bf16(int64_t n, const int64_t *rows, int64_t start,
-                       const float *dirs, int64_t dirs_stride,
-                       const float *proj, int64_t proj_ld, int32_t frequencies,
-                       const float *zbufs, const int64_t *corners, const int64_t *widths,
-                       const float *depth, const float *inv, int32_t scales, float empty,
-                       const float *normals, int32_t layers, const int32_t *sizes,
-                       const uint32_t *weights, const float *biases, float *out) {
+int o3dvis_view_margin_bf16(int64_t n, const struct view *v, int32_t layers, const int32_t *sizes,
+                            const uint32_t *weights, const float *biases, float *out) {
 #ifdef __AVX512BF16__
-    const struct view v = {rows, start, dirs, dirs_stride, proj, proj_ld, frequencies, zbufs, corners, widths,
-                           depth, inv, scales, empty, normals};
-    const int channels = 3 + 6 * frequencies + 9 * scales + (normals != NULL);
+    const int channels = channels_of(v);
     float in[MAX_INPUTS * BLOCK] = {0}, y[MAX_WIDTH * 16];
     uint32_t x[MAX_WIDTH / 2 * 16];
-    if (frequencies < 0 || scales < 1 || 3 + 6 * frequencies > MAX_EMBED || scales > MAX_SCALES
-        || layers < 0 || sizes[0] != channels + channels % 2 || sizes[layers + 1] != 1) return -1;
+    if (channels < 0 || layers < 0 || sizes[0] != channels + channels % 2 || sizes[layers + 1] != 1) return -1;
     for (int l = 1; l <= layers; l++)
         if (sizes[l] < 16 || sizes[l] % 16 || sizes[l] > MAX_WIDTH) return -1;
     for (int64_t b0 = 0; b0 < n; b0 += BLOCK) {
         const int m = n - b0 < BLOCK ? (int)(n - b0) : BLOCK;
-        block_inputs(&v, b0, m, in);
+        block_inputs(v, b0, m, in);
         for (int g = 0; g < m; g += 16) {
             const uint32_t *w = weights;
             const float *bias = biases;
@@ -472,9 +465,7 @@ int o3dvis_view_margin_bf16(int64_t n, const int64_t *rows, int64_t start,
     }
     return 0;
 #else
-    (void)n, (void)rows, (void)start, (void)dirs, (void)dirs_stride, (void)proj, (void)proj_ld, (void)frequencies;
-    (void)zbufs, (void)corners, (void)widths, (void)depth, (void)inv, (void)scales, (void)empty, (void)normals;
-    (void)layers, (void)sizes, (void)weights, (void)biases, (void)out;
+    (void)n, (void)v, (void)layers, (void)sizes, (void)weights, (void)biases, (void)out;
     return -2;
 #endif
 }
@@ -537,24 +528,16 @@ static void dense_f32(const float *restrict x, int inputs, const float *restrict
  * torch's float32 products but for the order of the sums. sizes: (layers + 2,) the inputs, each
  * hidden layer's outputs, padded to a multiple of 4, then 4 (the margin and 3 of padding);
  * weights: each layer's (sizes[l + 1], sizes[l]) float32 weights. */
-int o3dvis_view_margin_f32(int64_t n, const int64_t *rows, int64_t start,
-                           const float *dirs, int64_t dirs_stride,
-                           const float *proj, int64_t proj_ld, int32_t frequencies,
-                           const float *zbufs, const int64_t *corners, const int64_t *widths,
-                           const float *depth, const float *inv, int32_t scales, float empty,
-                           const float *normals, int32_t layers, const int32_t *sizes,
+int o3dvis_view_margin_f32(int64_t n, const struct view *v, int32_t layers, const int32_t *sizes,
                            const float *weights, const float *biases, float *out) {
-    const struct view v = {rows, start, dirs, dirs_stride, proj, proj_ld, frequencies, zbufs, corners, widths,
-                           depth, inv, scales, empty, normals};
-    const int channels = 3 + 6 * frequencies + 9 * scales + (normals != NULL);
+    const int channels = channels_of(v);
     float in[MAX_INPUTS * BLOCK] = {0}, h[2][MAX_WIDTH * BLOCK];
-    if (frequencies < 0 || scales < 1 || 3 + 6 * frequencies > MAX_EMBED || scales > MAX_SCALES
-        || layers < 0 || sizes[0] != channels) return -1;
+    if (channels < 0 || layers < 0 || sizes[0] != channels) return -1;
     for (int l = 1; l <= layers + 1; l++)
         if (sizes[l] < 4 || sizes[l] % 4 || sizes[l] > MAX_WIDTH) return -1;
     for (int64_t b0 = 0; b0 < n; b0 += BLOCK) {
         const int m = n - b0 < BLOCK ? (int)(n - b0) : BLOCK;
-        block_inputs(&v, b0, m, in);
+        block_inputs(v, b0, m, in);
         const float *x = in, *w = weights, *bias = biases;
         for (int l = 0; l <= layers; l++) {
             dense_f32(x, sizes[l], w, bias, sizes[l + 1], l < layers, h[l % 2]);

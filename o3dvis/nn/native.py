@@ -36,13 +36,24 @@ _SOURCE = Path(__file__).with_name("kernels.c")
 # fused multiply-adds but the polynomials' own, see kernels.c)
 _FLAGS = ["-O3", "-fPIC", "-shared", "-fno-math-errno", "-fno-trapping-math", "-ffp-contract=off"]
 _I64, _I32, _PTR = ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
-_VIEW = [_I64, _PTR, _I64, _PTR, _I64, _PTR, _I64, _I32, _PTR, _PTR, _PTR, _PTR, _PTR, _I32, ctypes.c_float]
+
+
+class _View(ctypes.Structure):
+    """``struct view`` of ``kernels.c``: what the per-view kernels read of a view and its points."""
+
+    _fields_ = [("rows", _PTR), ("start", _I64), ("dirs", _PTR), ("dirs_stride", _I64), ("proj", _PTR),
+                ("proj_ld", _I64), ("frequencies", ctypes.c_int), ("zbufs", _PTR), ("corners", _PTR),
+                ("widths", _PTR), ("depth", _PTR), ("inv", _PTR), ("scales", ctypes.c_int),
+                ("empty", ctypes.c_float), ("normals", _PTR)]
+
+
+_VIEW = ctypes.POINTER(_View)
 _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_project": ([_I64, _PTR, _PTR, _PTR, _I32, _PTR] + [_PTR] * 6, ctypes.c_int),
-    "o3dvis_view_inputs": (_VIEW + [_PTR, _I64, _I32], ctypes.c_int),
+    "o3dvis_view_inputs": ([_I64, _VIEW, _PTR, _I64, _I32], ctypes.c_int),
     "o3dvis_has_view_margin_bf16": ([], ctypes.c_int),
-    "o3dvis_view_margin_bf16": (_VIEW + [_PTR, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
-    "o3dvis_view_margin_f32": (_VIEW + [_PTR, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
+    "o3dvis_view_margin_bf16": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
+    "o3dvis_view_margin_f32": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
 }
 _lock = threading.Lock()
 _library: list = []  # [the loaded library, or None where it could not be built], once tried
@@ -132,11 +143,6 @@ def _check(name: str, t: Tensor, shape: tuple[int, ...], dtype: torch.dtype = to
                          f"{tuple(t.shape)} {t.dtype} on {t.device}")
 
 
-def _buffers_size(sides: list[int]) -> int:
-    """The length of a view's bordered depth buffers and the one float after them (see :func:`project`)."""
-    return sum((res + 2) ** 2 for res in sides) + 1
-
-
 def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,
             sides: list[int]) -> tuple[Tensor | None, Tensor, Tensor, Tensor, Tensor]:
     """One view's projection (see :class:`~o3dvis.nn.cues.ViewProjection`).
@@ -150,8 +156,7 @@ def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,
         ``dirs`` (N, 3) unit vectors from the camera (None with ``direction``),
         ``depth`` (N,), ``buffers`` each scale's min-depth image inside a
         border, (side + 2)^2 values in rows of side + 2, one after the other,
-        NaN where empty and on the border, then one more NaN (the kernels load
-        four floats at a time from a patch's rows of three), ``corners`` (N, S) the index in
+        NaN where empty and on the border, ``corners`` (N, S) the index in
         ``buffers`` of the top-left pixel of the 3x3 around each point's pixel,
         ``inv`` (N, S) -1 / (pixel size x footprint).
     """
@@ -163,7 +168,7 @@ def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,
         raise ValueError(f"need points and positive sides, got {n} points, sides {sides}")
     dirs = points.new_empty(n, 3) if camera is not None else None
     depth, uv = points.new_empty(n), points.new_empty(n, 2)
-    buffers = points.new_empty(_buffers_size(sides))
+    buffers = points.new_empty(sum((res + 2) ** 2 for res in sides))
     corners, inv = torch.empty(n, scales, dtype=torch.long), points.new_empty(n, scales)
     sizes = torch.tensor(sides, dtype=torch.long)  # referenced until the call has returned
     if _loaded().o3dvis_project(n, points.data_ptr(), camera.data_ptr() if camera is not None else None,
@@ -184,13 +189,12 @@ def has_view_margin(dtype: torch.dtype) -> bool:
     return dtype == torch.float32 or bool(library.o3dvis_has_view_margin_bf16())
 
 
-def _view_arguments(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies: int,
-                    buffers: Tensor, corners: Tensor, sides: list[int], depth: Tensor, inv: Tensor,
-                    empty: float) -> tuple[int, list, list[Tensor]]:
-    """The number of points, the kernels' view arguments and the tensors to keep referenced until
-    the call has returned (see :func:`view_inputs`)."""
+def _view(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies: int, buffers: Tensor,
+          corners: Tensor, sides: list[int], depth: Tensor, inv: Tensor, empty: float,
+          normals: Tensor | None = None) -> tuple[int, _View]:
+    """The number of points and the kernels' ``struct view`` of them (see :func:`view_inputs`), all
+    checked; the struct holds on to the tensors made here that it points into."""
     n_points, scales = corners.shape
-    keep = []  # referenced by the caller until the call has returned
     if isinstance(rows, slice):
         start, stop, step = rows.indices(n_points)
         if step != 1:
@@ -201,7 +205,6 @@ def _view_arguments(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_f
         if len(rows) and (int(rows.min()) < 0 or int(rows.max()) >= n_points):
             raise IndexError(f"rows must lie in [0, {n_points})")
         n, start, rows_pointer = len(rows), 0, rows.data_ptr()
-        keep.append(rows)
     e = 3 + 6 * num_frequencies
     # the kernel reads each channel of the features as a contiguous row (as encode() stores them):
     # copying other layouts here would copy all N points for every chunk
@@ -212,16 +215,18 @@ def _view_arguments(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_f
                          f"({n_points}, 3) with contiguous rows, float32 on the CPU, got "
                          f"{tuple(projected.shape)} {projected.dtype} strides {projected.stride()} and "
                          f"{tuple(dirs.shape)} {dirs.dtype} strides {dirs.stride()}")
-    _check("buffers", buffers, (_buffers_size(sides),))
+    _check("buffers", buffers, (sum((res + 2) ** 2 for res in sides),))
     _check("corners", corners, (n_points, len(sides)), torch.long)
     _check("depth", depth, (n_points,))
     _check("inv", inv, (n_points, scales))
+    if normals is not None:
+        _check("normals", normals, (n_points, 3))
     widths = torch.tensor([res + 2 for res in sides], dtype=torch.long)
-    keep.append(widths)
-    arguments = [n, rows_pointer, start, dirs.data_ptr(), dirs.stride(0), projected.data_ptr(), projected.stride(1),
+    view = _View(rows_pointer, start, dirs.data_ptr(), dirs.stride(0), projected.data_ptr(), projected.stride(1),
                  num_frequencies, buffers.data_ptr(), corners.data_ptr(), widths.data_ptr(), depth.data_ptr(),
-                 inv.data_ptr(), scales, empty]
-    return n, arguments, keep
+                 inv.data_ptr(), scales, empty, normals.data_ptr() if normals is not None else None)
+    view.tensors = (rows, widths)
+    return n, view
 
 
 def view_inputs(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies: int, buffers: Tensor,
@@ -238,14 +243,13 @@ def view_inputs(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequ
         out: (E + 9 S, n) float32 or bfloat16, rows contiguous: ``projected[rows]``
             times the view embedding of ``dirs[rows]``, then the depth-buffer cues.
     """
-    n, arguments, keep = _view_arguments(rows, dirs, projected, num_frequencies, buffers, corners, sides, depth,
-                                         inv, empty)
+    n, view = _view(rows, dirs, projected, num_frequencies, buffers, corners, sides, depth, inv, empty)
     channels = 3 + 6 * num_frequencies + 9 * len(sides)
     if (out.shape != (channels, n) or out.stride(1) != 1 or out.device.type != "cpu"
             or out.dtype not in (torch.float32, torch.bfloat16)):
         raise ValueError(f"out must be ({channels}, {n}) float32 or bfloat16 on the CPU with contiguous "
                          f"rows, got {tuple(out.shape)} {out.dtype} strides {out.stride()} on {out.device}")
-    if _loaded().o3dvis_view_inputs(*arguments, out.data_ptr(), out.stride(0), out.dtype == torch.bfloat16):
+    if _loaded().o3dvis_view_inputs(n, ctypes.byref(view), out.data_ptr(), out.stride(0), out.dtype == torch.bfloat16):
         raise ValueError(f"the C kernel takes at most 10 frequencies and 7 scales, "
                          f"got {num_frequencies} and {len(sides)}")
 
@@ -297,15 +301,12 @@ def view_margin(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequ
     """Writes the margins of the points ``rows`` for one view into ``out`` (n,) float32: the MLP
     ``mlp`` on the inputs :func:`view_inputs` writes, then with ``normals`` (N, 3) the normal cue,
     with products in ``mlp.dtype`` and float32 sums (only where :func:`has_view_margin`)."""
-    n, arguments, keep = _view_arguments(rows, dirs, projected, num_frequencies, buffers, corners, sides, depth,
-                                         inv, empty)
-    if normals is not None:
-        _check("normals", normals, (corners.shape[0], 3))
+    n, view = _view(rows, dirs, projected, num_frequencies, buffers, corners, sides, depth, inv, empty, normals)
     _check("out", out, (n,))
     if not has_view_margin(mlp.dtype):
         raise RuntimeError(f"the C kernels here have no view_margin in {mlp.dtype} (bfloat16 needs AVX512-BF16)")
     kernel = _loaded().o3dvis_view_margin_bf16 if mlp.dtype == torch.bfloat16 else _loaded().o3dvis_view_margin_f32
-    if kernel(*arguments, normals.data_ptr() if normals is not None else None, len(mlp.sizes) - 2,
-              mlp.sizes.data_ptr(), mlp.weights.data_ptr(), mlp.biases.data_ptr(), out.data_ptr()):
+    if kernel(n, ctypes.byref(view), len(mlp.sizes) - 2, mlp.sizes.data_ptr(), mlp.weights.data_ptr(),
+              mlp.biases.data_ptr(), out.data_ptr()):
         raise ValueError(f"the MLP (sizes {mlp.sizes.tolist()}) does not match the view's inputs, or it has a "
                          f"layer wider than 128")

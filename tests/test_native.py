@@ -119,7 +119,7 @@ def test_inputs_reject_what_the_kernel_cannot_take():
 @needs_kernels
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
 @pytest.mark.parametrize("config", [{}, {"use_normals": True}, {"num_frequencies": 2, "hidden": (24, 40, 17)}])
-@pytest.mark.parametrize("rows", [slice(None), slice(1000, 4321), "indices"])
+@pytest.mark.parametrize("rows", [slice(None), slice(1000, 4321), "indices", "five"])
 def test_view_margin_equals_the_inputs_then_the_products(config, rows, dtype):
     """One pass of C for a view's margins: margin_from_inputs on the inputs the C kernel writes,
     its products in ``dtype``, summed in another order (inputs and hidden widths that fit no
@@ -134,6 +134,8 @@ def test_view_margin_equals_the_inputs_then_the_products(config, rows, dtype):
     normals = torch.nn.functional.normalize(points, dim=1) if config.get("use_normals") else None
     if rows == "indices":
         rows = torch.randperm(len(points), generator=torch.Generator().manual_seed(1))[:2500]
+    elif rows == "five":  # less than a register of points, one of them twice
+        rows = torch.tensor([3, 1, 4, 1, 5])
     fast, _ = _views(points, camera=_CAMERA)
     predictor = network.predictor
     projected = torch.randn(predictor.embedding.dim, len(points)).T  # channels first, as encode() stores it

@@ -9,6 +9,10 @@
  * cue scale, which o3dvis/nn/cues.py (ViewProjection.cues) and
  * o3dvis/nn/predictor.py (ViewEmbedding, the product with the features)
  * compute in a dozen eager torch ops, each a pass over memory.
+ * o3dvis_view_margin_bf16 and o3dvis_view_margin_f32 compute the same inputs
+ * a block of points at a time and run the predictor's MLP on them while they
+ * are in the L1 cache (VisibilityPredictor.margin_from_inputs), in bfloat16
+ * with the CPU's bfloat16 dot products, or in float32.
  *
  * The arithmetic is torch's, op for op, but: sin, cos, log and atan2 are short
  * polynomials (a few float32 ulps off, with fused multiply-adds where the CPU
@@ -18,11 +22,13 @@
  * pixel border may thus land on the other side. Values are written as float32
  * or as bfloat16 (rounded to nearest even, as torch rounds).
  *
- * Plain C with no dependency, loaded with ctypes (o3dvis/nn/native.py), which
- * releases the GIL: the view workers run it side by side. Every buffer is
- * allocated by the caller. Built with -fno-math-errno -fno-trapping-math
- * -ffp-contract=off, so that the loops vectorise and rounding follows torch's
- * op order.
+ * C with no dependency (the bfloat16 MLP with the AVX512-BF16 intrinsics, the
+ * float32 one with GCC/Clang vector extensions), loaded with ctypes
+ * (o3dvis/nn/native.py), which releases the GIL: the view workers run it side
+ * by side. Every buffer is allocated by the caller. Built with
+ * -fno-math-errno -fno-trapping-math -ffp-contract=off, so that the loops
+ * vectorise and rounding follows torch's op order (the MLPs aside: their sums
+ * run in another order than oneDNN's, with multiply-adds fused as it fuses them).
  */
 
 #include <math.h>

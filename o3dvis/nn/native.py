@@ -1,9 +1,10 @@
-"""A view's projection and the predictor's inputs in a few passes of C, for queries on the CPU.
+"""A view's projection, the predictor's inputs and its MLP in a few passes of C, for queries on the CPU.
 
 ``kernels.c`` computes what :class:`~o3dvis.nn.cues.ViewProjection` and the view
 embedding times the projected features compute in some seventy eager torch
-ops, each a pass over memory (see the README for what it saves).
-It is plain C with no dependency, built on first use with the system's C
+ops, each a pass over memory, and runs the predictor's MLP on those inputs
+while they are in cache (see the README for what it saves).
+It is C with no dependency, built on first use with the system's C
 compiler (``$CC``, else ``cc``) for this CPU and kept in a cache folder
 (``$O3DVIS_CACHE``, else ``$XDG_CACHE_HOME/o3dvis`` or ``~/.cache/o3dvis``),
 and called through ``ctypes``, which releases the GIL. Where no compiler is

@@ -155,7 +155,8 @@ class VisibilityNetwork(nn.Module):
             normals: (N, 3) the cloud's unit normals, for a normals model.
             dtype: the dtype of the matrix products (None: ``projected``'s); for
                 views built by the C kernels (:attr:`ViewProjection.native`) the
-                inputs come from one more pass of C.
+                inputs and, where :func:`~o3dvis.nn.native.has_view_margin` of
+                ``dtype``, the MLP come from one more pass of C.
         """
         predictor = self.predictor
         dtype = dtype or projected.dtype

@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from o3dvis.nn import native
+from . import native
 
 __all__ = ["ViewEmbedding", "VisibilityPredictor", "PRECISIONS", "resolve_precision"]
 

@@ -91,6 +91,25 @@ def test_inputs_equal_the_embedding_times_the_features_then_the_cues(view, rows)
 
 
 @needs_kernels
+def test_morton_keys_equal_the_torch_ones():
+    """One pass of C for the octree's keys: the same cells (outside the cube clamped to it, the
+    float32 rounding of the cell's coordinate the same) and the same interleaving."""
+    from o3dvis.nn.octree import cell_keys, grid_cells, morton_encode
+
+    points = torch.rand(50_000, 3, generator=torch.Generator().manual_seed(2)) * 2.2 - 1.1
+    points[:4] = torch.tensor([[-1.0, 1.0, 0.0], [0.99999994, -0.99999994, 1e-8], [1.5, -1.5, 0.5],
+                               [-1.0000001, 0.5, 0.25]])
+    for depth in (1, 7, 10, 11, 12, 16, 21):
+        expected = morton_encode(grid_cells(points, depth), depth)
+        assert torch.equal(native.morton_keys(points, depth), expected), depth
+        assert torch.equal(cell_keys(points, depth), expected), depth
+    with pytest.raises(ValueError, match=r"depth must lie in \[1, 21\]"):
+        native.morton_keys(points, 22)
+    with pytest.raises(ValueError, match="points must be"):
+        native.morton_keys(points.double(), 7)
+
+
+@needs_kernels
 def test_inputs_reject_what_the_kernel_cannot_take():
     points = _points(500)
     fast, _ = _views(points, camera=_CAMERA)

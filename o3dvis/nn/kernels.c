@@ -1,4 +1,4 @@
-/* The per-view work of the visibility predictor in plain C, for queries on the CPU.
+/* The per-view work of the visibility predictor in C, for queries on the CPU, and the octree's keys.
  *
  * o3dvis_project builds a view's projection (o3dvis/nn/cues.py, ViewProjection:
  * view directions, depths, the multi-scale min-depth buffers inside a border)
@@ -12,7 +12,9 @@
  * o3dvis_view_margin_bf16 and o3dvis_view_margin_f32 compute the same inputs
  * a block of points at a time and run the predictor's MLP on them while they
  * are in the L1 cache (VisibilityPredictor.margin_from_inputs), in bfloat16
- * with the CPU's bfloat16 dot products, or in float32.
+ * with the CPU's bfloat16 dot products, or in float32. And for the encoding,
+ * o3dvis_morton_keys computes the octree's Morton keys (o3dvis/nn/octree.py,
+ * cell_keys) in one pass instead of some twenty.
  *
  * The arithmetic is torch's, op for op, but: sin, cos, log and atan2 are short
  * polynomials (a few float32 ulps off, with fused multiply-adds where the CPU
@@ -146,6 +148,32 @@ static void frame(const double *forward, double *right, double *up) {
     double norm = sqrt(right[0] * right[0] + right[1] * right[1] + right[2] * right[2]);
     for (int a = 0; a < 3; a++) right[a] /= norm;
     cross(forward, right, up);
+}
+
+/* Puts bit i of v (< 2^21) at bit 3 i (o3dvis/nn/octree.py, _spread). */
+static inline uint64_t spread_bits(uint64_t v) {
+    v = (v | v << 32) & 0x1f00000000ffffull;
+    v = (v | v << 16) & 0x1f0000ff0000ffull;
+    v = (v | v << 8) & 0x100f00f00f00f00full;
+    v = (v | v << 4) & 0x10c30c30c30c30c3ull;
+    return (v | v << 2) & 0x1249249249249249ull;
+}
+
+/* The Morton keys of n points of [-1, 1]^3 on a 2^depth grid, 1 <= depth <= 21, as
+ * o3dvis/nn/octree.py's morton_encode(grid_cells(points, depth), depth) computes them in some
+ * twenty passes: each coordinate's cell, (p + 1) 2^depth / 2 truncated and clamped to the grid (NaN
+ * to 0), the three cells' bits interleaved with x highest. */
+void o3dvis_morton_keys(int64_t n, const float *points, int32_t depth, int64_t *keys) {
+    const float half = (float)(1 << (depth - 1)), top = (float)((1 << depth) - 1);
+    for (int64_t i = 0; i < n; i++) {
+        uint64_t cell[3];
+        for (int a = 0; a < 3; a++) {
+            float q = (points[3 * i + a] + 1.0f) * half;
+            q = q >= 0.0f ? q : 0.0f;
+            cell[a] = (uint64_t)(q < top ? q : top);
+        }
+        keys[i] = (int64_t)(spread_bits(cell[0]) << 2 | spread_bits(cell[1]) << 1 | spread_bits(cell[2]));
+    }
 }
 
 /* Builds one view's projection of n points (n >= 1); returns 0, or -1 for more than

@@ -1,4 +1,5 @@
-"""A view's projection, the predictor's inputs and its MLP in a few passes of C, for queries on the CPU.
+"""A view's projection, the predictor's inputs and its MLP in a few passes of C, for queries on the
+CPU, and the octree's Morton keys in one.
 
 ``kernels.c`` computes what :class:`~o3dvis.nn.cues.ViewProjection` and the view
 embedding times the projected features compute in some seventy eager torch
@@ -30,7 +31,7 @@ import torch
 from torch import Tensor
 
 
-__all__ = ["available", "usable", "has_view_margin", "project", "view_inputs", "PackedMLP", "pack_mlp", "view_margin"]
+__all__ = ["available", "usable", "has_view_margin", "morton_keys", "project", "view_inputs", "PackedMLP", "pack_mlp", "view_margin"]
 
 _SOURCE = Path(__file__).with_name("kernels.c")
 # vectorisable loops (no errno, no traps) whose rounding follows torch's op order (no contraction into
@@ -50,6 +51,7 @@ class _View(ctypes.Structure):
 
 _VIEW = ctypes.POINTER(_View)
 _SIGNATURES = {  # name: (argument types, result type)
+    "o3dvis_morton_keys": ([_I64, _PTR, _I32, _PTR], None),
     "o3dvis_project": ([_I64, _PTR, _PTR, _PTR, _I32, _PTR] + [_PTR] * 6, ctypes.c_int),
     "o3dvis_view_inputs": ([_I64, _VIEW, _PTR, _I64, _I32], ctypes.c_int),
     "o3dvis_has_view_margin_bf16": ([], ctypes.c_int),
@@ -142,6 +144,18 @@ def _check(name: str, t: Tensor, shape: tuple[int, ...], dtype: torch.dtype = to
     if t.shape != shape or t.dtype != dtype or not t.is_contiguous() or t.device.type != "cpu":
         raise ValueError(f"{name} must be a contiguous {shape} {dtype} CPU tensor, got "
                          f"{tuple(t.shape)} {t.dtype} on {t.device}")
+
+
+def morton_keys(points: Tensor, depth: int) -> Tensor:
+    """(N,) int64 Morton keys of the cells of a ``2^depth`` grid over [-1, 1]^3 holding ``points``
+    (N, 3) float32, as :func:`~o3dvis.nn.octree.morton_encode` of
+    :func:`~o3dvis.nn.octree.grid_cells` computes them, in one pass."""
+    _check("points", points, (points.shape[0], 3))
+    if not 1 <= depth <= 21:
+        raise ValueError(f"depth must lie in [1, 21], got {depth}")
+    keys = torch.empty(points.shape[0], dtype=torch.long)
+    _loaded().o3dvis_morton_keys(points.shape[0], points.data_ptr(), depth, keys.data_ptr())
+    return keys
 
 
 def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,

@@ -179,15 +179,16 @@ class ViewProjection:
         if (camera is None) == (direction is None):
             raise ValueError("give exactly one of camera and direction")
         sides = _sides(points.shape[0], scales)
-        self.native = not planes and points.shape[0] > 0 and native.usable(points, camera, direction)
+        self.native = (not planes and 0 < points.shape[0] <= native.MAX_POINTS
+                       and native.usable(points, camera, direction))
         if self.native:  # the bordered buffers and each point's 3x3 corner in them; the tables on demand
             if direction is not None:
                 direction = direction / direction.norm()
-            dirs, self.depth, self.buffers, self.corners, inv = native.project(
+            dirs, self.depth, self.buffers, self.corners, self.rpix = native.project(
                 points.contiguous(), camera, direction, sides)
             self.dirs = dirs if direction is None else direction.expand_as(points)
-            self.inv_footprint, self.planes, self.image = inv[:, :, None], None, None
-            self.sides, self.patches, self.pixels = sides, None, None
+            self.perspective, self.planes, self.image = direction is None, None, None
+            self.sides, self.patches, self.pixels, self.inv_footprint = sides, None, None, None
             return
         if direction is None:
             offset = points - camera
@@ -248,7 +249,7 @@ class ViewProjection:
         """Writes the predictor's first-layer inputs of ``points[rows]`` into ``out``, channels
         first (only when ``native``; see :func:`o3dvis.nn.native.view_inputs`)."""
         native.view_inputs(rows, self.dirs, projected, num_frequencies, self.buffers, self.corners, self.sides,
-                           self.depth, self.inv_footprint[:, :, 0], _EMPTY_RESIDUAL, out)
+                           self.depth, self.rpix, self.perspective, _EMPTY_RESIDUAL, out)
 
     def margin(self, rows: slice | Tensor, projected: Tensor, num_frequencies: int, normals: Tensor | None,
                mlp: native.PackedMLP, out: Tensor) -> None:
@@ -256,14 +257,14 @@ class ViewProjection:
         and :func:`o3dvis.nn.native.has_view_margin` of ``mlp.dtype``; see
         :func:`o3dvis.nn.native.view_margin`)."""
         native.view_margin(rows, self.dirs, projected, num_frequencies, self.buffers, self.corners, self.sides,
-                           self.depth, self.inv_footprint[:, :, 0], _EMPTY_RESIDUAL, normals, mlp, out)
+                           self.depth, self.rpix, self.perspective, _EMPTY_RESIDUAL, normals, mlp, out)
 
     def _tables(self) -> tuple[Tensor, Tensor]:
         """The 3x3 patches and each point's row of them (see ``__init__``) from a native
-        view's bordered buffers, for :meth:`cues`."""
+        view's bordered buffers, and the residuals' scales, for :meth:`cues`."""
         if self.patches is None:
             patches = self.depth.new_empty(sum(res * res for res in self.sides), 9)
-            pixels = torch.empty_like(self.corners)
+            pixels = torch.empty(self.corners.shape, dtype=torch.long)
             start = first = 0  # the scale's first row of patches and first pixel in the buffers
             for s, res in enumerate(self.sides):
                 width = res + 2
@@ -273,6 +274,9 @@ class ViewProjection:
                 torch.add(corner // width * res + corner % width, start, out=pixels[:, s])
                 start, first = start + res * res, first + width * width
             self.patches, self.pixels = patches, pixels
+            # -1 / (footprint x pixel size) as the kernels compute it: (-1 / depth) x (1 / pixel size)
+            footprint = -1 / self.depth if self.perspective else torch.full_like(self.depth, -1.0)
+            self.inv_footprint = (footprint[:, None] * self.rpix)[:, :, None]
         return self.patches, self.pixels
 
     def cues(self, rows: slice = slice(None)) -> Tensor:

@@ -185,12 +185,14 @@ void o3dvis_morton_keys(int64_t n, const float *points, int32_t depth, int64_t *
  * (n, 2) scratch; zbufs: each scale's min-depth buffer inside a border, rows
  * sides[s] + 2 apart, one after the other, NaN where empty and on the border;
  * corners: (n, scales) the index in zbufs of the top-left pixel of the 3x3
- * around each point's pixel; inv: (n, scales) -1 / (pixel size x footprint),
- * footprint the depth for a camera, else 1.
+ * around each point's pixel (zbufs hold fewer than 2^31 values); rpix:
+ * (scales,) 1 / pixel size. A residual's scale, -1 / (pixel size x footprint)
+ * with the footprint the depth for a camera, else 1, is left to the readers
+ * (a product per point and scale, where storing it cost a pass of memory).
  */
 int o3dvis_project(int64_t n, const float *points, const float *camera, const float *direction,
                    int32_t scales, const int64_t *sides, float *dirs, float *depth, float *uv,
-                   float *zbufs, int64_t *corners, float *inv) {
+                   float *zbufs, int32_t *corners, float *rpix) {
     double forward[3], right[3], up[3];
     if (scales < 1 || scales > MAX_SCALES) return -1;
     if (camera) {
@@ -242,7 +244,6 @@ int o3dvis_project(int64_t n, const float *points, const float *camera, const fl
     half = half * (1.0f + 1e-6f) + 1e-12f;
     for (int64_t i = 0; i < 2 * n; i++) uv[i] += half;
     int64_t start = 0;
-    float rpix[MAX_SCALES];
     for (int s = 0; s < scales; s++) {
         const int64_t res = sides[s], w = res + 2;
         /* a product with the reciprocal instead of torch's division by the pixel size: no
@@ -260,14 +261,10 @@ int o3dvis_project(int64_t n, const float *points, const float *camera, const fl
             const int64_t iv = fv < (float)(res - 1) ? (int64_t)fv : res - 1;
             float *z = zbuf + (iu + 1) * w + iv + 1;
             *z = depth[i] < *z ? depth[i] : *z;
-            corners[i * scales + s] = start + iu * w + iv;
+            corners[i * scales + s] = (int32_t)(start + iu * w + iv);
         }
         for (int64_t q = 0; q < w * w; q++) zbuf[q] = zbuf[q] == INFINITY ? NAN : zbuf[q];
         start += w * w;
-    }
-    for (int64_t i = 0; i < n; i++) { /* -1 / (footprint x pixel size), one division per point */
-        const float k = camera ? -1.0f / depth[i] : -1.0f;
-        for (int s = 0; s < scales; s++) inv[i * scales + s] = k * rpix[s];
     }
     return 0;
 }
@@ -277,9 +274,10 @@ int o3dvis_project(int64_t n, const float *points, const float *camera, const fl
  * rows: the points' rows (NULL: start, start + 1, ...); dirs: (N, 3) view
  * directions, rows dirs_stride apart (0: one direction for all); proj: the
  * projected features, channel j of row i at proj[j * proj_ld + i]; zbufs,
- * corners, depth: as o3dvis_project writes them, widths: (scales,) the
- * buffers' row lengths, sides + 2; inv: (N, scales) -1 / (pixel size x
- * footprint); empty: the residual that an empty pixel takes before asinh;
+ * corners, depth, rpix: as o3dvis_project writes them, widths: (scales,) the
+ * buffers' row lengths, sides + 2; perspective: 1 for a camera (a residual's
+ * footprint is the depth), 0 for a direction (1); empty: the residual that an
+ * empty pixel takes before asinh;
  * normals: (N, 3) for a model with the normal cue, else NULL.
  */
 struct view {
@@ -291,10 +289,11 @@ struct view {
     int64_t proj_ld;
     int frequencies;
     const float *zbufs;
-    const int64_t *corners;
+    const int32_t *corners;
     const int64_t *widths;
     const float *depth;
-    const float *inv;
+    const float *rpix;
+    int perspective;
     int scales;
     float empty;
     const float *normals;
@@ -320,7 +319,7 @@ static void gather_patches(const struct view *v, const int64_t *idx, int m, floa
  * hold finite values of no meaning. */
 static void block_inputs(const struct view *v, int64_t b0, int m, float *in) {
     const int ne = 3 + 6 * v->frequencies, nc = 9 * v->scales, scales = v->scales;
-    float *cue = in + ne * BLOCK, dep[BLOCK], k[BLOCK];
+    float *cue = in + ne * BLOCK, dep[BLOCK], kd[BLOCK], k[BLOCK];
     const float empty = v->empty; /* a local: the stores below could otherwise change it */
     int64_t idx[BLOCK];
     for (int b = 0; b < m; b++) idx[b] = v->rows ? v->rows[b0 + b] : v->start + b0 + b;
@@ -329,8 +328,9 @@ static void block_inputs(const struct view *v, int64_t b0, int m, float *in) {
        empty pixels marked */
     gather_patches(v, idx, m, cue);
     for (int b = 0; b < m; b++) dep[b] = v->depth[idx[b]];
-    for (int s = 0; s < scales; s++) {
-        for (int b = 0; b < m; b++) k[b] = v->inv[idx[b] * scales + s];
+    for (int b = 0; b < m; b++) kd[b] = v->perspective ? -1.0f / dep[b] : -1.0f;
+    for (int s = 0; s < scales; s++) { /* -1 / (footprint x pixel size), as torch's cues compute it */
+        for (int b = 0; b < m; b++) k[b] = kd[b] * v->rpix[s];
         for (int j = 0; j < 9; j++) {
             float *c = cue + (9 * s + j) * BLOCK;
             for (int b = 0; b < m; b++) {

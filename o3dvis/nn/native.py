@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 
 
-__all__ = ["available", "usable", "has_view_margin", "morton_keys", "project", "view_inputs", "PackedMLP", "pack_mlp", "view_margin"]
+__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "project", "view_inputs", "PackedMLP", "pack_mlp", "view_margin"]
 
 _SOURCE = Path(__file__).with_name("kernels.c")
 # vectorisable loops (no errno, no traps) whose rounding follows torch's op order (no contraction into
@@ -45,8 +45,8 @@ class _View(ctypes.Structure):
 
     _fields_ = [("rows", _PTR), ("start", _I64), ("dirs", _PTR), ("dirs_stride", _I64), ("proj", _PTR),
                 ("proj_ld", _I64), ("frequencies", ctypes.c_int), ("zbufs", _PTR), ("corners", _PTR),
-                ("widths", _PTR), ("depth", _PTR), ("inv", _PTR), ("scales", ctypes.c_int),
-                ("empty", ctypes.c_float), ("normals", _PTR)]
+                ("widths", _PTR), ("depth", _PTR), ("rpix", _PTR), ("perspective", ctypes.c_int),
+                ("scales", ctypes.c_int), ("empty", ctypes.c_float), ("normals", _PTR)]
 
 
 _VIEW = ctypes.POINTER(_View)
@@ -58,6 +58,9 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_view_margin_bf16": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_view_margin_f32": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
 }
+# the most points a view of the kernels takes: its depth buffers (about 1.4 values a point over four
+# scales) are then indexed by int32
+MAX_POINTS = 1 << 30
 _lock = threading.Lock()
 _library: list = []  # [the loaded library, or None where it could not be built], once tried
 
@@ -171,9 +174,10 @@ def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,
         ``dirs`` (N, 3) unit vectors from the camera (None with ``direction``),
         ``depth`` (N,), ``buffers`` each scale's min-depth image inside a
         border, (side + 2)^2 values in rows of side + 2, one after the other,
-        NaN where empty and on the border, ``corners`` (N, S) the index in
+        NaN where empty and on the border, ``corners`` (N, S) int32 the index in
         ``buffers`` of the top-left pixel of the 3x3 around each point's pixel,
-        ``inv`` (N, S) -1 / (pixel size x footprint).
+        ``rpix`` (S,) 1 / pixel size (a residual's scale is -rpix / depth for a camera,
+        -rpix for a direction).
     """
     n, scales = points.shape[0], len(sides)
     _check("points", points, (n, 3))
@@ -181,18 +185,21 @@ def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,
     _check("camera" if camera is not None else "direction", view, (3,))
     if n < 1 or not sides or min(sides) < 1:
         raise ValueError(f"need points and positive sides, got {n} points, sides {sides}")
+    if n > MAX_POINTS or sum((res + 2) ** 2 for res in sides) >= 1 << 31:
+        raise ValueError(f"the C kernels take at most {MAX_POINTS} points and 2^31 buffer values, got {n} points, "
+                         f"sides {sides}")
     dirs = points.new_empty(n, 3) if camera is not None else None
     depth, uv = points.new_empty(n), points.new_empty(n, 2)
     buffers = points.new_empty(sum((res + 2) ** 2 for res in sides))
-    corners, inv = torch.empty(n, scales, dtype=torch.long), points.new_empty(n, scales)
+    corners, rpix = torch.empty(n, scales, dtype=torch.int32), points.new_empty(scales)
     sizes = torch.tensor(sides, dtype=torch.long)  # referenced until the call has returned
     if _loaded().o3dvis_project(n, points.data_ptr(), camera.data_ptr() if camera is not None else None,
                                 direction.data_ptr() if direction is not None else None, scales,
                                 sizes.data_ptr(),
                                 dirs.data_ptr() if dirs is not None else None, depth.data_ptr(), uv.data_ptr(),
-                                buffers.data_ptr(), corners.data_ptr(), inv.data_ptr()):
+                                buffers.data_ptr(), corners.data_ptr(), rpix.data_ptr()):
         raise ValueError(f"the C kernel takes at most 7 scales, got {scales}")
-    return dirs, depth, buffers, corners, inv
+    return dirs, depth, buffers, corners, rpix
 
 
 def has_view_margin(dtype: torch.dtype) -> bool:
@@ -205,7 +212,7 @@ def has_view_margin(dtype: torch.dtype) -> bool:
 
 
 def _view(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies: int, buffers: Tensor,
-          corners: Tensor, sides: list[int], depth: Tensor, inv: Tensor, empty: float,
+          corners: Tensor, sides: list[int], depth: Tensor, rpix: Tensor, perspective: bool, empty: float,
           normals: Tensor | None = None) -> tuple[int, _View]:
     """The number of points and the kernels' ``struct view`` of them (see :func:`view_inputs`), all
     checked; the struct holds on to the tensors made here that it points into."""
@@ -231,21 +238,22 @@ def _view(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies
                          f"{tuple(projected.shape)} {projected.dtype} strides {projected.stride()} and "
                          f"{tuple(dirs.shape)} {dirs.dtype} strides {dirs.stride()}")
     _check("buffers", buffers, (sum((res + 2) ** 2 for res in sides),))
-    _check("corners", corners, (n_points, len(sides)), torch.long)
+    _check("corners", corners, (n_points, len(sides)), torch.int32)
     _check("depth", depth, (n_points,))
-    _check("inv", inv, (n_points, scales))
+    _check("rpix", rpix, (scales,))
     if normals is not None:
         _check("normals", normals, (n_points, 3))
     widths = torch.tensor([res + 2 for res in sides], dtype=torch.long)
     view = _View(rows_pointer, start, dirs.data_ptr(), dirs.stride(0), projected.data_ptr(), projected.stride(1),
                  num_frequencies, buffers.data_ptr(), corners.data_ptr(), widths.data_ptr(), depth.data_ptr(),
-                 inv.data_ptr(), scales, empty, normals.data_ptr() if normals is not None else None)
+                 rpix.data_ptr(), perspective, scales, empty, normals.data_ptr() if normals is not None else None)
     view.tensors = (rows, widths)
     return n, view
 
 
 def view_inputs(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies: int, buffers: Tensor,
-                corners: Tensor, sides: list[int], depth: Tensor, inv: Tensor, empty: float, out: Tensor) -> None:
+                corners: Tensor, sides: list[int], depth: Tensor, rpix: Tensor, perspective: bool, empty: float,
+                out: Tensor) -> None:
     """Writes the first layer's inputs of the points ``rows`` for one view into ``out``, channels first.
 
     Args:
@@ -253,12 +261,13 @@ def view_inputs(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequ
         dirs: (N, 3) view directions, rows contiguous (a direction expanded to N rows will do).
         projected: (N, E) projected features (:meth:`VisibilityPredictor.project`),
             E = 3 + 6 ``num_frequencies``, stored channels first (strides (1, N)).
-        buffers, corners, depth, inv: the view's, as :func:`project` returns them for ``sides``.
+        buffers, corners, depth, rpix: the view's, as :func:`project` returns them for ``sides``.
+        perspective: a view from a camera (True) or along a direction.
         empty: the residual an empty pixel takes before ``asinh``.
         out: (E + 9 S, n) float32 or bfloat16, rows contiguous: ``projected[rows]``
             times the view embedding of ``dirs[rows]``, then the depth-buffer cues.
     """
-    n, view = _view(rows, dirs, projected, num_frequencies, buffers, corners, sides, depth, inv, empty)
+    n, view = _view(rows, dirs, projected, num_frequencies, buffers, corners, sides, depth, rpix, perspective, empty)
     channels = 3 + 6 * num_frequencies + 9 * len(sides)
     if (out.shape != (channels, n) or out.stride(1) != 1 or out.device.type != "cpu"
             or out.dtype not in (torch.float32, torch.bfloat16)):
@@ -311,12 +320,13 @@ def pack_mlp(layers: list[tuple[Tensor, Tensor]], dtype: torch.dtype) -> PackedM
 
 
 def view_margin(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies: int, buffers: Tensor,
-                corners: Tensor, sides: list[int], depth: Tensor, inv: Tensor, empty: float,
+                corners: Tensor, sides: list[int], depth: Tensor, rpix: Tensor, perspective: bool, empty: float,
                 normals: Tensor | None, mlp: PackedMLP, out: Tensor) -> None:
     """Writes the margins of the points ``rows`` for one view into ``out`` (n,) float32: the MLP
     ``mlp`` on the inputs :func:`view_inputs` writes, then with ``normals`` (N, 3) the normal cue,
     with products in ``mlp.dtype`` and float32 sums (only where :func:`has_view_margin`)."""
-    n, view = _view(rows, dirs, projected, num_frequencies, buffers, corners, sides, depth, inv, empty, normals)
+    n, view = _view(rows, dirs, projected, num_frequencies, buffers, corners, sides, depth, rpix, perspective, empty,
+                    normals)
     _check("out", out, (n,))
     if not has_view_margin(mlp.dtype):
         raise RuntimeError(f"the C kernels here have no view_margin in {mlp.dtype} (bfloat16 needs AVX512-BF16)")

@@ -244,6 +244,24 @@ def test_answers_equal_those_of_the_torch_ops(precision, normals, monkeypatch):
     assert (probs - slow).abs().mean() < 1e-4
 
 
+@needs_kernels
+@pytest.mark.parametrize("precision", ["float32", "bfloat16"])
+def test_without_a_fused_kernel_the_inputs_kernel_and_torch_products_answer_alike(precision, monkeypatch):
+    """The path of a CPU without bfloat16 dot products asked for bfloat16 products: C inputs,
+    torch's products; the same answers as the fused kernel but for sums in another order."""
+    pcd = _cloud(False)
+    cameras = np.array([[3.0, 0.5, 0.2], [-0.4, 2.5, 1.0]])
+    vis = o3dvis.NeuralVisibility.pretrained(precision=precision)
+    field = vis.encode(pcd)
+    if not native.has_view_margin(field.matmul_dtype):
+        pytest.skip("no fused kernel here for these products")
+    fused = field.probabilities(cameras)
+    monkeypatch.setattr(native, "has_view_margin", lambda dtype: False)
+    unfused = field.probabilities(cameras)
+    assert ((fused > 0.5) == (unfused > 0.5)).float().mean() > 0.999
+    assert (fused - unfused).abs().max() < 1e-2
+
+
 def _python(code: str, **env) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-W", "always", "-c", code], capture_output=True, text=True,
                           env={**os.environ, **env}, timeout=300)

@@ -403,8 +403,8 @@ class NeuralVisibility:
         precision: dtype of the per-view matrix products of queries without
             gradients: ``"auto"`` (default) is ``"bfloat16"`` on CPUs with native
             bfloat16 dot products (AVX512-BF16, AMX) and ``"float32"`` elsewhere.
-            bfloat16 takes about 40 % off a view at 200 k points on such a CPU
-            (about 12 against 20-21 ms on two threads) and changes 0.014 % of the
+            bfloat16 takes about a third off a view at 200 k points on such a CPU
+            (6.9 against 11.0 ms on two threads) and changes 0.014 % of the
             answers there (see the README);
             probabilities differentiated w.r.t. cameras always use float32.
 

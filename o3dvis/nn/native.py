@@ -5,35 +5,27 @@ CPU, and the octree's Morton keys in one.
 embedding times the projected features compute in some seventy eager torch
 ops, each a pass over memory, and runs the predictor's MLP on those inputs
 while they are in cache (see the README for what it saves).
-It is C with no dependency, built on first use with the system's C
-compiler (``$CC``, else ``cc``) for this CPU and kept in a cache folder
-(``$O3DVIS_CACHE``, else ``$XDG_CACHE_HOME/o3dvis`` or ``~/.cache/o3dvis``),
-and called through ``ctypes``, which releases the GIL. Where no compiler is
-found, or with ``O3DVIS_NATIVE=0`` in the environment, queries run the torch
-ops instead, with a warning; gradients, CUDA and the plane cues always do.
+It is C with no dependency, built on first use for this CPU and called
+through ``ctypes`` (see :mod:`o3dvis.clib`). Where no compiler is found, or
+with ``O3DVIS_NATIVE=0`` in the environment, queries run the torch ops
+instead, with a warning; gradients, CUDA and the plane cues always do.
 This module only checks shapes and passes pointers; the callers own the tensors.
 """
 
 from __future__ import annotations
 
 import ctypes
-import hashlib
-import os
-import platform
-import subprocess
-import tempfile
-import threading
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
+from ..clib import CLibrary
+
 
 __all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "project", "view_inputs", "PackedMLP", "pack_mlp", "view_margin"]
 
-_SOURCE = Path(__file__).with_name("kernels.c")
 # vectorisable loops (no errno, no traps) whose rounding follows torch's op order (no contraction into
 # fused multiply-adds but the polynomials' own, see kernels.c)
 _FLAGS = ["-O3", "-fPIC", "-shared", "-fno-math-errno", "-fno-trapping-math", "-ffp-contract=off"]
@@ -61,73 +53,12 @@ _SIGNATURES = {  # name: (argument types, result type)
 # the most points a view of the kernels takes: its depth buffers (about 1.4 values a point over four
 # scales) are then indexed by int32
 MAX_POINTS = 1 << 30
-_lock = threading.Lock()
-_library: list = []  # [the loaded library, or None where it could not be built], once tried
-
-
-def _cache_dir() -> Path:
-    if os.environ.get("O3DVIS_CACHE"):
-        return Path(os.environ["O3DVIS_CACHE"])
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "o3dvis"
-
-
-def _cpu() -> str:
-    """What identifies this CPU's instruction set (the library is built with ``-march=native``)."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            flags = next((line for line in f if line.startswith(("flags", "Features"))), "")
-    except OSError:
-        flags = ""
-    return f"{platform.machine()} {platform.processor()} {flags}"
-
-
-def _build() -> ctypes.CDLL:
-    """Loads the library, compiling it into the cache folder first if it is not there (or is not
-    a library: a build cut short)."""
-    compiler = os.environ.get("CC", "cc")
-    source = _SOURCE.read_bytes()
-    key = hashlib.sha256(b"\0".join([source, compiler.encode(), " ".join(_FLAGS).encode(),
-                                     _cpu().encode()])).hexdigest()[:16]
-    folder = _cache_dir()
-    path = folder / f"kernels-{key}.so"
-    if path.exists():
-        try:
-            return ctypes.CDLL(str(path))
-        except OSError:  # a truncated or foreign file: built anew below
-            path.unlink(missing_ok=True)
-    folder.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=folder) as tmp:
-        built = Path(tmp) / path.name
-        errors = []
-        for arch in (["-march=native"], []):  # some compilers know no -march=native
-            run = subprocess.run([compiler, *_FLAGS, *arch, str(_SOURCE), "-o", str(built)],
-                                 capture_output=True, text=True, timeout=300)
-            if run.returncode == 0:
-                break
-            errors.append(run.stderr.strip())
-        else:
-            raise OSError("\n".join(errors))
-        os.replace(built, path)  # atomic: another process sees the whole file or none
-    return ctypes.CDLL(str(path))
+_LIBRARY = CLibrary(Path(__file__).with_name("kernels.c"), _FLAGS, _SIGNATURES,
+                    "queries run their per-view steps as torch ops, which is slower")
 
 
 def _loaded() -> ctypes.CDLL | None:
-    with _lock:
-        if not _library:
-            library, reason = None, "the C kernels are turned off (O3DVIS_NATIVE=0)"
-            if os.environ.get("O3DVIS_NATIVE", "1") != "0":
-                try:
-                    library = _build()
-                    for name, (args, result) in _SIGNATURES.items():
-                        function = getattr(library, name)
-                        function.argtypes, function.restype = args, result
-                except (OSError, AttributeError, RuntimeError, KeyError, subprocess.SubprocessError) as e:
-                    library, reason = None, f"the C kernels could not be built or loaded: {e}"
-            if library is None:
-                warnings.warn(f"o3dvis: queries run their per-view steps as torch ops, which is slower; "
-                              f"{reason}", RuntimeWarning)
-            _library.append(library)
-        return _library[0]
+    return _LIBRARY.get()
 
 
 def available() -> bool:

@@ -61,7 +61,7 @@ def _add_triangle_normals(total: np.ndarray, points: np.ndarray, cameras: np.nda
                           progress: bool, desc: str) -> None:
     """Adds to ``total`` the unit normals of the triangles each view makes at each point.
 
-    The views are triangulated on all cores (Qhull releases the GIL), each worker also
+    The views are triangulated on all cores (the triangulation releases the GIL), each worker also
     making its triangles' unit normals, and added in order.
     """
     from tqdm import tqdm

@@ -5,9 +5,10 @@ triangulated, triangles with edges longer than the local point spacing allows dr
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import Delaunay, QhullError, cKDTree
+from scipy.spatial import cKDTree
 
 from .camera import look_at
+from .delaunay import delaunay_triangles
 
 __all__ = ["local_spacing", "delaunay_surface", "visible_triangles", "facing_triangles", "triangle_normals"]
 
@@ -44,12 +45,7 @@ def delaunay_surface(points: np.ndarray, coords: np.ndarray, max_edge: np.ndarra
         (T, 3) int64 indices into ``points`` (none when the coordinates are too
         few or all collinear).
     """
-    if len(coords) < 3:
-        return np.zeros((0, 3), dtype=np.int64)
-    try:
-        s = Delaunay(coords).simplices.astype(np.int64)
-    except (QhullError, ValueError):
-        return np.zeros((0, 3), dtype=np.int64)
+    s = delaunay_triangles(coords)
     keep = np.ones(len(s), dtype=bool)
     for a, b in ((0, 1), (1, 2), (2, 0)):
         length = np.linalg.norm(points[s[:, a]] - points[s[:, b]], axis=1)

@@ -1,0 +1,123 @@
+"""The plane Delaunay triangulation (``o3dvis/apps/delaunay.c``) against Qhull and against its
+definition, on points in general position and on the degenerate sets Qhull struggles with."""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scipy.spatial import ConvexHull, Delaunay
+
+from o3dvis.apps import delaunay
+from o3dvis.apps.delaunay import delaunay_triangles
+
+native = pytest.mark.skipif(os.environ.get("O3DVIS_NATIVE") == "0", reason="C kernels turned off (O3DVIS_NATIVE=0)")
+
+
+def _set(triangles: np.ndarray) -> set[tuple[int, ...]]:
+    return set(map(tuple, np.sort(triangles, axis=1).tolist()))
+
+
+def _signed_areas(xy: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    a, b, c = (xy[triangles[:, i]] for i in range(3))
+    return ((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0]) / 2
+
+
+def _check_triangulation(xy: np.ndarray, triangles: np.ndarray) -> None:
+    """Counter-clockwise, no overlap or gap (the areas sum to the hull's), every distinct point a
+    corner, and no point strictly inside a triangle's circumcircle (exact: integer coordinates)."""
+    distinct = np.unique(xy, axis=0)
+    areas = _signed_areas(xy, triangles)
+    assert (areas > 0).all()
+    assert areas.sum() == pytest.approx(ConvexHull(distinct).volume, rel=1e-12)
+    assert len(np.unique(xy[np.unique(triangles)], axis=0)) == len(distinct)
+    p = xy.astype(np.int64)
+    d = p[None, :, :] - p[triangles][:, :, None, :]  # (T, 3, N, 2): each corner minus each point
+    lift = (d ** 2).sum(-1)
+    cross = lambda i, j: d[:, i, :, 0] * d[:, j, :, 1] - d[:, j, :, 0] * d[:, i, :, 1]  # noqa: E731
+    in_circle = lift[:, 0] * cross(1, 2) - lift[:, 1] * cross(0, 2) + lift[:, 2] * cross(0, 1)
+    assert (in_circle <= 0).all()
+
+
+@native
+@pytest.mark.parametrize("count", [3, 4, 10, 100, 3000])
+def test_equals_qhull_on_points_in_general_position(count):
+    rng = np.random.default_rng(count)
+    xy = rng.integers(0, 1 << 20, size=(count, 2)) / 1024.0  # on the snapping grid: nothing moves
+    assert _set(delaunay_triangles(xy)) == _set(Delaunay(xy).simplices)
+    normal = np.random.default_rng(count).normal(size=(count, 2))  # any doubles: snapped to 2^-26 of the extent
+    assert len(_set(delaunay_triangles(normal)) ^ _set(Delaunay(normal).simplices)) <= 4
+
+
+@native
+@pytest.mark.parametrize("side", [3, 10, 50, 1000])
+def test_integer_points_with_ties_and_duplicates(side):
+    """Lattice points (many on one line, four on one circle) and repeats: still a Delaunay
+    triangulation of the distinct points."""
+    rng = np.random.default_rng(side)
+    for count in (5, 60, 300):
+        xy = rng.integers(0, side, size=(count, 2)).astype(float)
+        if len(np.unique(xy, axis=0)) >= 3 and np.linalg.matrix_rank(xy - xy[0]) == 2:
+            _check_triangulation(xy, delaunay_triangles(xy))
+
+
+@native
+def test_a_grid_is_split_into_two_triangles_a_cell():
+    xy = np.stack(np.meshgrid(np.arange(30.0), np.arange(20.0)), -1).reshape(-1, 2)
+    triangles = delaunay_triangles(xy * 0.37 + 5)  # scaled and moved off the snapping grid's nodes
+    assert len(triangles) == 2 * 29 * 19
+    _check_triangulation(xy, triangles)
+
+
+@native
+def test_points_on_one_circle():
+    angle = np.linspace(0, 2 * np.pi, 100, endpoint=False)
+    circle = np.c_[np.cos(angle), np.sin(angle)]
+    assert len(delaunay_triangles(circle)) == 98
+    assert len(delaunay_triangles(np.r_[circle, [[0.0, 0.0]]])) == 100
+
+
+@pytest.mark.parametrize("xy", [np.zeros((0, 2)), np.ones((2, 2)), np.ones((5, 2)),
+                                np.c_[np.arange(10.0), 2 * np.arange(10.0) + 1],
+                                np.c_[np.arange(9.0), np.full(9, 0.3)] * 0.1],
+                         ids=["none", "two", "one point repeated", "a line", "a horizontal line"])
+def test_fewer_than_three_distinct_or_collinear_give_no_triangle(xy):
+    triangles = delaunay_triangles(xy)
+    assert triangles.shape == (0, 3) and triangles.dtype == np.int64
+
+
+@native
+def test_points_near_a_line_give_triangles_thinner_than_the_snapping_grid():
+    """Doubles on a line of slope 3 are not on one line after snapping (as they are not exactly on
+    one before): thin triangles, as Qhull's degenerate simplices."""
+    xy = np.c_[np.arange(7.0) * 0.1, np.arange(7.0) * 0.3]
+    triangles = delaunay_triangles(xy)
+    assert (np.abs(_signed_areas(xy, triangles)) <= 2.0 ** -26 * 1.8 ** 2).all()
+
+
+@pytest.mark.parametrize("xy, message", [(np.ones((5, 3)), "shape"), (np.ones(6), "shape"),
+                                         (np.array([[0, 0], [1, 0], [0, np.nan]]), "finite"),
+                                         (np.array([[0, 0], [1, 0], [0, np.inf]]), "finite")])
+def test_bad_coordinates_are_refused(xy, message):
+    with pytest.raises(ValueError, match=message):
+        delaunay_triangles(xy)
+
+
+def test_too_many_points_are_refused(monkeypatch):
+    monkeypatch.setattr(delaunay, "MAX_POINTS", 10)
+    with pytest.raises(ValueError, match="at most 10"):
+        delaunay_triangles(np.random.default_rng(0).random((11, 2)))
+
+
+def test_without_the_library_qhull_answers_with_a_warning(tmp_path):
+    code = ("import numpy as np\n"
+            "from o3dvis.apps.delaunay import delaunay_triangles\n"
+            "xy = np.random.default_rng(3).integers(0, 1 << 20, size=(500, 2)) / 1024.0\n"
+            "np.save(r'%s', delaunay_triangles(xy))\n" % (tmp_path / "t.npy"))
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env={**os.environ, "O3DVIS_NATIVE": "0", "O3DVIS_CACHE": str(tmp_path)})
+    assert run.returncode == 0, run.stderr
+    assert "RuntimeWarning" in run.stderr and "Qhull" in run.stderr
+    xy = np.random.default_rng(3).integers(0, 1 << 20, size=(500, 2)) / 1024.0
+    assert _set(np.load(tmp_path / "t.npy")) == _set(delaunay_triangles(xy)) == _set(Delaunay(xy).simplices)

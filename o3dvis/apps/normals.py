@@ -70,15 +70,15 @@ def _add_triangle_normals(total: np.ndarray, points: np.ndarray, cameras: np.nda
         cam, vis = view
         triangles, normals = facing_triangles(
             points, cam, np.flatnonzero(vis if subset is None else vis & subset), max_edge)
-        length = np.linalg.norm(normals, axis=1)
+        length = np.sqrt(np.einsum("ij,ij->i", normals, normals))
         ok = length > 0
-        slots = (3 * triangles[ok].ravel()[:, None] + np.arange(3)).ravel()  # (corner, component) pairs
-        return slots, np.repeat(normals[ok] / length[ok, None], 3, axis=0).ravel()
+        return triangles[ok], normals[ok] / length[ok, None]
 
     with ThreadPoolExecutor(max(1, min(len(cameras), os.cpu_count() or 1))) as pool:
-        for slots, values in tqdm(pool.map(triangulate, zip(cameras, visibility)), total=len(cameras),
-                                  disable=not progress, desc=desc, unit="view"):
-            total += np.bincount(slots, values, minlength=total.size).reshape(total.shape)
+        for triangles, unit in tqdm(pool.map(triangulate, zip(cameras, visibility)), total=len(cameras),
+                                    disable=not progress, desc=desc, unit="view"):
+            for corner in triangles.T:
+                np.add.at(total, corner, unit)
 
 
 def neighbourhoods(points: np.ndarray, search_param, tree: cKDTree | None = None) -> np.ndarray:

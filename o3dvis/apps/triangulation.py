@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 from .camera import look_at
 from .delaunay import delaunay_triangles
 
-__all__ = ["local_spacing", "delaunay_surface", "visible_triangles", "facing_triangles", "triangle_normals"]
+__all__ = ["local_spacing", "delaunay_surface", "visible_triangles", "facing_triangles"]
 
 DEFAULT_EDGE_FACTOR = 3.0
 
@@ -30,8 +30,9 @@ def local_spacing(points: np.ndarray, k: int = 6, tree: cKDTree | None = None) -
     return np.maximum(dist[:, -1], np.where(np.isfinite(positive), positive, 0))
 
 
-def delaunay_surface(points: np.ndarray, coords: np.ndarray, max_edge: np.ndarray) -> np.ndarray:
-    """Delaunay triangles of 2D ``coords`` whose edges are short enough in 3D.
+def delaunay_surface(points: np.ndarray, coords: np.ndarray, max_edge: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Delaunay triangles of 2D ``coords`` whose edges are short enough in 3D, and their normals.
 
     A triangle is kept when each of its edges is no longer, in 3D, than the
     larger ``max_edge`` of the edge's two end points.
@@ -43,20 +44,22 @@ def delaunay_surface(points: np.ndarray, coords: np.ndarray, max_edge: np.ndarra
 
     Returns:
         (T, 3) int64 indices into ``points`` (none when the coordinates are too
-        few or all collinear).
+        few or all collinear) and (T, 3) their normals ``(b - a) x (c - a)``
+        (length = twice the area).
     """
     s = delaunay_triangles(coords)
-    keep = np.ones(len(s), dtype=bool)
-    for a, b in ((0, 1), (1, 2), (2, 0)):
-        length = np.linalg.norm(points[s[:, a]] - points[s[:, b]], axis=1)
-        keep &= length <= np.maximum(max_edge[s[:, a]], max_edge[s[:, b]])
-    return s[keep]
-
-
-def triangle_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Unnormalised triangle normals (length = twice the area), (T, 3)."""
-    a, b, c = (points[triangles[:, i]] for i in range(3))
-    return np.cross(b - a, c - a)
+    a, b, c = (points[s[:, k]] for k in range(3))
+    la, lb, lc = (max_edge[s[:, k]] for k in range(3))
+    ab, ac, bc = b - a, c - a, c - b
+    keep = ((np.einsum("ij,ij->i", ab, ab) <= np.maximum(la, lb) ** 2)
+            & (np.einsum("ij,ij->i", bc, bc) <= np.maximum(lb, lc) ** 2)
+            & (np.einsum("ij,ij->i", ac, ac) <= np.maximum(lc, la) ** 2))
+    ab, ac = ab[keep], ac[keep]
+    normals = np.empty_like(ab)  # np.cross, without its copies
+    normals[:, 0] = ab[:, 1] * ac[:, 2] - ab[:, 2] * ac[:, 1]
+    normals[:, 1] = ab[:, 2] * ac[:, 0] - ab[:, 0] * ac[:, 2]
+    normals[:, 2] = ab[:, 0] * ac[:, 1] - ab[:, 1] * ac[:, 0]
+    return s[keep], normals
 
 
 def visible_triangles(points: np.ndarray, camera_location: np.ndarray, indices: np.ndarray,
@@ -82,7 +85,8 @@ def visible_triangles(points: np.ndarray, camera_location: np.ndarray, indices: 
 
 def facing_triangles(points: np.ndarray, camera_location: np.ndarray, indices: np.ndarray,
                      max_edge: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`visible_triangles` and their :func:`triangle_normals` (towards the camera), (T, 3) each."""
+    """:func:`visible_triangles` and their normals (towards the camera, length = twice the area),
+    (T, 3) each."""
     indices = np.asarray(indices, dtype=np.int64)
     sub = points[indices]
     if len(sub) < 3:
@@ -91,9 +95,9 @@ def facing_triangles(points: np.ndarray, camera_location: np.ndarray, indices: n
     cam = sub @ extrinsic[:3, :3].T + extrinsic[:3, 3]
     front = cam[:, 2] > 1e-12 * max(1.0, float(np.abs(cam).max()))
     indices, sub, cam = indices[front], sub[front], cam[front]
-    triangles = indices[delaunay_surface(sub, cam[:, :2] / cam[:, 2:3], max_edge[indices])]
-    normals = triangle_normals(points, triangles)
-    away = np.einsum("ij,ij->i", normals, camera_location - points[triangles[:, 0]]) < 0
+    s, normals = delaunay_surface(sub, cam[:, :2] / cam[:, 2:3], max_edge[indices])
+    triangles = indices[s]
+    away = np.einsum("ij,ij->i", normals, camera_location - sub[s[:, 0]]) < 0
     triangles[away] = triangles[away][:, [0, 2, 1]]
     normals[away] *= -1  # the normal of the reversed triangle
     return triangles, normals

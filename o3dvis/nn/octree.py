@@ -124,6 +124,12 @@ def morton_order(points: Tensor, depth: int = 21) -> Tensor:
     return torch.argsort(cell_keys(points, depth))
 
 
+def _bordered_cell(width: int, batch: Tensor | int, xyz: Tensor) -> Tensor:
+    """Index of the cell at integer coords ``xyz`` (..., 3) in [-1, width - 2] of cloud ``batch`` in
+    a dense table of ``width``^3 cells a cloud (a level's cells inside a border one cell wide)."""
+    return ((batch * width + xyz[..., 0] + 1) * width + xyz[..., 1] + 1) * width + xyz[..., 2] + 1
+
+
 class Octree:
     """A sparse octree of ``depth`` levels over a batch of clouds in [-1, 1]^3.
 
@@ -183,6 +189,20 @@ class Octree:
     def batch_of(self, level: int) -> Tensor:
         return self.keys[level] >> (3 * level)
 
+    def _table(self, level: int) -> Tensor:
+        """Dense int32 table of the node index of every cell of ``level`` and of a border one cell
+        wide around it (-1 where empty), indexed by :func:`_bordered_cell`."""
+        if level not in self._tables:
+            w = (1 << level) + 2
+            cell = _bordered_cell(w, self.batch_of(level), self.coords(level))
+            table = torch.full((self.batch_size * w**3,), -1, dtype=torch.int32, device=self.device)
+            table[cell] = torch.arange(cell.shape[0], dtype=torch.int32, device=self.device)
+            self._tables[level] = table
+        return self._tables[level]
+
+    def _dense(self, level: int) -> bool:
+        return self.batch_size * ((1 << level) + 2) ** 3 <= _DENSE_CELLS
+
     def lookup(self, level: int, xyz: Tensor, batch: Tensor) -> Tensor:
         """Index of the node at integer coords ``xyz`` (..., 3) of ``level``, or -1 if absent.
 
@@ -191,17 +211,10 @@ class Octree:
         """
         res = 1 << level
         inside = ((xyz >= 0) & (xyz < res)).all(dim=-1)
-        xyz = xyz.clamp(0, res - 1)
-        if self.batch_size * res**3 <= _DENSE_CELLS:
-            if level not in self._tables:
-                c = self.coords(level)
-                cell = ((self.batch_of(level) * res + c[:, 0]) * res + c[:, 1]) * res + c[:, 2]
-                table = torch.full((self.batch_size * res**3,), -1, dtype=torch.int32, device=self.device)
-                table[cell] = torch.arange(cell.shape[0], dtype=torch.int32, device=self.device)
-                self._tables[level] = table
-            cell = ((batch * res + xyz[..., 0]) * res + xyz[..., 1]) * res + xyz[..., 2]
-            idx = self._tables[level][cell].long()
+        if self._dense(level):
+            idx = self._table(level)[_bordered_cell(res + 2, batch, xyz.clamp(-1, res))].long()
             return torch.where(inside, idx, torch.full_like(idx, -1))
+        xyz = xyz.clamp(0, res - 1)
         query = (batch << (3 * level)) | morton_encode(xyz.reshape(-1, 3), level).view(xyz.shape[:-1])
         keys = self.keys[level]
         idx = torch.searchsorted(keys, query).clamp_(max=keys.shape[0] - 1)
@@ -217,7 +230,12 @@ class Octree:
         if level not in self._neighbours:
             xyz = self.coords(level)
             offsets = _OFFSETS.to(self.device)
-            batch = self.batch_of(level)[:, None].expand(-1, 27)
-            idx = self.lookup(level, xyz[:, None, :] + offsets[None], batch)
-            self._neighbours[level] = torch.where(idx < 0, torch.full_like(idx, xyz.shape[0]), idx)
+            if self._dense(level):  # each offset is one step in the bordered table: no bounds to check
+                w = (1 << level) + 2
+                steps = _bordered_cell(w, 0, offsets) - _bordered_cell(w, 0, torch.zeros_like(offsets[0]))
+                idx = self._table(level)[_bordered_cell(w, self.batch_of(level), xyz)[:, None] + steps]
+            else:
+                batch = self.batch_of(level)[:, None].expand(-1, 27)
+                idx = self.lookup(level, xyz[:, None, :] + offsets[None], batch)
+            self._neighbours[level] = torch.where(idx < 0, xyz.shape[0], idx.long())
         return self._neighbours[level]

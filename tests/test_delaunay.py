@@ -104,6 +104,14 @@ def test_bad_coordinates_are_refused(xy, message):
         delaunay_triangles(xy)
 
 
+@native
+@pytest.mark.parametrize("xy", [[[-1e308, 0], [1e308, 0], [0, 1e308]], [[0, 0], [1e-310, 0], [0, 3e-310]]],
+                         ids=["wider than the largest double", "narrower than its inverse"])
+def test_a_span_beyond_a_doubles_range_is_refused(xy):
+    with pytest.raises(ValueError, match="span"), np.errstate(over="ignore"):
+        delaunay_triangles(np.array(xy))
+
+
 def test_too_many_points_are_refused(monkeypatch):
     monkeypatch.setattr(delaunay, "MAX_POINTS", 10)
     with pytest.raises(ValueError, match="at most 10"):

@@ -128,7 +128,7 @@ static double circumradius2(const mesh *m, int32_t a, int32_t b, int32_t c) {
 /* The triangles of the Delaunay triangulation of n points xy (n, 2) doubles, written to out
  * (at most 2 n - 5 rows of three int32 indices, counter-clockwise). Returns their count: 0 when the
  * points are fewer than three distinct or all on one line; -1 when memory ran out; -2 for a
- * coordinate that is not finite. */
+ * coordinate that is not finite; -3 when their extent or its inverse overflows a double. */
 int64_t o3dvis_delaunay(int64_t n, const double *xy, int32_t *out) {
     if (n < 3) return 0;
     double lo[2] = {INFINITY, INFINITY}, hi[2] = {-INFINITY, -INFINITY};
@@ -140,6 +140,7 @@ int64_t o3dvis_delaunay(int64_t n, const double *xy, int32_t *out) {
     if (!(extent > 0)) return 0;
     /* a power of two, so that points given on a line or a lattice stay on it */
     double scale = ldexp(1.0, ilogb(GRID / extent));
+    if (!isfinite(extent) || !isfinite(scale) || !(scale > 0)) return -3; /* beyond a double's range */
     int64_t max_edges = 3 * (2 * n - 5 > 1 ? 2 * n - 5 : 1), hash_size = (int64_t)ceil(sqrt((double)n));
     int64_t *x = malloc((size_t)(2 * n) * sizeof(int64_t));
     int32_t *ring = malloc((size_t)(3 * n + hash_size) * sizeof(int32_t));

@@ -38,7 +38,8 @@ def delaunay_triangles(coords: np.ndarray) -> np.ndarray:
         distinct points are given or all lie on one line.
 
     Raises:
-        ValueError: for coordinates not of shape (M, 2), not finite, or more than 2^28 points.
+        ValueError: for coordinates not of shape (M, 2), not finite, spanning more than the
+            largest double or less than about 2^-1000, or more than 2^28 points.
     """
     coords = np.ascontiguousarray(coords, dtype=np.float64)
     if coords.ndim != 2 or coords.shape[1] != 2:
@@ -60,5 +61,6 @@ def delaunay_triangles(coords: np.ndarray) -> np.ndarray:
     if count == -1:
         raise MemoryError(f"not enough memory to triangulate {len(coords)} points")
     if count < 0:
-        raise ValueError("coords must be finite")
+        raise ValueError(f"coords must be finite, and span a range whose size and inverse are finite "
+                         f"doubles, got a span of {np.ptp(coords, axis=0)}")
     return out[:count].astype(np.int64)

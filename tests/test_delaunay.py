@@ -129,3 +129,27 @@ def test_without_the_library_qhull_answers_with_a_warning(tmp_path):
     assert "RuntimeWarning" in run.stderr and "Qhull" in run.stderr
     xy = np.random.default_rng(3).integers(0, 1 << 20, size=(500, 2)) / 1024.0
     assert _set(np.load(tmp_path / "t.npy")) == _set(delaunay_triangles(xy)) == _set(Delaunay(xy).simplices)
+
+
+@native
+def test_the_view_surface_in_c_equals_the_numpy_steps(monkeypatch):
+    """Delaunay, the 3D edge filter, the turn to the camera and the unit normals in one pass of C
+    give the numpy fallback's triangles, and its normals to rounding."""
+    from o3dvis.apps import triangulation
+
+    rng = np.random.default_rng(5)
+    points = rng.normal(size=(4000, 3))
+    points /= np.linalg.norm(points, axis=1, keepdims=True)  # a sphere, seen from +z
+    points = np.r_[points[points[:, 2] > 0], [[0, 0, 0.5]] * 3]  # and a repeated point off it
+    camera = np.array([0.2, -0.1, 4.0])
+    coords = points[:, :2] / (camera[2] - points[:, 2:3])
+    max_edge = rng.uniform(0.02, 0.12, len(points))  # some triangles too long at one end only
+    fast = triangulation.delaunay_surface(points, coords, max_edge, camera)
+    monkeypatch.setattr(delaunay, "available", lambda: False)
+    slow = triangulation.delaunay_surface(points, coords, max_edge, camera)
+    assert 0 < len(fast[0]) < len(delaunay_triangles(coords))
+    np.testing.assert_array_equal(fast[0], slow[0])
+    np.testing.assert_allclose(fast[1], slow[1], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(np.linalg.norm(fast[1], axis=1), 1, atol=1e-15)
+    facing = np.einsum("ij,ij->i", fast[1], camera - points[fast[0][:, 0]])
+    assert (facing >= 0).all()

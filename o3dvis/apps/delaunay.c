@@ -255,3 +255,38 @@ done:
     free(x), free(ring), free(twin), free(order), free(m.stack);
     return result;
 }
+
+/* The surface one camera sees: the Delaunay triangles of the points' image coordinates xy (n, 2)
+ * whose edges, in 3D (xyz (n, 3)), are each no longer than the larger max_edge of their two ends,
+ * turned to face the camera (3,), with their unit normals; triangles of zero area in 3D are
+ * dropped. Writes tri (as o3dvis_delaunay) and normal (rows of 3 doubles, as many as triangles);
+ * returns the count kept, or o3dvis_delaunay's error. Each step rounds as the numpy fallback does
+ * (built without contraction into fused multiply-adds). */
+int64_t o3dvis_view_surface(int64_t n, const double *xy, const double *xyz, const double *max_edge,
+                            const double *camera, int32_t *tri, double *normal) {
+    int64_t count = o3dvis_delaunay(n, xy, tri), kept = 0;
+    for (int64_t t = 0; t < count; t++) {
+        int32_t a = tri[3 * t], b = tri[3 * t + 1], c = tri[3 * t + 2];
+        const double *pa = xyz + 3 * (int64_t)a, *pb = xyz + 3 * (int64_t)b, *pc = xyz + 3 * (int64_t)c;
+        double ab[3], ac[3], bc[3];
+        for (int k = 0; k < 3; k++) ab[k] = pb[k] - pa[k], ac[k] = pc[k] - pa[k], bc[k] = pc[k] - pb[k];
+        double lab = fmax(max_edge[a], max_edge[b]), lbc = fmax(max_edge[b], max_edge[c]);
+        double lca = fmax(max_edge[c], max_edge[a]);
+        if (ab[0] * ab[0] + ab[1] * ab[1] + ab[2] * ab[2] > lab * lab
+            || bc[0] * bc[0] + bc[1] * bc[1] + bc[2] * bc[2] > lbc * lbc
+            || ac[0] * ac[0] + ac[1] * ac[1] + ac[2] * ac[2] > lca * lca)
+            continue;
+        double m[3] = {ab[1] * ac[2] - ab[2] * ac[1], ab[2] * ac[0] - ab[0] * ac[2], ab[0] * ac[1] - ab[1] * ac[0]};
+        double length = sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
+        if (!(length > 0)) continue;
+        double facing = m[0] * (camera[0] - pa[0]) + m[1] * (camera[1] - pa[1]) + m[2] * (camera[2] - pa[2]);
+        if (facing < 0) { /* the other winding, whose normal is the opposite */
+            int32_t swap = b; b = c, c = swap;
+            m[0] = -m[0], m[1] = -m[1], m[2] = -m[2];
+        }
+        tri[3 * kept] = a, tri[3 * kept + 1] = b, tri[3 * kept + 2] = c;
+        for (int k = 0; k < 3; k++) normal[3 * kept + k] = m[k] / length;
+        kept++;
+    }
+    return count < 0 ? count : kept;
+}

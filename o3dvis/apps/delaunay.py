@@ -13,13 +13,40 @@ from scipy.spatial import Delaunay, QhullError
 
 from ..clib import CLibrary
 
-__all__ = ["MAX_POINTS", "delaunay_triangles"]
+__all__ = ["MAX_POINTS", "available", "delaunay_triangles", "view_surface"]
 
 # half-edge indices (6 a point) are int32
 MAX_POINTS = 1 << 28
-_LIBRARY = CLibrary(Path(__file__).with_name("delaunay.c"), ["-O3", "-fPIC", "-shared"],
-                    {"o3dvis_delaunay": ([ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p], ctypes.c_int64)},
-                    "triangulations run on scipy's Qhull, which is slower")
+_PTR = ctypes.c_void_p
+# no contraction into fused multiply-adds: the surface step rounds as its numpy fallback
+_LIBRARY = CLibrary(Path(__file__).with_name("delaunay.c"), ["-O3", "-fPIC", "-shared", "-ffp-contract=off"],
+                    {"o3dvis_delaunay": ([ctypes.c_int64, _PTR, _PTR], ctypes.c_int64),
+                     "o3dvis_view_surface": ([ctypes.c_int64] + [_PTR] * 6, ctypes.c_int64)},
+                    "triangulations run on scipy's Qhull and numpy, which is slower")
+
+
+def available() -> bool:
+    """Whether the C library is built and loaded (builds it on the first call)."""
+    return _LIBRARY.get() is not None
+
+
+def _coords(coords: np.ndarray) -> np.ndarray:
+    coords = np.ascontiguousarray(coords, dtype=np.float64)
+    if coords.ndim != 2 or coords.shape[1] != 2:
+        raise ValueError(f"coords must be of shape (M, 2), got {coords.shape}")
+    if not np.isfinite(coords).all():
+        raise ValueError("coords must be finite")
+    if len(coords) > MAX_POINTS:
+        raise ValueError(f"at most {MAX_POINTS} points can be triangulated, got {len(coords)}")
+    return coords
+
+
+def _check_count(count: int, coords: np.ndarray) -> None:
+    if count == -1:
+        raise MemoryError(f"not enough memory to triangulate {len(coords)} points")
+    if count < 0:
+        raise ValueError(f"coords must be finite, and span a range whose size and inverse are finite "
+                         f"doubles, got a span of {np.ptp(coords, axis=0)}")
 
 
 def delaunay_triangles(coords: np.ndarray) -> np.ndarray:
@@ -41,13 +68,7 @@ def delaunay_triangles(coords: np.ndarray) -> np.ndarray:
         ValueError: for coordinates not of shape (M, 2), not finite, spanning more than the
             largest double or less than about 2^-1000, or more than 2^28 points.
     """
-    coords = np.ascontiguousarray(coords, dtype=np.float64)
-    if coords.ndim != 2 or coords.shape[1] != 2:
-        raise ValueError(f"coords must be of shape (M, 2), got {coords.shape}")
-    if not np.isfinite(coords).all():
-        raise ValueError("coords must be finite")
-    if len(coords) > MAX_POINTS:
-        raise ValueError(f"at most {MAX_POINTS} points can be triangulated, got {len(coords)}")
+    coords = _coords(coords)
     if len(coords) < 3:
         return np.zeros((0, 3), dtype=np.int64)
     library = _LIBRARY.get()
@@ -58,9 +79,38 @@ def delaunay_triangles(coords: np.ndarray) -> np.ndarray:
             return np.zeros((0, 3), dtype=np.int64)
     out = np.empty((max(2 * len(coords) - 5, 1), 3), dtype=np.int32)
     count = library.o3dvis_delaunay(len(coords), coords.ctypes.data, out.ctypes.data)
-    if count == -1:
-        raise MemoryError(f"not enough memory to triangulate {len(coords)} points")
-    if count < 0:
-        raise ValueError(f"coords must be finite, and span a range whose size and inverse are finite "
-                         f"doubles, got a span of {np.ptp(coords, axis=0)}")
+    _check_count(count, coords)
     return out[:count].astype(np.int64)
+
+
+def view_surface(coords: np.ndarray, points: np.ndarray, max_edge: np.ndarray, camera: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`delaunay_triangles` of ``coords`` whose edges are short enough in 3D, facing
+    ``camera``, and their unit normals, in one pass of C (where :func:`available`; see
+    :func:`o3dvis.apps.triangulation.delaunay_surface`, which falls back to numpy).
+
+    Args:
+        coords: (M, 2) image-plane coordinates.
+        points: (M, 3) the points' positions.
+        max_edge: (M,) longest edge allowed at each point.
+        camera: (3,) camera position.
+
+    Returns:
+        (T, 3) int64 indices and (T, 3) unit normals.
+    """
+    coords = _coords(coords)
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    max_edge = np.ascontiguousarray(max_edge, dtype=np.float64)
+    camera = np.ascontiguousarray(camera, dtype=np.float64)
+    if points.shape != (len(coords), 3) or max_edge.shape != (len(coords),) or camera.shape != (3,):
+        raise ValueError(f"need points ({len(coords)}, 3), max_edge ({len(coords)},) and camera (3,), got "
+                         f"{points.shape}, {max_edge.shape} and {camera.shape}")
+    if len(coords) < 3:
+        return np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3))
+    rows = max(2 * len(coords) - 5, 1)
+    triangles, normals = np.empty((rows, 3), dtype=np.int32), np.empty((rows, 3))
+    count = _LIBRARY.get().o3dvis_view_surface(len(coords), coords.ctypes.data, points.ctypes.data,
+                                               max_edge.ctypes.data, camera.ctypes.data, triangles.ctypes.data,
+                                               normals.ctypes.data)
+    _check_count(count, coords)
+    return triangles[:count].astype(np.int64), normals[:count]

@@ -68,11 +68,7 @@ def _add_triangle_normals(total: np.ndarray, points: np.ndarray, cameras: np.nda
 
     def triangulate(view: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         cam, vis = view
-        triangles, normals = facing_triangles(
-            points, cam, np.flatnonzero(vis if subset is None else vis & subset), max_edge)
-        length = np.sqrt(np.einsum("ij,ij->i", normals, normals))
-        ok = length > 0
-        return triangles[ok], normals[ok] / length[ok, None]
+        return facing_triangles(points, cam, np.flatnonzero(vis if subset is None else vis & subset), max_edge)
 
     with ThreadPoolExecutor(max(1, min(len(cameras), os.cpu_count() or 1))) as pool:
         for triangles, unit in tqdm(pool.map(triangulate, zip(cameras, visibility)), total=len(cameras),

@@ -8,7 +8,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .camera import look_at
-from .delaunay import delaunay_triangles
+from . import delaunay
 
 __all__ = ["local_spacing", "delaunay_surface", "visible_triangles", "facing_triangles"]
 
@@ -30,36 +30,48 @@ def local_spacing(points: np.ndarray, k: int = 6, tree: cKDTree | None = None) -
     return np.maximum(dist[:, -1], np.where(np.isfinite(positive), positive, 0))
 
 
-def delaunay_surface(points: np.ndarray, coords: np.ndarray, max_edge: np.ndarray
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Delaunay triangles of 2D ``coords`` whose edges are short enough in 3D, and their normals.
+def delaunay_surface(points: np.ndarray, coords: np.ndarray, max_edge: np.ndarray,
+                     camera_location: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Delaunay triangles of 2D ``coords`` whose edges are short enough in 3D, facing the camera,
+    and their unit normals.
 
     A triangle is kept when each of its edges is no longer, in 3D, than the
-    larger ``max_edge`` of the edge's two end points.
+    larger ``max_edge`` of the edge's two end points, and its area is not zero.
+    In one pass of C where it is built (:func:`~o3dvis.apps.delaunay.view_surface`),
+    else in numpy with the same rounding.
 
     Args:
         points: (M, 3) positions of the triangulated points.
         coords: (M, 2) their image-plane coordinates.
         max_edge: (M,) longest edge allowed at each point.
+        camera_location: (3,) the camera the triangles are turned to face.
 
     Returns:
         (T, 3) int64 indices into ``points`` (none when the coordinates are too
-        few or all collinear) and (T, 3) their normals ``(b - a) x (c - a)``
-        (length = twice the area).
+        few or all collinear), ordered so that their normals ``(b - a) x (c - a)``
+        point to the camera's side, and (T, 3) those normals, unit.
     """
-    s = delaunay_triangles(coords)
+    if delaunay.available():
+        return delaunay.view_surface(coords, points, max_edge, camera_location)
+    s = delaunay.delaunay_triangles(coords)
     a, b, c = (points[s[:, k]] for k in range(3))
     la, lb, lc = (max_edge[s[:, k]] for k in range(3))
     ab, ac, bc = b - a, c - a, c - b
     keep = ((np.einsum("ij,ij->i", ab, ab) <= np.maximum(la, lb) ** 2)
             & (np.einsum("ij,ij->i", bc, bc) <= np.maximum(lb, lc) ** 2)
             & (np.einsum("ij,ij->i", ac, ac) <= np.maximum(lc, la) ** 2))
-    ab, ac = ab[keep], ac[keep]
+    s, a, ab, ac = s[keep], a[keep], ab[keep], ac[keep]
     normals = np.empty_like(ab)  # np.cross, without its copies
     normals[:, 0] = ab[:, 1] * ac[:, 2] - ab[:, 2] * ac[:, 1]
     normals[:, 1] = ab[:, 2] * ac[:, 0] - ab[:, 0] * ac[:, 2]
     normals[:, 2] = ab[:, 0] * ac[:, 1] - ab[:, 1] * ac[:, 0]
-    return s[keep], normals
+    length = np.sqrt(np.einsum("ij,ij->i", normals, normals))
+    area = length > 0
+    s, normals, length = s[area], normals[area], length[area]
+    away = np.einsum("ij,ij->i", normals, camera_location - a[area]) < 0
+    s[away] = s[away][:, [0, 2, 1]]
+    normals[away] *= -1  # the normal of the reversed triangle
+    return s, normals / length[:, None]
 
 
 def visible_triangles(points: np.ndarray, camera_location: np.ndarray, indices: np.ndarray,
@@ -85,8 +97,7 @@ def visible_triangles(points: np.ndarray, camera_location: np.ndarray, indices: 
 
 def facing_triangles(points: np.ndarray, camera_location: np.ndarray, indices: np.ndarray,
                      max_edge: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`visible_triangles` and their normals (towards the camera, length = twice the area),
-    (T, 3) each."""
+    """:func:`visible_triangles` and their unit normals (towards the camera), (T, 3) each."""
     indices = np.asarray(indices, dtype=np.int64)
     sub = points[indices]
     if len(sub) < 3:
@@ -95,9 +106,5 @@ def facing_triangles(points: np.ndarray, camera_location: np.ndarray, indices: n
     cam = sub @ extrinsic[:3, :3].T + extrinsic[:3, 3]
     front = cam[:, 2] > 1e-12 * max(1.0, float(np.abs(cam).max()))
     indices, sub, cam = indices[front], sub[front], cam[front]
-    s, normals = delaunay_surface(sub, cam[:, :2] / cam[:, 2:3], max_edge[indices])
-    triangles = indices[s]
-    away = np.einsum("ij,ij->i", normals, camera_location - sub[s[:, 0]]) < 0
-    triangles[away] = triangles[away][:, [0, 2, 1]]
-    normals[away] *= -1  # the normal of the reversed triangle
-    return triangles, normals
+    s, normals = delaunay_surface(sub, cam[:, :2] / cam[:, 2:3], max_edge[indices], camera_location)
+    return indices[s], normals

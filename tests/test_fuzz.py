@@ -10,7 +10,9 @@ float32 or float64, at scales from 2^-36 to 2^24. Properties:
 * moving cloud and camera together, or scaling both by a power of two, changes nothing, bit for
   bit (on a dyadic grid these maps are exact in float64, so any difference is a real dependence);
 * repeated points get the same answer; the same call twice gives the same bits;
-* the HPR baselines answer on the same clouds, repeated points alike, the nearest point visible.
+* the HPR baselines answer on the same clouds, repeated points alike, the nearest point visible;
+* the C Delaunay triangulation of the clouds seen along an axis is exactly Delaunay (checked in
+  integers), or empty where the points are fewer than three distinct or on one line.
 
 CI runs about 1 000 cases derandomized (the same every run); benchmarks/fuzz_long.py runs the
 same properties with fresh random cases for longer (``O3DVIS_FUZZ_SCALE``, ``O3DVIS_FUZZ_RANDOM``).
@@ -213,3 +215,25 @@ def test_hpr_baselines_answer_any_cloud(cloud, data):
         assert mask[nearest].all(), "the point nearest to a camera is hidden"
     with pytest.raises(ValueError, match="coincides"):
         o3dvis.hidden_point_removal_mask(points, points[data.draw(st.integers(0, len(points) - 1))], 1.0)
+
+
+@pytest.mark.skipif(os.environ.get("O3DVIS_NATIVE") == "0", reason="C kernels turned off (O3DVIS_NATIVE=0)")
+@given(grid_clouds(max_points=60), st.data())
+@_settings(300)
+def test_delaunay_triangulates_any_plane_cloud(cloud, data):
+    """The C Delaunay (o3dvis/apps/delaunay.c) on the clouds above seen along an axis: repeated
+    points, lines, clusters, any scale; exactly Delaunay, or no triangle where none can be."""
+    from test_delaunay import _check_triangulation
+
+    from o3dvis.apps.delaunay import delaunay_triangles
+
+    COUNTS["Delaunay"] += 1
+    units, exponent = cloud
+    units = np.delete(units, data.draw(st.integers(0, 2)), axis=1)
+    triangles = delaunay_triangles(_world(units, exponent))
+    assert triangles.dtype == np.int64 and triangles.shape[1:] == (3,)
+    distinct = np.unique(units, axis=0)
+    if len(distinct) < 3 or np.linalg.matrix_rank(distinct - distinct[0]) < 2:
+        assert len(triangles) == 0
+    else:
+        _check_triangulation(units.astype(float), triangles)

@@ -17,6 +17,7 @@ import torch
 from .data.dataset import Augmentation, VisibilityDataset
 from .nn.calibration import NUM_TERMS, calibration_loss, calibration_terms, fit_calibration
 from .nn.network import NetworkConfig, VisibilityNetwork
+from .publish import portable_path
 
 __all__ = ["calibrate"]
 
@@ -47,8 +48,9 @@ def calibrate(checkpoint: str | Path, data: list[str | Path], out: str | Path, c
         progress: show a progress bar.
 
     Returns:
-        ``u``, ``w``, the number of clouds and samples, and the cross-entropy
-        before and after.
+        ``u``, ``w``, the number of clouds and samples, the data folders and
+        the checkpoint (as paths relative to the current directory, see
+        :func:`o3dvis.publish.portable_path`), and the cross-entropy before and after.
     """
     from tqdm import tqdm
 
@@ -80,7 +82,8 @@ def calibrate(checkpoint: str | Path, data: list[str | Path], out: str | Path, c
     calibrated = VisibilityNetwork(NetworkConfig.from_dict({**asdict(net.config), "calibrated": True}))
     calibrated.load_state_dict({**net.state_dict(), "calibration.u": u, "calibration.w": w})
     summary = {"u": u.tolist(), "w": w.tolist(), "clouds": clouds, "samples": len(margins), "seed": seed,
-               "data": [str(d) for d in data], "checkpoint": str(checkpoint),
+               "data": [portable_path(d, Path.cwd()) for d in data],
+               "checkpoint": portable_path(checkpoint, Path.cwd()),
                "cross_entropy_before": calibration_loss(identity, identity, terms, cloud, margins, labels).item(),
                "cross_entropy_after": calibration_loss(u, w, terms, cloud, margins, labels).item()}
     calibrated.save(out, {"calibration": summary})

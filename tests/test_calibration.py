@@ -85,7 +85,7 @@ def test_warm_start_drops_a_calibration():
         torch.testing.assert_close(value, source.state_dict()[name])
 
 
-def test_calibrate_command_writes_a_calibrated_network(tmp_path):
+def test_calibrate_command_writes_a_calibrated_network(tmp_path, monkeypatch):
     from o3dvis.calibrate import calibrate
     from o3dvis.data.dataset import Augmentation
     from o3dvis.data.prepare import _save, label_mesh
@@ -100,11 +100,14 @@ def test_calibrate_command_writes_a_calibrated_network(tmp_path):
     ckpt = tmp_path / "net.safetensors"
     VisibilityNetwork(NetworkConfig(**SMALL)).save(ckpt)
     out = tmp_path / "calibrated.safetensors"
+    monkeypatch.chdir(tmp_path)  # the data root: the checkpoint records paths relative to it
     summary = calibrate(ckpt, [data], out, clouds=6, keep=2000,
                         augmentation=Augmentation(min_points=1000, max_points=3000), progress=False)
     net = VisibilityNetwork.load(out)
     assert net.config.calibrated and summary["samples"] == 6 * 2000
     torch.testing.assert_close(net.calibration.u, torch.tensor(summary["u"], dtype=torch.float64))
     assert summary["cross_entropy_after"] < summary["cross_entropy_before"]  # an untrained network's margins
+    assert summary["data"] == ["data"] and summary["checkpoint"] == "net.safetensors"
+    assert str(tmp_path) not in out.read_bytes()[:100_000].decode("utf-8", "replace")
     with pytest.raises(ValueError, match="positive"):
         calibrate(ckpt, [data], out, clouds=0)

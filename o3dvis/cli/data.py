@@ -74,7 +74,8 @@ def _calibrate(args) -> int:
 def _publish(args) -> int:
     from ..publish import publish
 
-    entry = publish(args.checkpoint, args.name, args.run, args.manifest, args.eval, args.command_line)
+    entry = publish(args.checkpoint, args.name, args.run, args.manifest, args.eval, args.command_line,
+                    root=args.root)
     print(json.dumps({args.name: {k: entry[k] for k in ("file", "sha256", "bytes")}}))
     return 0
 
@@ -171,5 +172,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--run", help="the training run folder (config.json, log.jsonl)")
     p.add_argument("--manifest", help="MANIFEST.csv of the training meshes (licences)")
     p.add_argument("--eval", help="JSON written by 'o3dvis eval' to record as the validation table")
-    p.add_argument("--command-line", help="the exact training command, for the card")
+    p.add_argument("--command-line", action="append",
+                   help="a command that made the model, for the card; repeat it for each, oldest first")
+    p.add_argument("--root", help="folder the card's paths are made relative to "
+                                  "(default: the current directory)")
     p.set_defaults(func=_publish)

@@ -21,11 +21,17 @@ def _shapes(args) -> int:
 
 
 def _prepare(args) -> int:
-    from ..data.prepare import prepare
+    from ..data.prepare import prepare, prepare_scenes
 
     t = time.time()
-    result = prepare(args.mesh_dir, args.out_dir, args.points, args.views, args.workers, args.seed)
-    print(f"labelled {result['done']} meshes, skipped {result['skipped']} finished, "
+    if args.scenes is None:
+        result, what = prepare(args.mesh_dir, args.out_dir, args.points, args.views, args.workers,
+                               args.seed), "meshes"
+    else:
+        result, what = prepare_scenes(args.out_dir, args.scenes, args.mesh_dir, args.points, args.views,
+                                      args.workers, args.seed, tuple(args.kinds.split(",")),
+                                      tuple(args.samplings.split(",")), args.max_range), "scenes"
+    print(f"labelled {result['done']} {what}, skipped {result['skipped']} finished, "
           f"{len(result['failed'])} failed, in {time.time() - t:.1f} s")
     return 1 if result["failed"] and not result["done"] else 0
 
@@ -99,10 +105,21 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("prepare", help="label meshes with ray-cast visibility", formatter_class=fmt,
                        description="Sample points on every mesh (ply/obj/off/stl) below MESH_DIR and label\n"
-                                   "them from random viewpoints; resumable, parallel.\n\n"
-                                   "example:\n  o3dvis prepare ../shared/meshes/train data/train --workers 2")
+                                   "them from random viewpoints; resumable, parallel. With --scenes N,\n"
+                                   "label N procedural scenes instead (furnished rooms, streets; metres),\n"
+                                   "with furniture and objects drawn from MESH_DIR, cameras inside (3/4)\n"
+                                   "and outside (1/4): one file {kind}-{sampling}__{index}.npz per sampling.\n\n"
+                                   "examples:\n  o3dvis prepare ../shared/meshes/train data/train --workers 2\n"
+                                   "  o3dvis prepare ../shared/meshes/train data/scenes --scenes 400 --points 200000")
     p.add_argument("mesh_dir", metavar="MESH_DIR", help="folder of meshes (searched recursively)")
-    p.add_argument("out_dir", metavar="OUT_DIR", help="folder for one .npz per mesh (created)")
+    p.add_argument("out_dir", metavar="OUT_DIR", help="folder for one .npz per mesh or scene (created)")
+    p.add_argument("--scenes", type=int, metavar="N", help="label N procedural scenes (see above)")
+    p.add_argument("--kinds", default="rooms,street",
+                   help="scene kinds, scene i being the (i mod count)-th (default rooms,street)")
+    p.add_argument("--samplings", default="uniform,lidar",
+                   help="samplings written per scene: uniform (area-weighted), lidar (rays from 1-5 "
+                        "sensors) (default uniform,lidar)")
+    p.add_argument("--max-range", type=float, help="range limit of the lidar sampling, metres (default none)")
     p.add_argument("--points", type=int, default=100_000, help="points per mesh (default 100000)")
     p.add_argument("--views", type=int, default=16, help="viewpoints per mesh (default 16)")
     p.add_argument("--workers", type=int, default=1, help="parallel processes (default 1)")

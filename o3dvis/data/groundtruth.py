@@ -7,7 +7,7 @@ import open3d as o3d
 
 from ..cameras import real_array
 
-__all__ = ["visibility_from_mesh", "sample_viewpoints", "as_legacy_mesh"]
+__all__ = ["visibility_from_mesh", "sample_viewpoints", "as_legacy_mesh", "orient_normals"]
 
 
 def as_legacy_mesh(mesh) -> o3d.geometry.TriangleMesh:
@@ -89,3 +89,23 @@ def sample_viewpoints(num_views: int, center, radius: float, rng: np.random.Gene
     d = rng.normal(size=(num_views, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     return np.asarray(center, dtype=np.float64) + radius * d
+
+
+def orient_normals(points: np.ndarray, normals: np.ndarray, cameras: np.ndarray,
+                   visibility: np.ndarray) -> np.ndarray:
+    """Normals flipped, where needed, towards most of the cameras that see their point.
+
+    Args:
+        points: (N, 3) points.
+        normals: (N, 3) unoriented normals.
+        cameras: (V, 3) camera positions.
+        visibility: (V, N) bool, which camera sees which point.
+
+    Returns:
+        (N, 3) normals (a new array).
+    """
+    facing = np.einsum("vnk,nk->vn", cameras[:, None, :] - points[None], normals)
+    flip = np.where(visibility, np.sign(facing), 0).sum(axis=0) < 0
+    out = np.array(normals, copy=True)
+    out[flip] *= -1
+    return out

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import pickle
 import struct
 from pathlib import Path
 
@@ -117,6 +118,24 @@ def file_sha256(path: str | Path) -> str:
     return digest.hexdigest()
 
 
+def _is_pickle_or_zip(head: bytes, size: int) -> bool:
+    """Whether a file that starts with ``head`` (its first 9 bytes) is a zip archive (what
+    ``torch.save`` writes) or a pickle of protocol 2 or later, rather than a safetensors file.
+
+    A safetensors file starts with its header's length (8 bytes, little-endian) and the header's
+    ``{``; a pickle starts with the PROTO opcode (0x80) and a protocol number (2 to 5). The two can
+    share a first byte: a header 0x0280 bytes long starts like a protocol-2 pickle, so a file
+    whose length field fits the file and is followed by ``{`` is taken as safetensors.
+    """
+    if head[:4] in (b"PK\x03\x04", b"PK\x05\x06"):
+        return True
+    if len(head) < 2 or head[0] != 0x80 or not 2 <= head[1] <= pickle.HIGHEST_PROTOCOL:
+        return False
+    plausible_safetensors = (len(head) == 9 and head[8:9] == b"{"
+                             and struct.unpack("<Q", head[:8])[0] <= size - 8)
+    return not plausible_safetensors
+
+
 def check_safetensors(path: str | Path) -> None:
     """Checks that a file is a complete safetensors file, without reading its tensors.
 
@@ -133,13 +152,14 @@ def check_safetensors(path: str | Path) -> None:
         raise FileNotFoundError(f"checkpoint {path} not found")
     size = path.stat().st_size
     with open(path, "rb") as f:
-        head = f.read(8)
-        if head[:2] == b"PK" or head[:1] == b"\x80":
+        head = f.read(9)
+        if _is_pickle_or_zip(head, size):
             raise ValueError(f"{path}: a pickle/zip (torch.save) checkpoint; only safetensors "
                              f"files are loaded, since unpickling can execute code")
         if len(head) < 8:
             raise ValueError(f"{path}: not a safetensors file (truncated: {size} bytes)")
-        (header_len,) = struct.unpack("<Q", head)
+        (header_len,) = struct.unpack("<Q", head[:8])
+        f.seek(8)
         if header_len > min(_MAX_HEADER, size - 8):
             raise ValueError(f"{path}: not a safetensors file or truncated "
                              f"(header of {header_len} bytes in a {size}-byte file)")

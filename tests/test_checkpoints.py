@@ -183,3 +183,89 @@ def test_pretrained_from_the_shipped_folder(monkeypatch, weights):
             o3dvis.NeuralVisibility.pretrained()
     monkeypatch.setattr(models, "WEIGHTS_DIR", weights)
     assert _same_weights(o3dvis.NeuralVisibility.pretrained().network, _network(0))
+
+
+def _padded_checkpoint(tmp_path, network: VisibilityNetwork, low_bytes: bytes) -> "Path":
+    """``network`` saved with metadata padded until its header length starts with ``low_bytes``."""
+    path = tmp_path / "padded.safetensors"
+    for pad in range(4096):
+        network.save(path, {"pad": "x" * pad})
+        if path.read_bytes()[:len(low_bytes)] == low_bytes:
+            return path
+    raise AssertionError("no padding gives that header length")
+
+
+def test_safetensors_whose_header_length_starts_with_0x80_loads(tmp_path):
+    path = _padded_checkpoint(tmp_path, _network(3), b"\x80")
+    assert _same_weights(load_model(path), _network(3))
+
+
+def test_safetensors_that_starts_like_a_pickle_protocol_is_not_taken_for_one(tmp_path):
+    from safetensors.torch import save_file
+
+    # a header 0x0280 bytes long: its first two bytes are pickle's PROTO 2 opcode
+    path = tmp_path / "proto.safetensors"
+    for pad in range(2048):
+        save_file({"w": torch.zeros(3)}, str(path), metadata={"pad": "x" * pad})
+        if path.read_bytes()[:2] == b"\x80\x02":
+            break
+    check_safetensors(path)
+    path.write_bytes(pickle.dumps({"w": [0.0] * 200}, protocol=2))
+    with pytest.raises(ValueError, match="pickle"):
+        check_safetensors(path)
+
+
+def _with_config(tmp_path, network: VisibilityNetwork, **changes) -> "Path":
+    """``network``'s tensors saved under its config with ``changes``."""
+    from dataclasses import asdict
+
+    from safetensors.torch import save_file
+
+    path = tmp_path / "crafted.safetensors"
+    config = {**asdict(network.config), **changes}
+    save_file({k: v.contiguous() for k, v in network.state_dict().items()}, str(path),
+              metadata={"config": json.dumps(config)})
+    return path
+
+
+@pytest.mark.parametrize("changes, message", [
+    (dict(channels=[4096, 4096]), "channels must be"),
+    (dict(depth=12, full_depth=9), "depth must be"),
+    (dict(full_depth=5), "full_depth"),
+    (dict(hidden=[]), "hidden must be"),
+    (dict(interpolation="cubic"), "interpolation"),
+    (dict(use_normals="yes"), "use_normals"),
+    (dict(widths=[8]), "unknown fields"),
+])
+def test_config_out_of_bounds_is_refused_before_building(tmp_path, monkeypatch, changes, message):
+    path = _with_config(tmp_path, _network(0), **changes)
+    built = []
+    init = VisibilityNetwork.__init__
+    monkeypatch.setattr(VisibilityNetwork, "__init__",
+                        lambda self, *a, **k: (built.append(torch.empty(0).device.type), init(self, *a, **k))[1])
+    with pytest.raises(ValueError, match=message):
+        load_model(path)
+    assert "cpu" not in built
+
+
+def test_tensor_shapes_are_checked_against_the_config_before_building(tmp_path, monkeypatch):
+    # a config in bounds but far wider than its tensors: refused without building it
+    path = _with_config(tmp_path, _network(0), channels=[1024, 1024])
+    built = []
+    init = VisibilityNetwork.__init__
+    monkeypatch.setattr(VisibilityNetwork, "__init__",
+                        lambda self, *a, **k: (built.append(torch.empty(0).device.type), init(self, *a, **k))[1])
+    with pytest.raises(ValueError, match=r"tensor shapes do not match.*\(8,\) \(config: \(1024,\)\)"):
+        load_model(path)
+    assert built == ["meta"]
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_non_finite_weights_are_refused(tmp_path, value):
+    network = _network(0)
+    with torch.no_grad():
+        network.predictor.mlp[0].weight[0, 0] = value
+    path = tmp_path / "nan.safetensors"
+    network.save(path)
+    with pytest.raises(ValueError, match="non-finite.*predictor.mlp.0.weight"):
+        load_model(path)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import torch
@@ -20,6 +20,11 @@ from .predictor import VisibilityPredictor
 from .unet import OctreeUNet
 
 __all__ = ["NetworkConfig", "VisibilityNetwork"]
+
+# bounds of a config (see NetworkConfig.check): (field, lowest, highest)
+_INT_BOUNDS = (("depth", 2, 10), ("full_depth", 1, 5), ("blocks", 0, 8), ("feature_channels", 1, 1024),
+               ("num_frequencies", 0, 16))
+_MAX_WIDTH, _MAX_STAGES, _MAX_CUE_SCALE = 1024, 8, 256
 
 
 @dataclass
@@ -41,11 +46,61 @@ class NetworkConfig:
     calibrated: bool = False
     extra: dict = field(default_factory=dict)
 
+    def __post_init__(self):
+        self.check()
+
+    def check(self) -> None:
+        """Checks every field against the bounds of a network that fits in memory.
+
+        A checkpoint's config is read before its tensors, so these bounds keep a
+        few bytes of crafted config from making the loader build a huge network.
+
+        Raises:
+            ValueError: a field of the wrong type or out of its bounds.
+        """
+        def integer(v, low: int, high: int) -> bool:
+            return isinstance(v, int) and not isinstance(v, bool) and low <= v <= high
+
+        def ints(name: str, values, low: int, high: int, most: int) -> None:
+            if not (isinstance(values, tuple) and 1 <= len(values) <= most
+                    and all(integer(v, low, high) for v in values)):
+                raise ValueError(f"network config: {name} must be 1 to {most} integers in "
+                                 f"[{low}, {high}], got {values!r}")
+
+        for name, low, high in _INT_BOUNDS:
+            if not integer(getattr(self, name), low, high):
+                raise ValueError(f"network config: {name} must be an integer in [{low}, {high}], "
+                                 f"got {getattr(self, name)!r}")
+        ints("channels", self.channels, 1, _MAX_WIDTH, _MAX_STAGES)
+        ints("hidden", self.hidden, 1, _MAX_WIDTH, _MAX_STAGES)
+        ints("cue_scales", self.cue_scales, 1, _MAX_CUE_SCALE, _MAX_STAGES)
+        if not (self.full_depth < self.depth and len(self.channels) < self.depth):
+            raise ValueError(f"network config: depth {self.depth} must exceed full_depth {self.full_depth} "
+                             f"and the number of stages {len(self.channels)}")
+        if self.interpolation not in ("nearest", "trilinear"):
+            raise ValueError(f"network config: interpolation must be 'nearest' or 'trilinear', "
+                             f"got {self.interpolation!r}")
+        for name in ("plane_cues", "use_normals", "noise_cues", "calibrated"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"network config: {name} must be true or false, got {getattr(self, name)!r}")
+        if not isinstance(self.extra, dict):
+            raise ValueError(f"network config: extra must be a mapping, got {type(self.extra).__name__}")
+
     @classmethod
     def from_dict(cls, d: dict) -> "NetworkConfig":
+        """The config of a mapping of field names (lists for the tuples), checked.
+
+        Raises:
+            ValueError: not a mapping, an unknown field, or a field out of bounds.
+        """
+        if not isinstance(d, dict):
+            raise ValueError(f"network config must be a mapping, got {type(d).__name__}")
+        unknown = sorted(set(d) - {f.name for f in fields(cls)})
+        if unknown:
+            raise ValueError(f"network config: unknown fields {unknown}")
         d = dict(d)
         for key in ("channels", "hidden", "cue_scales"):
-            if key in d:
+            if isinstance(d.get(key), list):
                 d[key] = tuple(d[key])
         return cls(**d)
 
@@ -203,17 +258,39 @@ class VisibilityNetwork(nn.Module):
 
     @classmethod
     def load(cls, path: str | Path, map_location: str | torch.device = "cpu") -> "VisibilityNetwork":
-        """Builds a network from a safetensors checkpoint written by :meth:`save`."""
+        """Builds a network from a safetensors checkpoint written by :meth:`save`.
+
+        The config is checked against :meth:`NetworkConfig.check`'s bounds and
+        every tensor's shape against the config before anything is allocated.
+
+        Raises:
+            ValueError: no config or a config out of bounds, tensors missing,
+                unexpected or of the wrong shape, or non-finite weights.
+        """
         from safetensors import safe_open
 
         with safe_open(str(path), framework="pt", device=str(map_location)) as f:
             meta = f.metadata() or {}
             if "config" not in meta:
                 raise ValueError(f"{path}: not an o3dvis checkpoint (no config in its header)")
-            net = cls(NetworkConfig.from_dict(json.loads(meta["config"])))
+            try:
+                config = NetworkConfig.from_dict(json.loads(meta["config"]))
+            except (json.JSONDecodeError, ValueError, TypeError) as e:
+                raise ValueError(f"{path}: bad network config ({e})") from None
+            with torch.device("meta"):
+                expected = {k: tuple(v.shape) for k, v in cls(config).state_dict().items()}
+            stored = {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}
+            missing, unexpected = sorted(expected.keys() - stored.keys()), sorted(stored.keys() - expected.keys())
+            if missing or unexpected:
+                raise ValueError(f"{path}: checkpoint does not match its config "
+                                 f"(missing {missing[:3]}, unexpected {unexpected[:3]})")
+            wrong = [f"{k} {stored[k]} (config: {expected[k]})" for k in sorted(expected) if stored[k] != expected[k]]
+            if wrong:
+                raise ValueError(f"{path}: tensor shapes do not match the checkpoint's config: {', '.join(wrong[:3])}")
             state = {k: f.get_tensor(k) for k in f.keys()}
-        missing, unexpected = net.load_state_dict(state, strict=False)
-        if missing or unexpected:
-            raise ValueError(f"{path}: checkpoint does not match its config "
-                             f"(missing {missing[:3]}, unexpected {unexpected[:3]})")
+        bad = [k for k, v in state.items() if v.is_floating_point() and not torch.isfinite(v).all()]
+        if bad:
+            raise ValueError(f"{path}: non-finite (NaN or Inf) weights in {', '.join(sorted(bad)[:3])}")
+        net = cls(config)
+        net.load_state_dict(state)
         return net

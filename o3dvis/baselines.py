@@ -28,7 +28,7 @@ from .cameras import real_array
 from .data.noise import diagonal
 
 __all__ = ["hidden_point_removal_mask", "exponential_hpr_mask", "hpr_method", "exponential_method",
-           "SWEEPS", "sweep", "Method"]
+           "SWEEPS", "sweep", "Method", "distinct_points"]
 
 Method = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -49,12 +49,20 @@ def _check(points, cameras) -> tuple[np.ndarray, np.ndarray]:
     return points, cameras
 
 
-def _unique(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Indices of one representative per distinct point and the map point -> representative slot.
+def distinct_points(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The first of each set of exact duplicates, and where each point's answer is among them.
 
     Sorting a random linear key keeps this O(N log N) on one float column;
     only runs of equal keys (exact duplicates, or astronomically rare key
     collisions) are resolved exactly.
+
+    Args:
+        points: (N, 3) points.
+
+    Returns:
+        ``(keep, slot)``: (M,) ascending indices of the first occurrence of each
+        distinct point, and (N,) each point's position in ``keep``, so that
+        ``answer[slot]`` spreads an answer for ``points[keep]`` to all points.
     """
     key = points[:, 0] * 0.7548776662 + points[:, 1] * 0.5698402910 + points[:, 2] * 0.3263524026
     order = np.argsort(key, kind="stable")
@@ -121,7 +129,7 @@ def _offsets(points: np.ndarray, camera: np.ndarray) -> tuple[np.ndarray, np.nda
 def _per_view(points, cameras, prepare: Callable[[np.ndarray], Callable[[np.ndarray], np.ndarray]]) -> np.ndarray:
     """Runs ``prepare(distinct_points)(camera) -> (M,) bool`` per camera and spreads it to duplicates."""
     points, cameras = _check(points, cameras)
-    keep, slot = _unique(points)
+    keep, slot = distinct_points(points)
     visible = prepare(points[keep])
     out = np.empty((len(cameras), len(points)), dtype=bool)
     for v, camera in enumerate(cameras):

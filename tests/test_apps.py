@@ -295,6 +295,22 @@ def test_neighbourhoods_follow_open3d_search_parameters():
         neighbourhoods(points, o3d.geometry.KDTreeSearchParamHybrid(radius=0.0, max_nn=5))
 
 
+@pytest.mark.parametrize("search_param", [None, o3d.geometry.KDTreeSearchParamKNN(12)])
+def test_exact_duplicates_share_one_normal(search_param):
+    mesh = o3d.geometry.TriangleMesh.create_torus()
+    points, _, method = _sample(mesh, 1500)
+    order = np.random.default_rng(1).permutation(2 * len(points))
+    doubled = np.vstack([points, points])[order]
+    normals = np.asarray(estimate_normals_neural(_cloud(doubled), 26, method, search_param=search_param).normals)
+    first, second = np.empty_like(points), np.empty_like(points)
+    first[order[order < len(points)]] = normals[order < len(points)]
+    second[order[order >= len(points)] - len(points)] = normals[order >= len(points)]
+    assert np.array_equal(first, second)
+    # and the answer is the one of the cloud without its duplicates
+    single = np.asarray(estimate_normals_neural(_cloud(points), 26, method, search_param=search_param).normals)
+    assert np.array_equal(first, single)
+
+
 def test_normals_bad_input(sphere):
     points, _, method = sphere
     with pytest.raises(ValueError, match="no normals"):
@@ -356,6 +372,15 @@ def test_poisson_on_neural_normals_recovers_the_sphere(sphere, search_param):
         with pytest.raises(ValueError, match="three neighbours"):
             reconstruct_poisson(pcd, depth=6, method=method,
                                 search_param=o3d.geometry.KDTreeSearchParamHybrid(radius=1e-9, max_nn=5))
+
+
+def test_poisson_gives_the_same_mesh_on_every_run(sphere):
+    points, _, method = sphere
+    pcd = _cloud(points)
+    runs = [reconstruct_poisson(pcd, depth=7, method=method)[0] for _ in range(3)]
+    for mesh in runs[1:]:
+        assert np.array_equal(np.asarray(mesh.vertices), np.asarray(runs[0].vertices))
+        assert np.array_equal(np.asarray(mesh.triangles), np.asarray(runs[0].triangles))
 
 
 # ---------------------------------------------------------------- shadows

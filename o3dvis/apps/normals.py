@@ -25,6 +25,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
+from ..baselines import distinct_points
 from .camera import cloud_points, viewpoints_around
 from ..methods import resolve_method
 from .triangulation import DEFAULT_EDGE_FACTOR, facing_triangles, local_spacing
@@ -258,12 +259,17 @@ def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_vi
         in no kept triangle gets the normal of a plane through its 16 nearest
         points, turned to the side propagated along the surface from the
         triangulated points (the nearest one's normal where no plane fits).
+        Exact duplicates of a point get its normal.
 
     Raises:
         ValueError: when no view yields a triangle (e.g. all points collinear),
             or, with ``search_param``, no point has a plane fitted.
     """
     _check_views(num_views, refine_views)
+    keep, slot = distinct_points(points)
+    if len(keep) < len(points):  # solved once per distinct point, then spread to its duplicates
+        return multiview_normals(points[keep], method, num_views, refine_views, edge_factor, progress,
+                                 search_param)[slot]
     method = resolve_method(method)
     cameras = viewpoints_around(points, num_views)
     tree = cKDTree(points)  # the searches over all the points below share it

@@ -48,7 +48,7 @@ def reconstruct_view_dependent(pcd, camera, method=None, *,
 
 def reconstruct_poisson(pcd, depth: int = 8, method=None, *, num_views: int = 26,
                         refine_views: int = 0, width: float = 0,
-                        scale: float = 1.1, linear_fit: bool = False, n_threads: int = -1,
+                        scale: float = 1.1, linear_fit: bool = False, n_threads: int = 1,
                         progress: bool = False, search_param=None
                         ) -> tuple[o3d.geometry.TriangleMesh, o3d.utility.DoubleVector]:
     """Screened Poisson reconstruction on normals oriented by visibility.
@@ -60,8 +60,11 @@ def reconstruct_poisson(pcd, depth: int = 8, method=None, *, num_views: int = 26
 
     Args:
         pcd: ``o3d.geometry.PointCloud`` (legacy or tensor).
-        depth, width, scale, linear_fit, n_threads: as in Open3D's
+        depth, width, scale, linear_fit: as in Open3D's
             ``create_from_point_cloud_poisson``.
+        n_threads: threads of the Poisson solver. The default 1 gives the
+            same mesh on every run; more threads (-1: all cores, Open3D's
+            default) may give slightly different meshes from run to run.
         method: the visibility method (default: the pretrained neural network).
         num_views, refine_views: cameras used to estimate the normals (see
             :func:`~o3dvis.apps.normals.estimate_normals_neural`).

@@ -1,99 +1,129 @@
-"""The package's C sources as libraries: built on first use with the system's C compiler (``$CC``,
-else ``cc``) for this CPU, kept in a cache folder (``$O3DVIS_CACHE``, else
-``$XDG_CACHE_HOME/o3dvis`` or ``~/.cache/o3dvis``) and called through ``ctypes``, which releases
-the GIL. Where no compiler is found, or with ``O3DVIS_NATIVE=0`` in the environment, the callers
-run their Python fallback instead, with a warning.
+"""The package's C code: shared libraries built by the package's build (``setup.py``), installed
+beside their Python modules and called through ``ctypes``, which releases the GIL.
+
+Each library is built in variants, one per instruction set (:data:`VARIANTS`): a baseline, and on
+x86-64 one for AVX2 with FMA and one for AVX-512 with bfloat16 dot products. At import the widest
+variant built that this CPU runs is loaded; nothing is compiled at run time and nothing outside the
+package is loaded. ``O3DVIS_NATIVE=0`` in the environment turns the libraries off and
+``O3DVIS_NATIVE=<variant>`` picks one. Where none is loaded (no C compiler at install time), the
+callers run their Python fallbacks, with one warning a process.
+
+This module imports nothing of the package: ``setup.py`` reads :data:`VARIANTS` from it.
 """
 
 from __future__ import annotations
 
 import ctypes
-import hashlib
+import importlib.util
 import os
 import platform
-import subprocess
-import tempfile
 import threading
 import warnings
-from pathlib import Path
+from dataclasses import dataclass
 
-__all__ = ["CLibrary"]
-
-
-def _cache_dir() -> Path:
-    if os.environ.get("O3DVIS_CACHE"):
-        return Path(os.environ["O3DVIS_CACHE"])
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "o3dvis"
+__all__ = ["VARIANTS", "X86_64_ARGS", "Variant", "cpu_flags", "is_x86", "load", "runnable_variants"]
 
 
-def _cpu() -> str:
-    """What identifies this CPU's instruction set (the libraries are built with ``-march=native``)."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            flags = next((line for line in f if line.startswith(("flags", "Features"))), "")
-    except OSError:
-        flags = ""
-    return f"{platform.machine()} {platform.processor()} {flags}"
+@dataclass(frozen=True)
+class Variant:
+    """One build of the libraries.
 
-
-class CLibrary:
-    """One C source of the package, built and loaded once per process.
-
-    Args:
-        source: the ``.c`` file.
-        flags: the compiler's flags (``-march=native`` is added where the compiler knows it).
-        signatures: ``{name: (argument types, result type)}`` of the functions called.
-        fallback: what the callers do without the library, for the warning.
+    Attributes:
+        compile_args: the C compiler's flags for it (GCC and Clang spelling).
+        cpu_flags: the CPU features (as ``/proc/cpuinfo`` names them) it needs.
     """
 
-    def __init__(self, source: Path, flags: list[str], signatures: dict[str, tuple[list, object]],
-                 fallback: str):
-        self.source, self.flags, self.signatures, self.fallback = source, flags, signatures, fallback
-        self._lock = threading.Lock()
-        self._library: list[ctypes.CDLL | None] = []  # once tried: the library, or None
+    compile_args: tuple[str, ...]
+    cpu_flags: frozenset[str]
 
-    def _build(self) -> ctypes.CDLL:
-        """Loads the library, compiling it into the cache folder first if it is not there (or is
-        not a library: a build cut short)."""
-        compiler = os.environ.get("CC", "cc")
-        key = hashlib.sha256(b"\0".join([self.source.read_bytes(), compiler.encode(), " ".join(self.flags).encode(),
-                                         _cpu().encode()])).hexdigest()[:16]
-        folder = _cache_dir()
-        path = folder / f"{self.source.stem}-{key}.so"
-        if path.exists():
-            try:
-                return ctypes.CDLL(str(path))
-            except OSError:  # a truncated or foreign file: built anew below
-                path.unlink(missing_ok=True)
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(dir=folder) as tmp:
-            built = Path(tmp) / path.name
-            errors = []
-            for arch in (["-march=native"], []):  # some compilers know no -march=native
-                run = subprocess.run([compiler, *self.flags, *arch, str(self.source), "-o", str(built), "-lm"],
-                                     capture_output=True, text=True, timeout=300)
-                if run.returncode == 0:
-                    break
-                errors.append(run.stderr.strip())
-            else:
-                raise OSError("\n".join(errors))
-            os.replace(built, path)  # atomic: another process sees the whole file or none
-        return ctypes.CDLL(str(path))
 
-    def get(self) -> ctypes.CDLL | None:
-        """The loaded library, or None (with a warning, once) where it cannot be had."""
-        with self._lock:
-            if not self._library:
-                library, reason = None, "the C kernels are turned off (O3DVIS_NATIVE=0)"
-                if os.environ.get("O3DVIS_NATIVE", "1") != "0":
-                    try:
-                        library = self._build()
-                        for name, (args, result) in self.signatures.items():
-                            function = getattr(library, name)
-                            function.argtypes, function.restype = args, result
-                    except (OSError, AttributeError, RuntimeError, KeyError, subprocess.SubprocessError) as e:
-                        library, reason = None, f"the C kernels could not be built or loaded: {e}"
-                if library is None:
-                    warnings.warn(f"o3dvis: {self.fallback}; {reason}", RuntimeWarning)
-                self._library.append(library)
-            return self._library[0]
+# narrowest first; a library module ``<name>_<variant>`` per variant built. The compilers' own
+# default target may be wider than the baseline: on x86-64 every variant adds X86_64_ARGS
+VARIANTS: dict[str, Variant] = {
+    "base": Variant((), frozenset()),
+    "avx2": Variant(("-mavx2", "-mfma"), frozenset({"avx2", "fma"})),
+    "avx512bf16": Variant(("-mavx2", "-mfma", "-mavx512f", "-mavx512bf16"),
+                          frozenset({"avx2", "fma", "avx512f", "avx512_bf16"})),
+}
+X86_64_ARGS = ("-march=x86-64", "-mtune=generic")
+# what torch's CPU capability implies, where /proc/cpuinfo is not there to ask
+_CAPABILITY_FLAGS = {"AVX2": {"avx2", "fma"}, "AVX512": {"avx2", "fma", "avx512f"}}
+
+
+def is_x86() -> bool:
+    """Whether this machine's instruction set is x86-64 (only the baseline is built elsewhere)."""
+    return platform.machine().lower() in ("x86_64", "amd64")
+
+
+def cpu_flags() -> frozenset[str]:
+    """The CPU features this process may use: the kernel's ``/proc/cpuinfo`` flags (which leave
+    out what the operating system does not enable), else what torch's CPU capability implies."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            line = next((line for line in f if line.startswith("flags")), "")
+        return frozenset(line.partition(":")[2].split())
+    except OSError:
+        import torch
+
+        return frozenset(_CAPABILITY_FLAGS.get(torch.backends.cpu.get_cpu_capability(), ()))
+
+
+def runnable_variants() -> list[str]:
+    """The variants this CPU runs, narrowest first."""
+    flags = cpu_flags()
+    return [name for name, v in VARIANTS.items() if (name == "base" or is_x86()) and v.cpu_flags <= flags]
+
+
+_warned = threading.Lock()
+
+
+def _warn(reason: str) -> None:
+    """Warns once a process that the Python fallbacks run instead of the C code."""
+    if _warned.acquire(blocking=False):
+        warnings.warn(f"o3dvis runs without its C code ({reason}): queries run their per-view steps as torch "
+                      "ops and triangulations on scipy's Qhull, which is slower", RuntimeWarning, stacklevel=3)
+
+
+def load(module: str, signatures: dict[str, tuple[list, object]], variant: str | None = None) -> ctypes.CDLL | None:
+    """The library ``module`` (e.g. ``"o3dvis.nn._kernels"``) as the package's build made it: its
+    widest variant built, up to ``variant``, that this CPU runs.
+
+    Args:
+        module: the library's module name, without the variant.
+        signatures: ``{function: (argument types, result type)}`` of the functions called.
+        variant: the widest variant to load; None: the one ``O3DVIS_NATIVE`` names, else any.
+
+    Returns:
+        The library, its variant's name in its ``variant`` attribute; or None (with a warning, once
+        a process) where the libraries are turned off, were not built, or this CPU runs none of
+        the variants asked for.
+    """
+    setting = os.environ.get("O3DVIS_NATIVE", "")
+    if variant is None and setting == "0":
+        _warn("turned off by O3DVIS_NATIVE=0")
+        return None
+    if variant is None and setting not in ("", "1"):
+        if setting not in VARIANTS:
+            _warn(f"O3DVIS_NATIVE={setting} names no variant; use 0 or one of {', '.join(VARIANTS)}")
+            return None
+        variant = setting
+    runnable = runnable_variants()
+    if variant is not None and variant not in runnable:
+        _warn(f"this CPU cannot run the {variant} variant")
+        return None
+    for name in reversed(runnable if variant is None else runnable[:runnable.index(variant) + 1]):
+        spec = importlib.util.find_spec(f"{module}_{name}")
+        if spec is None or spec.origin is None:
+            continue
+        try:
+            library = ctypes.CDLL(spec.origin)
+            for function, (args, result) in signatures.items():
+                getattr(library, function).argtypes, getattr(library, function).restype = args, result
+        except (OSError, AttributeError) as e:
+            _warn(f"{spec.origin} could not be loaded: {e}")
+            return None
+        library.variant = name
+        return library
+    _warn(f"{module} was not built: the package was installed without a C compiler; reinstall it where there "
+          "is one")
+    return None

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
+from ._optional import figure_class
 from .apps.camera import View, make_view
 from .apps.render import image_from, lambert, splat, splat_size
 from .baselines import SWEEPS, hpr_method
@@ -214,11 +215,6 @@ def _camera_arrow(view: View, centre: np.ndarray, camera: np.ndarray) -> tuple[n
 
 def _montage(path: Path, images: dict[str, np.ndarray], result: DemoResult,
              arrow: tuple[np.ndarray, np.ndarray]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     neural, hpr = result.methods
     titles = {
         "input": f"input: {result.num_points:,} points",
@@ -229,7 +225,8 @@ def _montage(path: Path, images: dict[str, np.ndarray], result: DemoResult,
         "errors_hpr": f"HPR errors: {hpr.counts.fp:,} FP, {hpr.counts.fn:,} FN",
     }
     order = ["input", "ground_truth", "errors_neural", "neural", "hpr", "errors_hpr"]
-    fig, axes = plt.subplots(2, 3, figsize=(12, 7.2))
+    fig = figure_class("the demo's figure")(figsize=(12, 7.2))
+    axes = fig.subplots(2, 3)
     tail, head = arrow
     for ax, name in zip(axes.ravel(), order):
         ax.imshow(images[name])
@@ -241,7 +238,6 @@ def _montage(path: Path, images: dict[str, np.ndarray], result: DemoResult,
                  "Errors: false positives red, false negatives blue.", fontsize=11)
     fig.tight_layout()
     fig.savefig(path, dpi=80)
-    plt.close(fig)
 
 
 def run_demo(out_dir: str | Path = "o3dvis-demo", num_points: int = 20_000, camera=None, *,
@@ -264,11 +260,15 @@ def run_demo(out_dir: str | Path = "o3dvis-demo", num_points: int = 20_000, came
     Returns:
         A :class:`DemoResult`; ``images`` maps each name of :data:`IMAGES` and
         ``"demo"`` (all pictures in one figure) to its file.
+
+    Raises:
+        ImportError: where matplotlib (the ``demo`` extra) is not installed, before any work.
     """
     from tqdm import tqdm
 
     from .apps.camera import as_camera_location
 
+    figure_class("the demo's figure")
     pcd, mesh = demo_sample(num_points)
     points = np.asarray(pcd.points)
     camera = default_camera(points) if camera is None else as_camera_location(camera, "camera")

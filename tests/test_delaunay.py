@@ -124,7 +124,7 @@ def test_without_the_library_qhull_answers_with_a_warning(tmp_path):
             "xy = np.random.default_rng(3).integers(0, 1 << 20, size=(500, 2)) / 1024.0\n"
             "np.save(r'%s', delaunay_triangles(xy))\n" % (tmp_path / "t.npy"))
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         env={**os.environ, "O3DVIS_NATIVE": "0", "O3DVIS_CACHE": str(tmp_path)})
+                         env={**os.environ, "O3DVIS_NATIVE": "0"})
     assert run.returncode == 0, run.stderr
     assert "RuntimeWarning" in run.stderr and "Qhull" in run.stderr
     xy = np.random.default_rng(3).integers(0, 1 << 20, size=(500, 2)) / 1024.0

@@ -68,3 +68,12 @@ def test_cli(tmp_path, capsys):
     assert "accuracy" in text and "Open3D HPR (k=2)" in text and str(tmp_path / "demo.png") in text
     assert main(["demo", "--out", str(tmp_path), "--points", "2000", "--camera", "0,0,0"]) == 2
     assert "inside the bounding box" in capsys.readouterr().err
+
+
+def test_without_matplotlib_the_demo_names_the_extra_before_any_work(tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(__import__("sys").modules, "matplotlib.figure", None)  # as if not installed
+    with pytest.raises(ImportError, match=r"pip install 'o3dvis\[demo\]'"):
+        run_demo(tmp_path / "out", 500)
+    assert not (tmp_path / "out").exists()
+    assert main(["demo", "--out", str(tmp_path / "out"), "--points", "500"]) == 2
+    assert "o3dvis[demo]" in capsys.readouterr().err

@@ -1,8 +1,11 @@
 """The C kernels of o3dvis.nn.native against the torch ops they stand in for."""
 
 import os
+import shutil
 import subprocess
 import sys
+import threading
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
@@ -10,14 +13,25 @@ import pytest
 import torch
 
 import o3dvis
+from o3dvis import clib
 from o3dvis.nn import native
 from o3dvis.nn.cues import ViewProjection
 from o3dvis.nn.predictor import ViewEmbedding
 
 _CAMERA = torch.tensor([2.0, 1.0, -0.5])
 _DIRECTION = torch.tensor([-0.3, 0.2, 1.0])
-# the comparisons need the kernels; test_the_kernels_build_here fails where they should be and are not
+# the comparisons need the kernels; test_every_variant_this_cpu_runs_is_built fails where they should be and are not
 needs_kernels = pytest.mark.skipif(not native.available(), reason="C kernels turned off (O3DVIS_NATIVE=0)")
+
+
+@pytest.fixture(params=clib.runnable_variants())
+def variant(request, monkeypatch) -> str:
+    """Each variant of the kernels that this CPU runs, in turn, in place of the widest."""
+    library = clib.load("o3dvis.nn._kernels", native._SIGNATURES, request.param)
+    if library is None or library.variant != request.param:
+        pytest.skip(f"the {request.param} kernels are not built")
+    monkeypatch.setattr(native, "_LIBRARY", library)
+    return request.param
 
 
 def _points(n: int = 6000, seed: int = 0) -> torch.Tensor:
@@ -40,14 +54,21 @@ def _views(points: torch.Tensor, **view) -> tuple[ViewProjection, ViewProjection
     return fast, slow
 
 
-def test_the_kernels_build_here():
-    """The C compiler of this machine builds them (CI runs where it does)."""
-    assert os.environ.get("O3DVIS_NATIVE") == "0" or native.available()
+@pytest.mark.skipif(os.environ.get("O3DVIS_NATIVE", "1") != "1", reason="a variant or none asked for")
+def test_every_variant_this_cpu_runs_is_built():
+    """The package's build made them all (CI builds where there is a C compiler), and the widest
+    is the one loaded."""
+    for variant in clib.runnable_variants():
+        library = clib.load("o3dvis.nn._kernels", native._SIGNATURES, variant)
+        assert getattr(library, "variant", None) == variant, (
+            f"the {variant} kernels are not built: in a source checkout run `pip install -e .` or "
+            "`python setup.py build_ext --inplace`")
+    assert native._LIBRARY.variant == clib.runnable_variants()[-1]
 
 
 @needs_kernels
 @pytest.mark.parametrize("view", [{"camera": _CAMERA}, {"direction": _DIRECTION}])
-def test_projection_equals_the_torch_one(view):
+def test_projection_equals_the_torch_one(view, variant):
     points = _points()
     fast, slow = _views(points, **view)
     torch.testing.assert_close(fast.depth, slow.depth, atol=1e-6, rtol=1e-6)
@@ -68,7 +89,7 @@ def test_projection_equals_the_torch_one(view):
 @needs_kernels
 @pytest.mark.parametrize("rows", [slice(None), slice(1000, 4321), "indices"])
 @pytest.mark.parametrize("view", [{"camera": _CAMERA}, {"direction": _DIRECTION}])
-def test_inputs_equal_the_embedding_times_the_features_then_the_cues(view, rows):
+def test_inputs_equal_the_embedding_times_the_features_then_the_cues(view, rows, variant):
     points = _points()
     if rows == "indices":
         rows = torch.randperm(len(points), generator=torch.Generator().manual_seed(1))[:2500]
@@ -140,14 +161,14 @@ def test_inputs_reject_what_the_kernel_cannot_take():
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
 @pytest.mark.parametrize("config", [{}, {"use_normals": True}, {"num_frequencies": 2, "hidden": (24, 40, 17)}])
 @pytest.mark.parametrize("rows", [slice(None), slice(1000, 4321), "indices", "five"])
-def test_view_margin_equals_the_inputs_then_the_products(config, rows, dtype):
+def test_view_margin_equals_the_inputs_then_the_products(config, rows, dtype, variant):
     """One pass of C for a view's margins: margin_from_inputs on the inputs the C kernel writes,
     its products in ``dtype``, summed in another order (inputs and hidden widths that fit no
     register padded with zero weights)."""
     from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
 
     if not native.has_view_margin(dtype):
-        pytest.skip(f"no fused {dtype} kernel here (no AVX512-BF16)")
+        pytest.skip(f"no fused {dtype} kernel in the {variant} variant")
     torch.manual_seed(0)
     network = VisibilityNetwork(NetworkConfig(channels=(8, 8), **config)).eval()
     points = _points()
@@ -230,7 +251,7 @@ def _cloud(normals: bool) -> o3d.geometry.PointCloud:
 @needs_kernels
 @pytest.mark.parametrize("precision", ["float32", "bfloat16"])
 @pytest.mark.parametrize("normals", [False, True])
-def test_answers_equal_those_of_the_torch_ops(precision, normals, monkeypatch):
+def test_answers_equal_those_of_the_torch_ops(precision, normals, variant, monkeypatch):
     """The shipped models, both input paths: the same answers but for points on a pixel border."""
     pcd = _cloud(normals)
     cameras = np.array([[3.0, 0.5, 0.2], [-0.4, 2.5, 1.0], [0.3, -0.2, -3.0]])
@@ -262,34 +283,72 @@ def test_without_a_fused_kernel_the_inputs_kernel_and_torch_products_answer_alik
     assert (fused - unfused).abs().max() < 1e-2
 
 
-def _python(code: str, **env) -> subprocess.CompletedProcess:
+def _python(code: str, cwd: Path | None = None, **env) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-W", "always", "-c", code], capture_output=True, text=True,
-                          env={**os.environ, **env}, timeout=300)
+                          env={**os.environ, **env}, cwd=cwd, timeout=300)
+
+
+_QUERY = ("import numpy as np, open3d as o3d, o3dvis\n"
+          "from o3dvis.nn import native\n"
+          "from o3dvis.apps import delaunay\n"
+          "pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.random.default_rng(0).normal(size=(3000, 3))))\n"
+          "_, idx = o3dvis.hidden_point_removal_neural(pcd, [0, 0, 10])\n"
+          "o3dvis.reconstruct_view_dependent(pcd, [0, 0, 10])\n")
 
 
 @needs_kernels
-def test_built_on_first_use_into_the_cache_folder(tmp_path):
-    run = _python("from o3dvis.nn import native; print(native.available())", O3DVIS_CACHE=str(tmp_path))
-    assert run.returncode == 0 and run.stdout.strip() == "True", run.stderr
-    assert len(list(tmp_path.glob("kernels-*.so"))) == 1
-    again = _python("from o3dvis.nn import native; print(native.available())", O3DVIS_CACHE=str(tmp_path))
-    assert again.stdout.strip() == "True" and "RuntimeWarning" not in again.stderr
-    built = next(tmp_path.glob("kernels-*.so"))
-    built.write_bytes(b"not a library")  # a build cut short: replaced, not used
-    broken = _python("from o3dvis.nn import native; print(native.available())", O3DVIS_CACHE=str(tmp_path))
-    assert broken.stdout.strip() == "True" and "RuntimeWarning" not in broken.stderr
-    assert not built.read_bytes().startswith(b"not a library")
-
-
-@pytest.mark.parametrize("env", [{"O3DVIS_NATIVE": "0"}, {"CC": "/nonexistent/cc"}])
-def test_without_the_kernels_queries_run_the_torch_ops_with_a_warning(env, tmp_path):
-    code = ("import numpy as np, open3d as o3d, o3dvis\n"
-            "from o3dvis.nn import native\n"
-            "pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.random.default_rng(0).normal(size=(3000, 3))))\n"
-            "_, idx = o3dvis.hidden_point_removal_neural(pcd, [0, 0, 10])\n"
-            "print(native.available(), 0 < len(idx) < 3000)")
-    run = _python(code, O3DVIS_CACHE=str(tmp_path), **env)
+def test_only_what_the_package_built_is_loaded_and_nothing_compiles(tmp_path):
+    """No compiler and no cache at run time: with no C compiler to be found and an empty home, the
+    kernels are the package's own files, and nothing is written."""
+    code = _QUERY + ("package = __import__('pathlib').Path(o3dvis.__file__).parent\n"
+                     "maps = open('/proc/self/maps').read().split()\n"
+                     "ours = {p for p in maps if '_kernels' in p or '_delaunay' in p or 'o3dvis' in p}\n"
+                     "print(native.available(), delaunay.available(), "
+                     "all(__import__('pathlib').Path(p).parent.parent == package for p in ours), len(ours))")
+    home = tmp_path / "home"
+    home.mkdir()
+    run = _python(code, CC="/nonexistent/cc", PATH=str(tmp_path), HOME=str(home), XDG_CACHE_HOME=str(home / "cache"),
+                  O3DVIS_NATIVE="1")
     assert run.returncode == 0, run.stderr
-    assert run.stdout.split() == ["False", "True"]
-    assert "RuntimeWarning" in run.stderr and "torch ops" in run.stderr
-    assert not list(tmp_path.glob("kernels-*.so"))
+    assert run.stdout.split() == ["True", "True", "True", "2"], run.stdout
+    assert "RuntimeWarning" not in run.stderr
+    assert not list(home.iterdir())
+
+
+def test_with_the_c_code_turned_off_queries_run_the_fallbacks_with_one_warning():
+    run = _python(_QUERY + "print(native.available(), delaunay.available(), 0 < len(idx) < 3000)", O3DVIS_NATIVE="0")
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["False", "False", "True"]
+    assert run.stderr.count("RuntimeWarning") == 1, run.stderr
+    assert "torch ops" in run.stderr and "Qhull" in run.stderr and "O3DVIS_NATIVE=0" in run.stderr
+
+
+def test_a_package_built_without_a_compiler_runs_the_fallbacks_with_one_warning(tmp_path):
+    """What an install with no C compiler leaves: the package without its libraries."""
+    package = Path(o3dvis.__file__).parent
+    shutil.copytree(package, tmp_path / "o3dvis", ignore=shutil.ignore_patterns("*.so", "*.pyd", "__pycache__"))
+    run = _python(_QUERY + "print(native.available(), delaunay.available(), 0 < len(idx) < 3000)",
+                  cwd=tmp_path, PYTHONPATH=str(tmp_path), O3DVIS_NATIVE="1")
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["False", "False", "True"]
+    assert run.stderr.count("RuntimeWarning") == 1 and "was not built" in run.stderr, run.stderr
+
+
+def test_a_variant_this_cpu_cannot_run_is_never_loaded(monkeypatch):
+    monkeypatch.setattr(clib, "cpu_flags", lambda: frozenset())
+    monkeypatch.setattr(clib, "_warned", threading.Lock())
+    assert clib.runnable_variants() == ["base"]
+    with pytest.warns(RuntimeWarning, match="cannot run the avx2 variant"):
+        assert clib.load("o3dvis.nn._kernels", native._SIGNATURES, "avx2") is None
+    if native.available():
+        assert clib.load("o3dvis.nn._kernels", native._SIGNATURES).variant == "base"
+
+
+def test_the_build_goes_on_without_a_compiler(tmp_path):
+    """The libraries are optional extensions: with no C compiler the install succeeds without them."""
+    root = Path(__file__).resolve().parent.parent
+    run = subprocess.run([sys.executable, "setup.py", "-q", "build_ext", "--build-lib", str(tmp_path / "lib"),
+                          "--build-temp", str(tmp_path / "tmp")], cwd=root, capture_output=True, text=True,
+                         env={**os.environ, "CC": "/nonexistent/cc"}, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert "o3dvis.nn._kernels_base" in run.stderr and not list(tmp_path.rglob("*.so"))

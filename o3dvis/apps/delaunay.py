@@ -1,33 +1,30 @@
 """Delaunay triangulation of points in the plane: a sweep in C with exact predicates
 (``delaunay.c``), 5 to 7 times faster than scipy's Qhull on the few thousand points a view
-shows; Qhull where the C library cannot be built (see :mod:`o3dvis.clib`).
+shows; Qhull where the C library was not built (see :mod:`o3dvis.clib`).
 """
 
 from __future__ import annotations
 
 import ctypes
-from pathlib import Path
 
 import numpy as np
 from scipy.spatial import Delaunay, QhullError
 
-from ..clib import CLibrary
+from .. import clib
 
 __all__ = ["MAX_POINTS", "available", "delaunay_triangles", "view_surface"]
 
 # half-edge indices (6 a point) are int32
 MAX_POINTS = 1 << 28
 _PTR = ctypes.c_void_p
-# no contraction into fused multiply-adds: the surface step rounds as its numpy fallback
-_LIBRARY = CLibrary(Path(__file__).with_name("delaunay.c"), ["-O3", "-fPIC", "-shared", "-ffp-contract=off"],
-                    {"o3dvis_delaunay": ([ctypes.c_int64, _PTR, _PTR], ctypes.c_int64),
-                     "o3dvis_view_surface": ([ctypes.c_int64] + [_PTR] * 6, ctypes.c_int64)},
-                    "triangulations run on scipy's Qhull and numpy, which is slower")
+_LIBRARY = clib.load(f"{__package__}._delaunay",
+                     {"o3dvis_delaunay": ([ctypes.c_int64, _PTR, _PTR], ctypes.c_int64),
+                      "o3dvis_view_surface": ([ctypes.c_int64] + [_PTR] * 6, ctypes.c_int64)})
 
 
 def available() -> bool:
-    """Whether the C library is built and loaded (builds it on the first call)."""
-    return _LIBRARY.get() is not None
+    """Whether the C library is built and loaded."""
+    return _LIBRARY is not None
 
 
 def _coords(coords: np.ndarray) -> np.ndarray:
@@ -71,14 +68,13 @@ def delaunay_triangles(coords: np.ndarray) -> np.ndarray:
     coords = _coords(coords)
     if len(coords) < 3:
         return np.zeros((0, 3), dtype=np.int64)
-    library = _LIBRARY.get()
-    if library is None:
+    if _LIBRARY is None:
         try:
             return Delaunay(coords).simplices.astype(np.int64)
         except (QhullError, ValueError):  # all on one line, or fewer than three distinct
             return np.zeros((0, 3), dtype=np.int64)
     out = np.empty((max(2 * len(coords) - 5, 1), 3), dtype=np.int32)
-    count = library.o3dvis_delaunay(len(coords), coords.ctypes.data, out.ctypes.data)
+    count = _LIBRARY.o3dvis_delaunay(len(coords), coords.ctypes.data, out.ctypes.data)
     _check_count(count, coords)
     return out[:count].astype(np.int64)
 
@@ -109,8 +105,7 @@ def view_surface(coords: np.ndarray, points: np.ndarray, max_edge: np.ndarray, c
         return np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3))
     rows = max(2 * len(coords) - 5, 1)
     triangles, normals = np.empty((rows, 3), dtype=np.int32), np.empty((rows, 3))
-    count = _LIBRARY.get().o3dvis_view_surface(len(coords), coords.ctypes.data, points.ctypes.data,
-                                               max_edge.ctypes.data, camera.ctypes.data, triangles.ctypes.data,
-                                               normals.ctypes.data)
+    count = _LIBRARY.o3dvis_view_surface(len(coords), coords.ctypes.data, points.ctypes.data, max_edge.ctypes.data,
+                                         camera.ctypes.data, triangles.ctypes.data, normals.ctypes.data)
     _check_count(count, coords)
     return triangles[:count].astype(np.int64), normals[:count]

@@ -25,7 +25,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (ValueError, TypeError, OSError, RuntimeError) as e:
+    except (ValueError, TypeError, OSError, RuntimeError, ImportError) as e:
         message = str(e).strip().splitlines() or [type(e).__name__]
         print(f"o3dvis {args.command}: error: {message[0]}", file=sys.stderr)
         return 2

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .._optional import figure_class
 from .visible import _add_precision_flag, _vector
 
 __all__ = ["register"]
@@ -239,6 +240,7 @@ def _best_view(args: argparse.Namespace) -> int:
 
     pcd = _read_cloud(args.input)
     method = _method(args)
+    figure = figure_class("--plot") if args.plot else None
     camera, losses = best_view(pcd, maximize=not args.worst, steps=args.steps, method=method,
                                starts=args.starts, progress=True)
     fraction = -losses.min() if not args.worst else losses.min()
@@ -246,16 +248,14 @@ def _best_view(args: argparse.Namespace) -> int:
           f"(sees {100 * fraction:.1f}% of the points, soft count)")
     if args.output:
         _write_image(args.output, render_points(pcd, camera, method=method))
-    if args.plot:
-        import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(figsize=(5, 3))
+    if figure is not None:
+        fig = figure(figsize=(5, 3))
+        ax = fig.subplots()
         ax.plot(losses)
         ax.set_xlabel("step")
         ax.set_ylabel("loss (- visible fraction)" if not args.worst else "loss (visible fraction)")
         fig.tight_layout()
         fig.savefig(args.plot)
-        plt.close(fig)
     return 0
 
 

@@ -5,10 +5,10 @@ CPU, and the octree's Morton keys in one.
 embedding times the projected features compute in some seventy eager torch
 ops, each a pass over memory, and runs the predictor's MLP on those inputs
 while they are in cache (see the README for what it saves).
-It is C with no dependency, built on first use for this CPU and called
-through ``ctypes`` (see :mod:`o3dvis.clib`). Where no compiler is found, or
-with ``O3DVIS_NATIVE=0`` in the environment, queries run the torch ops
-instead, with a warning; gradients, CUDA and the plane cues always do.
+It is C with no dependency, built with the package for a baseline CPU, AVX2 and
+AVX-512 with bfloat16, and called through ``ctypes`` (see :mod:`o3dvis.clib`).
+Where it was not built, or with ``O3DVIS_NATIVE=0`` in the environment, queries
+run the torch ops instead, with a warning; gradients, CUDA and the plane cues always do.
 This module only checks shapes and passes pointers; the callers own the tensors.
 """
 
@@ -16,19 +16,14 @@ from __future__ import annotations
 
 import ctypes
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 from torch import Tensor
 
-from ..clib import CLibrary
-
+from .. import clib
 
 __all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "project", "view_inputs", "PackedMLP", "pack_mlp", "view_margin"]
 
-# vectorisable loops (no errno, no traps) whose rounding follows torch's op order (no contraction into
-# fused multiply-adds but the polynomials' own, see kernels.c)
-_FLAGS = ["-O3", "-fPIC", "-shared", "-fno-math-errno", "-fno-trapping-math", "-ffp-contract=off"]
 _I64, _I32, _PTR = ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
 
 
@@ -53,17 +48,12 @@ _SIGNATURES = {  # name: (argument types, result type)
 # the most points a view of the kernels takes: its depth buffers (about 1.4 values a point over four
 # scales) are then indexed by int32
 MAX_POINTS = 1 << 30
-_LIBRARY = CLibrary(Path(__file__).with_name("kernels.c"), _FLAGS, _SIGNATURES,
-                    "queries run their per-view steps as torch ops, which is slower")
-
-
-def _loaded() -> ctypes.CDLL | None:
-    return _LIBRARY.get()
+_LIBRARY = clib.load(f"{__package__}._kernels", _SIGNATURES)
 
 
 def available() -> bool:
-    """Whether the C kernels are built and loaded (builds them on the first call)."""
-    return _loaded() is not None
+    """Whether the C kernels are built and loaded."""
+    return _LIBRARY is not None
 
 
 def usable(*tensors: Tensor | None) -> bool:
@@ -88,7 +78,7 @@ def morton_keys(points: Tensor, depth: int) -> Tensor:
     if not 1 <= depth <= 21:
         raise ValueError(f"depth must lie in [1, 21], got {depth}")
     keys = torch.empty(points.shape[0], dtype=torch.long)
-    _loaded().o3dvis_morton_keys(points.shape[0], points.data_ptr(), depth, keys.data_ptr())
+    _LIBRARY.o3dvis_morton_keys(points.shape[0], points.data_ptr(), depth, keys.data_ptr())
     return keys
 
 
@@ -124,7 +114,7 @@ def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,
     buffers = points.new_empty(sum((res + 2) ** 2 for res in sides))
     corners, rpix = torch.empty(n, scales, dtype=torch.int32), points.new_empty(scales)
     sizes = torch.tensor(sides, dtype=torch.long)  # referenced until the call has returned
-    if _loaded().o3dvis_project(n, points.data_ptr(), camera.data_ptr() if camera is not None else None,
+    if _LIBRARY.o3dvis_project(n, points.data_ptr(), camera.data_ptr() if camera is not None else None,
                                 direction.data_ptr() if direction is not None else None, scales,
                                 sizes.data_ptr(),
                                 dirs.data_ptr() if dirs is not None else None, depth.data_ptr(), uv.data_ptr(),
@@ -136,10 +126,9 @@ def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,
 def has_view_margin(dtype: torch.dtype) -> bool:
     """Whether :func:`view_margin` runs here in ``dtype``: the kernels are built, and for
     bfloat16 this CPU has bfloat16 dot products (AVX512-BF16)."""
-    library = _loaded()
-    if library is None or dtype not in (torch.float32, torch.bfloat16):
+    if _LIBRARY is None or dtype not in (torch.float32, torch.bfloat16):
         return False
-    return dtype == torch.float32 or bool(library.o3dvis_has_view_margin_bf16())
+    return dtype == torch.float32 or bool(_LIBRARY.o3dvis_has_view_margin_bf16())
 
 
 def _view(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies: int, buffers: Tensor,
@@ -204,7 +193,7 @@ def view_inputs(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequ
             or out.dtype not in (torch.float32, torch.bfloat16)):
         raise ValueError(f"out must be ({channels}, {n}) float32 or bfloat16 on the CPU with contiguous "
                          f"rows, got {tuple(out.shape)} {out.dtype} strides {out.stride()} on {out.device}")
-    if _loaded().o3dvis_view_inputs(n, ctypes.byref(view), out.data_ptr(), out.stride(0), out.dtype == torch.bfloat16):
+    if _LIBRARY.o3dvis_view_inputs(n, ctypes.byref(view), out.data_ptr(), out.stride(0), out.dtype == torch.bfloat16):
         raise ValueError(f"the C kernel takes at most 10 frequencies and 7 scales, "
                          f"got {num_frequencies} and {len(sides)}")
 
@@ -261,7 +250,7 @@ def view_margin(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequ
     _check("out", out, (n,))
     if not has_view_margin(mlp.dtype):
         raise RuntimeError(f"the C kernels here have no view_margin in {mlp.dtype} (bfloat16 needs AVX512-BF16)")
-    kernel = _loaded().o3dvis_view_margin_bf16 if mlp.dtype == torch.bfloat16 else _loaded().o3dvis_view_margin_f32
+    kernel = _LIBRARY.o3dvis_view_margin_bf16 if mlp.dtype == torch.bfloat16 else _LIBRARY.o3dvis_view_margin_f32
     if kernel(n, ctypes.byref(view), len(mlp.sizes) - 2, mlp.sizes.data_ptr(), mlp.weights.data_ptr(),
               mlp.biases.data_ptr(), out.data_ptr()):
         raise ValueError(f"the MLP (sizes {mlp.sizes.tolist()}) does not match the view's inputs, or it has a "

@@ -1,0 +1,34 @@
+"""Builds the package's C libraries (see ``o3dvis/clib.py``): each for a baseline CPU and, on
+x86-64, for AVX2 with FMA and for AVX-512 with bfloat16 dot products. They are optional: where
+one cannot be built (no C compiler, or one that lacks an instruction set's flags) the install
+goes on, and the package runs its Python fallbacks. The rest of the metadata is in pyproject.toml.
+"""
+
+import runpy
+from pathlib import Path
+
+from setuptools import Extension, setup
+
+_HERE = Path(__file__).resolve().parent
+_CLIB = runpy.run_path(str(_HERE / "o3dvis" / "clib.py"))
+# module: (source, compiler flags, variants). -ffp-contract=off: rounding follows the Python
+# fallbacks' op order; the kernels' loops vectorise with no errno and no traps. The Delaunay
+# sweep's integer predicates and branches run no faster with wider vectors: baseline only
+_LIBRARIES = {
+    "o3dvis.nn._kernels": ("o3dvis/nn/kernels.c",
+                           ["-O3", "-fno-math-errno", "-fno-trapping-math", "-ffp-contract=off"],
+                           tuple(_CLIB["VARIANTS"])),
+    "o3dvis.apps._delaunay": ("o3dvis/apps/delaunay.c", ["-O3", "-ffp-contract=off"], ("base",)),
+}
+
+
+def _extensions() -> list[Extension]:
+    x86 = _CLIB["is_x86"]()
+    variants = {name: [*(_CLIB["X86_64_ARGS"] if x86 else ()), *variant.compile_args]
+                for name, variant in _CLIB["VARIANTS"].items() if name == "base" or x86}
+    return [Extension(f"{module}_{name}", [source], extra_compile_args=flags + variants[name], libraries=["m"],
+                      optional=True)
+            for module, (source, flags, built) in _LIBRARIES.items() for name in built if name in variants]
+
+
+setup(ext_modules=_extensions())

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import time
 from pathlib import Path
 
@@ -13,6 +14,7 @@ from nbclient import NotebookClient
 ROOT = Path(__file__).resolve().parents[1]
 TUTORIALS = ROOT / "tutorials"
 NOTEBOOKS = sorted(TUTORIALS.glob("*.ipynb"))
+PUBLIC_MODULES = {"cli", "data"}  # the command line, and the reader of prepared training data
 CELL_TIMEOUT = 240  # seconds; each notebook takes well under a minute on 2 cores when the machine is idle
 
 
@@ -24,6 +26,18 @@ def test_the_six_tutorials_are_there_without_outputs():
         code = [c for c in nb.cells if c.cell_type == "code"]
         assert code and all(not c.outputs and c.execution_count is None for c in code), \
             f"{path.name}: commit notebooks without outputs"
+
+
+def test_tutorials_use_the_public_api():
+    import o3dvis
+
+    for path in NOTEBOOKS:
+        code = "\n".join(c.source for c in nbformat.read(path, as_version=4).cells if c.cell_type == "code")
+        for module in re.findall(r"^\s*(?:from|import) o3dvis\.(\w+)", code, re.M):
+            assert module in PUBLIC_MODULES, f"{path.name} imports o3dvis.{module}, not public API"
+        for name in re.findall(r"\bo3dvis\.(\w+)", code):
+            assert name in o3dvis.__all__ or name in PUBLIC_MODULES, \
+                f"{path.name} uses o3dvis.{name}, not in o3dvis.__all__"
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
@@ -42,11 +56,8 @@ def test_tutorial_runs(path, monkeypatch):
 
 
 def _saved_figures(nb) -> list[str]:
-    """The figure paths a notebook's code names (``FIGURES / "name.png"``)."""
-    import re
-
-    names = []
-    for cell in nb.cells:
-        if cell.cell_type == "code":
-            names += re.findall(r'FIGURES / "([^"]+\.png)"', cell.source)
-    return [f"figures/{n}" for n in names]
+    """The figure paths a notebook's code names: ``FIGURES / "name.png"`` in its own ``FIGURES`` folder."""
+    code = "\n".join(cell.source for cell in nb.cells if cell.cell_type == "code")
+    folders = re.findall(r'^FIGURES = Path\("([^"]+)"\)', code, re.M)
+    assert len(folders) == 1, "a tutorial names its figures folder once: FIGURES = Path(\"...\")"
+    return [f"{folders[0]}/{name}" for name in re.findall(r'FIGURES / "([^"]+\.png)"', code)]

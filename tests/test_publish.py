@@ -13,7 +13,7 @@ from o3dvis.models import WEIGHTS_DIR, file_sha256, load_model, read_model_card
 from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
 from o3dvis.publish import portable_path, publish
 
-SMALL = dict(depth=5, channels=(8, 8, 8, 8, 8))
+SMALL = dict(depth=5, channels=(8, 8, 8))
 ABSOLUTE = re.compile(r'"(/|[A-Za-z]:\\\\)[^"]*"')  # a JSON string that is an absolute path
 
 

@@ -1,6 +1,6 @@
 """The hypothesis properties of tests/test_fuzz.py on fresh random cases, for longer than CI.
 
-Each round runs every property once at its CI size (about 1 000 cases in all) with a new
+Each round runs every property once at its CI size (about 1 150 cases in all) with a new
 random seed; rounds go on until ``--minutes`` or ``--examples`` is reached. Prints the
 number of cases run per property and in total; exits 1 with hypothesis's falsifying
 example when a property fails.

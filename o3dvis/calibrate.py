@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from .data.dataset import Augmentation, VisibilityDataset
+from .models import load_model
 from .nn.calibration import NUM_TERMS, calibration_loss, calibration_terms, fit_calibration
 from .nn.network import NetworkConfig, VisibilityNetwork
 from .publish import portable_path
@@ -59,7 +60,7 @@ def calibrate(checkpoint: str | Path, data: list[str | Path], out: str | Path, c
 
     if clouds < 1 or keep < 1:
         raise ValueError(f"clouds and keep must be positive, got {clouds} and {keep}")
-    net = _uncalibrated(VisibilityNetwork.load(checkpoint))
+    net = _uncalibrated(load_model(Path(checkpoint)))
     files = [f for d in data for f in list_samples(d)]
     if not files:
         raise ValueError(f"no prepared .npz files in {[str(d) for d in data]}")

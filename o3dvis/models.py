@@ -144,10 +144,12 @@ def check_safetensors(path: str | Path) -> None:
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: a pickle/zip checkpoint, a bad header, or tensors that do
+        ValueError: a folder, a pickle/zip checkpoint, a bad header, or tensors that do
             not fill the file exactly (truncated or with trailing bytes).
     """
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{path} is a folder, not a checkpoint file")
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {path} not found")
     size = path.stat().st_size

@@ -13,8 +13,7 @@ import shutil
 from collections import Counter
 from pathlib import Path
 
-from .models import CARD_NAME, WEIGHTS_DIR, file_sha256
-from .nn.network import VisibilityNetwork
+from .models import CARD_NAME, WEIGHTS_DIR, file_sha256, load_model
 
 __all__ = ["publish", "licence_summary", "portable_path", "portable_paths", "validation_table"]
 
@@ -115,9 +114,9 @@ def publish(checkpoint: str | Path, name: str, run: str | Path | None = None,
         The card entry.
     """
     root = Path(os.getcwd() if root is None else root)
+    net = load_model(Path(checkpoint))
     weights = Path(weights_dir or WEIGHTS_DIR)
     weights.mkdir(parents=True, exist_ok=True)
-    net = VisibilityNetwork.load(checkpoint)
     target = weights / f"{name}.safetensors"
     shutil.copyfile(checkpoint, target)
     entry = {"file": target.name, "sha256": file_sha256(target), "bytes": target.stat().st_size,

@@ -11,6 +11,10 @@ answer checked against an independent truth:
   float64 copy of the same float32 data; a list gives the answer of the array;
 * ``pairs``: a cloud listed twice gives both copies of a point the same answer.
 
+The command line's readers get their own matrix: crafted point cloud files (cut short, counts
+overstated, not points, folders) through every command that reads a cloud, and bad checkpoints through
+``calibrate`` and ``publish``: exit code != 0 and one line naming the problem, nothing created.
+
 Open3D and qhull calls (HPR baselines, triangulations, Poisson, ray casting) run in one child
 process, so a segfault or an abort fails the cell it happened in instead of killing pytest. Cells
 that tests/test_api.py or tests/test_baselines.py already cover are left out. The 10 M-point test
@@ -602,3 +606,130 @@ def test_a_flat_cloud_is_all_visible_from_off_its_plane_and_left_to_the_network_
                                    raw.probabilities(direction=tilted[1] - tilted[0]), rtol=0, atol=0)
     sphere = vis.encode(SPHERE)
     assert sphere.hull is None and not (sphere.probabilities(CAMERA) == 1).all()
+
+
+# ------------------------------------------------------------------------------ the CLI's readers
+
+def _ply(fmt: str, count: int, body: bytes, props: str = "property float x\nproperty float y\nproperty float z\n"
+         ) -> bytes:
+    return (f"ply\nformat {fmt} 1.0\nelement vertex {count}\n{props}end_header\n").encode() + body
+
+
+def _pcd(data: str, points: int, body: bytes) -> bytes:
+    return (f"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {points}\nHEIGHT 1\n"
+            f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {points}\nDATA {data}\n").encode() + body
+
+
+_XYZ = "".join(f"{x} {y} {z}\n" for x, y, z in SPHERE[:10]).encode()
+_FLOATS = SPHERE[:10].astype(np.float32).tobytes()
+
+FILE_CASES: dict[str, tuple[str, bytes | None, str]] = {
+    # name: (file name, content (None: the folder itself), the error's message)
+    "binary PLY declaring 100000 vertices, holding 30 floats": (
+        "lie.ply", _ply("binary_little_endian", 100_000, np.arange(30, dtype=np.float32).tobytes()),
+        "truncated PLY.*element vertex 100000"),
+    "binary PLY cut short": ("cut.ply", _ply("binary_little_endian", 10, _FLOATS[:-6]), "truncated PLY"),
+    "ASCII PLY cut short": ("cut_ascii.ply", _ply("ascii", 10, _XYZ[:len(_XYZ) // 2]), "truncated PLY"),
+    "PLY without end_header": ("open.ply", _ply("ascii", 10, b"").replace(b"end_header\n", b""), "end_header"),
+    "PLY with a negative count": ("negative.ply", _ply("ascii", -3, _XYZ), "bad count"),
+    "PLY of an unknown format": ("format.ply", _ply("binary_middle_endian", 10, _FLOATS), "unknown PLY format"),
+    "PLY without vertices": ("faces.ply", b"ply\nformat ascii 1.0\nelement face 0\n"
+                                          b"property list uchar int vertex_indices\nend_header\n", "no vertex"),
+    "binary PCD cut short": ("cut.pcd", _pcd("binary", 10, _FLOATS[:-5]), "truncated PCD"),
+    "ASCII PCD declaring 1000 points, holding 10": ("lie.pcd", _pcd("ascii", 1000, _XYZ), "truncated PCD.*1000"),
+    "compressed PCD cut short": ("cut_compressed.pcd", _pcd("binary_compressed", 10, b"\x40\0\0\0\x78\0\0\0"),
+                                 "compressed PCD"),
+    "PTS declaring 100 points, holding 10": ("lie.pts", b"100\n" + _XYZ, "declares 100 points but 10"),
+    "XYZ with a line of two numbers": ("short.xyz", _XYZ + b"1.5 2.5\n", "line 11 .* not a point"),
+    "XYZ with a line of words": ("words.xyz", b"x y z\n" + _XYZ, "line 1 .* not a point"),
+    "XYZN with points of 3 numbers": ("three.xyzn", _XYZ, "line 1 .* not a point of 6"),
+    "XYZ with a NaN point": ("nan.xyz", _XYZ + b"nan 0 0\n", "1 of 11 points have NaN"),
+    "empty XYZ": ("empty.xyz", b"", "no points"),
+    "unknown suffix": ("cloud.txt", _XYZ, "unknown point cloud format"),
+    "a folder": ("folder.ply", None, "is a folder"),
+    "a missing file": ("missing.ply", b"", "not found"),
+}
+"""Point cloud files the CLI must refuse: each command that reads a cloud prints one line naming the problem."""
+
+CLI_READERS = {
+    "visible": ["--camera", "0,0,3", "-o", "{out}.ply"],
+    "normals": ["-o", "{out}.ply"],
+    "reconstruct": ["-o", "{out}.ply"],
+    "shadow": ["--light", "0,0,3", "--camera", "0,3,0", "-o", "{out}.png"],
+    "best-view": [],
+    "render": ["--camera", "0,0,3", "-o", "{out}.png"],
+}
+
+
+def _write_case(folder: Path, name: str) -> Path:
+    file_name, content, _ = FILE_CASES[name]
+    path = folder / file_name
+    if content is None:
+        path.mkdir()
+    elif name != "a missing file":
+        path.write_bytes(content)
+    return path
+
+
+def _cli_error(capsys, *argv: str) -> str:
+    """Runs the ``o3dvis`` command; asserts it failed with one line and no traceback; returns that line."""
+    from o3dvis.cli import main
+
+    code = main(list(argv))
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code != 0, "the command succeeded"
+    assert err and not any("Traceback" in line for line in err)
+    return err[-1]
+
+
+@pytest.mark.parametrize("command", CLI_READERS)
+@pytest.mark.parametrize("case", FILE_CASES)
+def test_cli_refuses_a_bad_point_cloud_file(tmp_path, capsys, command, case):
+    path = _write_case(tmp_path, case)
+    args = [a.format(out=tmp_path / "out") for a in CLI_READERS[command]]
+    line = _cli_error(capsys, command, str(path), *args)
+    assert line.startswith(f"o3dvis {command}: error: ")
+    assert __import__("re").search(FILE_CASES[case][2], line), line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ([] if case == "a missing file" else [path.name])
+
+
+@pytest.mark.parametrize("suffix, options", [(".ply", {}), (".ply", {"write_ascii": True}), (".pcd", {}),
+                                             (".pcd", {"write_ascii": True}), (".pcd", {"compressed": True}),
+                                             (".xyz", {}), (".xyzn", {}), (".xyzrgb", {}), (".pts", {})])
+def test_the_reader_gives_what_open3d_wrote(tmp_path, suffix, options):
+    from o3dvis.io import read_point_cloud
+
+    rng = np.random.default_rng(3)
+    pcd = as_cloud(rng.normal(size=(500, 3)))
+    pcd.normals = o3d.utility.Vector3dVector(SPHERE[rng.integers(0, len(SPHERE), 500)])
+    pcd.colors = o3d.utility.Vector3dVector(rng.random((500, 3)))
+    path = tmp_path / f"cloud{suffix}"
+    assert o3d.io.write_point_cloud(str(path), pcd, **options)
+    read = read_point_cloud(path)
+    expected = o3d.io.read_point_cloud(str(path))
+    np.testing.assert_array_equal(np.asarray(read.points), np.asarray(expected.points))
+    np.testing.assert_allclose(np.asarray(read.points), np.asarray(pcd.points), atol=1e-5, rtol=1e-5)  # ASCII PLY: 6 digits
+    assert read.has_normals() == expected.has_normals() and read.has_colors() == expected.has_colors()
+
+
+@pytest.mark.parametrize("command", ["calibrate", "publish"])
+@pytest.mark.parametrize("what", ["not safetensors", "a folder"])
+def test_cli_checkpoint_commands_refuse_a_bad_file_in_one_line(tmp_path, capsys, command, what):
+    path = tmp_path / "ckpt.safetensors"
+    if what == "a folder":
+        path.mkdir()
+    else:
+        path.write_bytes(b"this is no checkpoint at all, just some text" * 10)
+    rest = [str(tmp_path), "-o", str(tmp_path / "out.safetensors")] if command == "calibrate" else [
+        "--name", "x", "--root", str(tmp_path)]
+    before = sorted(tmp_path.rglob("*"))
+    line = _cli_error(capsys, command, str(path), *rest)
+    assert __import__("re").search("is a folder" if what == "a folder" else "not a safetensors file", line), line
+    assert sorted(tmp_path.rglob("*")) == before
+
+
+def test_cli_bench_creates_no_folder_it_was_not_given(tmp_path, capsys):
+    out = tmp_path / "missing" / "b.json"
+    line = _cli_error(capsys, "bench", "--methods", "hpr", "--points", "200", "--views", "1", "-o", str(out))
+    assert "no folder" in line and str(out.parent) in line
+    assert not out.parent.exists()

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from .._optional import figure_class
 from .visible import _add_precision_flag, _vector
@@ -65,17 +64,6 @@ def _method(args: argparse.Namespace):
     if len(mesh.triangles) == 0:
         raise ValueError(f"no triangles could be read from {args.mesh}")
     return ground_truth_method(mesh)
-
-
-def _read_cloud(path: str):
-    import open3d as o3d
-
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"{path} not found")
-    pcd = o3d.io.read_point_cloud(path)
-    if pcd.is_empty():
-        raise ValueError(f"no points could be read from {path}")
-    return pcd
 
 
 def _write_image(path: str, image) -> None:
@@ -171,8 +159,9 @@ def _normals(args: argparse.Namespace) -> int:
     import open3d as o3d
 
     from ..apps.normals import estimate_normals_neural, orient_normals_neural
+    from ..io import read_point_cloud
 
-    pcd = _read_cloud(args.input)
+    pcd = read_point_cloud(args.input)
     method = _method(args)
     if args.orient_only:
         if args.knn is not None:
@@ -192,8 +181,9 @@ def _reconstruct(args: argparse.Namespace) -> int:
     import open3d as o3d
 
     from ..apps.reconstruction import reconstruct_poisson, reconstruct_view_dependent
+    from ..io import read_point_cloud
 
-    pcd = _read_cloud(args.input)
+    pcd = read_point_cloud(args.input)
     method = _method(args)
     if args.camera is not None:
         if args.knn is not None:
@@ -218,8 +208,9 @@ def _shadow(args: argparse.Namespace) -> int:
     import numpy as np
 
     from ..apps.shadows import points_in_shadow, render_with_shadows, shadow_map
+    from ..io import read_point_cloud
 
-    pcd = _read_cloud(args.input)
+    pcd = read_point_cloud(args.input)
     method = _method(args)
     with _stages(3 if args.shadow_map else 2, "shadow") as bar:
         shadowed = points_in_shadow(pcd, args.light, method)
@@ -237,8 +228,9 @@ def _shadow(args: argparse.Namespace) -> int:
 def _best_view(args: argparse.Namespace) -> int:
     from ..apps.render import render_points
     from ..apps.views import best_view
+    from ..io import read_point_cloud
 
-    pcd = _read_cloud(args.input)
+    pcd = read_point_cloud(args.input)
     method = _method(args)
     figure = figure_class("--plot") if args.plot else None
     camera, losses = best_view(pcd, maximize=not args.worst, steps=args.steps, method=method,
@@ -263,8 +255,9 @@ def _render(args: argparse.Namespace) -> int:
     import numpy as np
 
     from ..apps.render import depth_image, render_points
+    from ..io import read_point_cloud
 
-    pcd = _read_cloud(args.input)
+    pcd = read_point_cloud(args.input)
     method = None if args.all else _method(args)
     with _stages(2 if args.depth_output else 1, "render") as bar:
         _write_image(args.output, render_points(pcd, args.camera, not args.all, args.width,

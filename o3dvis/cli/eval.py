@@ -103,10 +103,15 @@ def register(subparsers) -> None:
     p.set_defaults(func=run_bench)
 
 
+def _check_out(out: Path | None) -> None:
+    """Refuses, before any work, an output whose folder does not exist (none is created)."""
+    if out is not None and not out.parent.is_dir():
+        raise FileNotFoundError(f"no folder {out.parent} to write {out.name} in; create it first")
+
+
 def _write(out: Path | None, report: dict, markdown: str) -> None:
     print(markdown)
     if out is not None:
-        out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(report, indent=1) + "\n")
         out.with_suffix(".md").write_text(markdown)
         print(f"wrote {out} and {out.with_suffix('.md')}", file=sys.stderr)
@@ -141,6 +146,7 @@ def run_eval(args) -> int:
 
     if args.views is not None and args.views < 1:
         raise ValueError("--views must be >= 1")
+    _check_out(args.out)
     methods, absent = _methods(args, {"hpr": args.hpr_k, "hpr-exp": args.gamma})
     if not methods:
         print("no method can run", file=sys.stderr)
@@ -163,6 +169,7 @@ def run_bench(args) -> int:
     from ..nn import native
     from ..speed import benchmark, markdown_table
 
+    _check_out(args.out)
     # one setting per baseline: Open3D's usual radius (k = 2) and a mid-grid kernel exponent
     methods, absent = _methods(args, {"hpr": [2.0], "hpr-exp": [-0.01]})
     single = {name: next(iter(sweep.values())) for name, sweep in methods.items()}

@@ -63,14 +63,15 @@ def run(args: argparse.Namespace) -> int:
     """
     import open3d as o3d
 
+    from ..io import read_point_cloud
     from ..visibility import NeuralVisibility, select_visible
-    from .apps import _read_cloud, _stages
+    from .apps import _stages
 
     model = args.model
     if args.precision != "auto":
         model = NeuralVisibility.pretrained(model or "default", device=args.device, precision=args.precision)
     with _stages(3, "visible") as bar:
-        pcd = _read_cloud(args.input)
+        pcd = read_point_cloud(args.input)
         bar.update()
         visible = select_visible(pcd, args.camera, direction=args.direction, threshold=args.threshold,
                                  model=model, device=args.device,

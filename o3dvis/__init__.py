@@ -10,18 +10,36 @@ Main entry points::
     visible = o3dvis.select_visible(pcd, camera)     # a PointCloud with colours and normals
 """
 
-from .apps import (best_view, depth_image, estimate_normals_neural, orient_normals_neural,
-                   points_in_shadow, reconstruct_poisson, reconstruct_view_dependent, render_points,
-                   render_with_shadows, shadow_map)
-from .baselines import exponential_hpr_mask, hidden_point_removal_mask
-from .data import visibility_from_mesh
-from .models import available_models, load_model
-from .visibility import (NeuralVisibility, VisibilityField, hidden_point_removal_neural, register,
-                         select_visible)
+import importlib
+import importlib.util
 
 __version__ = "0.1.0"
-__all__ = ["NeuralVisibility", "VisibilityField", "hidden_point_removal_neural", "select_visible",
-           "register", "load_model", "available_models", "visibility_from_mesh",
-           "hidden_point_removal_mask", "exponential_hpr_mask", "estimate_normals_neural",
-           "orient_normals_neural", "reconstruct_view_dependent", "reconstruct_poisson", "shadow_map",
-           "points_in_shadow", "render_with_shadows", "best_view", "render_points", "depth_image"]
+
+# each public name and the module that defines it, imported on first use: ``import o3dvis`` (and
+# ``o3dvis --help``) loads no torch and no Open3D before they are needed
+_EXPORTS = {
+    "NeuralVisibility": "visibility", "VisibilityField": "visibility",
+    "hidden_point_removal_neural": "visibility", "select_visible": "visibility", "register": "visibility",
+    "load_model": "models", "available_models": "models", "visibility_from_mesh": "data",
+    "hidden_point_removal_mask": "baselines", "exponential_hpr_mask": "baselines",
+    **dict.fromkeys(["estimate_normals_neural", "orient_normals_neural", "reconstruct_view_dependent",
+                     "reconstruct_poisson", "shadow_map", "points_in_shadow", "render_with_shadows", "best_view",
+                     "render_points", "depth_image"], "apps"),
+}
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    """A public name, or a subpackage, imported on first use."""
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
+    elif not name.startswith("__") and importlib.util.find_spec(f"{__name__}.{name}") is not None:
+        value = importlib.import_module(f".{name}", __name__)
+    else:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_EXPORTS})

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 
 import numpy as np
 import open3d as o3d
@@ -15,7 +14,8 @@ from o3dvis.apps import (best_view, depth_image, estimate_normals_neural, fibona
                          render_with_shadows, shadow_map)
 from o3dvis.apps.normals import (_fit_planes, _smallest_eigenvectors, _vote, covisible_normals,
                                  multiview_normals, neighbourhoods)
-from o3dvis.cli import apps as apps_cli
+from o3dvis.cli import build_parser
+from o3dvis.cli._common import split_vectors, visibility_method
 from o3dvis.data.prepare import sample_surface
 
 
@@ -565,9 +565,8 @@ def test_methods_answer_for_indices_and_encode_a_cloud_once(sphere):
 # ---------------------------------------------------------------- command line
 
 def _cli(*argv: str) -> int:
-    parser = argparse.ArgumentParser(prog="o3dvis")
-    apps_cli.register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(list(argv))
+    """Runs a command as ``o3dvis`` parses it, but raising its errors."""
+    args = build_parser().parse_args(split_vectors(list(argv)))
     return args.func(args)
 
 
@@ -610,12 +609,11 @@ def test_cli_normals_render_shadow_reconstruct(tmp_path, sphere):
 
 
 def test_cli_network_precision(tmp_path):
-    parser = argparse.ArgumentParser(prog="o3dvis")
-    apps_cli.register(parser.add_subparsers(dest="command", required=True))
+    parser = build_parser()
     for flags, precision in (([], "auto"), (["--precision", "float32"], "float32"),
                              (["--precision", "bfloat16"], "bfloat16")):
         args = parser.parse_args(["normals", "in.ply", "-o", "out.ply", *flags])
-        assert apps_cli._method(args).precision == precision
+        assert visibility_method(args).precision == precision
     with pytest.raises(SystemExit):
         parser.parse_args(["normals", "in.ply", "-o", "out.ply", "--precision", "float16"])
 

@@ -5,27 +5,11 @@ from __future__ import annotations
 import argparse
 
 from .._optional import figure_class
-from .visible import _add_precision_flag, _vector
+from ._common import add_method_flags, add_vector, stages, visibility_method, write_image
 
 __all__ = ["register"]
 
-_EPILOG = "Write negative coordinates with '=', e.g. --camera=-2,0,5.\n\nexample:\n  "
-
-
-def _add_method_flags(parser: argparse.ArgumentParser, choices=("neural", "hpr", "gt")) -> None:
-    parser.add_argument("--method", choices=choices, default="neural",
-                        help="visibility method: the neural network (default), Open3D's HPR, or "
-                             "ground truth ray-cast against --mesh")
-    parser.add_argument("--model", default=None,
-                        help="shipped model name or .safetensors checkpoint (default: the shipped default)")
-    parser.add_argument("--device", default=None, help="torch device, e.g. cuda (default: cpu)")
-    _add_precision_flag(parser)
-    if "hpr" in choices:
-        parser.add_argument("--hpr-k", type=float, default=2.0,
-                            help="HPR radius = bbox diagonal * 10**K (default 2)")
-    if "gt" in choices:
-        parser.add_argument("--mesh", default=None,
-                            help="mesh the points were sampled from (for --method gt)")
+_EPILOG = "example:\n  "
 
 
 def _add_view_flags(parser: argparse.ArgumentParser) -> None:
@@ -44,41 +28,6 @@ def _search(args: argparse.Namespace):
     return None if args.knn is None else o3d.geometry.KDTreeSearchParamKNN(args.knn)
 
 
-def _method(args: argparse.Namespace):
-    """The visibility method the flags name."""
-    if args.method == "neural":
-        from ..visibility import NeuralVisibility
-
-        return NeuralVisibility.pretrained(args.model or "default", device=args.device, precision=args.precision)
-    if args.method == "hpr":
-        from ..baselines import hpr_method
-
-        return hpr_method(args.hpr_k)
-    import open3d as o3d
-
-    from ..methods import ground_truth_method
-
-    if args.mesh is None:
-        raise ValueError("--method gt needs --mesh, the mesh the points lie on")
-    mesh = o3d.io.read_triangle_mesh(args.mesh)
-    if len(mesh.triangles) == 0:
-        raise ValueError(f"no triangles could be read from {args.mesh}")
-    return ground_truth_method(mesh)
-
-
-def _write_image(path: str, image) -> None:
-    import open3d as o3d
-
-    if not o3d.io.write_image(path, image):
-        raise RuntimeError(f"could not write {path} (use .png or .jpg)")
-
-
-def _stages(total: int, desc: str):
-    from tqdm import tqdm
-
-    return tqdm(total=total, desc=desc, unit="step")
-
-
 def _parser(subparsers, name: str, help: str, description: str, example: str) -> argparse.ArgumentParser:
     return subparsers.add_parser(name, help=help, description=description, epilog=_EPILOG + example,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -94,7 +43,7 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, help="output point cloud file")
     _add_view_flags(p)
     p.add_argument("--orient-only", action="store_true", help="keep the normals of the input, only orient them")
-    _add_method_flags(p)
+    add_method_flags(p)
     p.set_defaults(func=_normals)
 
     p = _parser(subparsers, "reconstruct", "mesh a cloud: Poisson, or the surface one camera sees",
@@ -103,32 +52,32 @@ def register(subparsers) -> None:
                 "o3dvis reconstruct scan.ply -o mesh.ply --depth 8 --trim 0.02")
     p.add_argument("input", help="point cloud file readable by Open3D")
     p.add_argument("-o", "--output", required=True, help="output mesh file (.ply, .obj, ...)")
-    p.add_argument("--camera", type=_vector, metavar="X,Y,Z", help="view-dependent mesh from this position")
+    add_vector(p, "--camera", "view-dependent mesh from this position")
     p.add_argument("--depth", type=int, default=8, help="Poisson octree depth (default 8)")
     p.add_argument("--trim", type=float, default=0.0,
                    help="drop Poisson vertices below this density quantile, e.g. 0.02 (default 0)")
     _add_view_flags(p)
-    _add_method_flags(p)
+    add_method_flags(p)
     p.set_defaults(func=_reconstruct)
 
     p = _parser(subparsers, "shadow", "render a cloud with the shadows a point light casts",
                 "Renders the input cloud from --camera lit by a point light at --light, shadowed points dark, "
                 "and optionally saves the light's shadow map (float depth, .npy).",
-                "o3dvis shadow scan.ply --light 0,0,3 --camera 2,-2,1 -o shadows.png")
+                "o3dvis shadow scan.ply --light 0 0 3 --camera 2 -2 1 -o shadows.png")
     p.add_argument("input", help="point cloud file readable by Open3D")
-    p.add_argument("--light", type=_vector, metavar="X,Y,Z", required=True, help="light position")
-    p.add_argument("--camera", type=_vector, metavar="X,Y,Z", required=True, help="camera position")
+    add_vector(p, "--light", "light position", required=True)
+    add_vector(p, "--camera", "camera position", required=True)
     p.add_argument("-o", "--output", required=True, help="output image (.png, .jpg)")
     p.add_argument("--width", type=int, default=640, help="image width (default 640)")
     p.add_argument("--height", type=int, default=480, help="image height (default 480)")
     p.add_argument("--shadow-map", default=None, metavar="FILE.npy", help="also save the light's depth map")
     p.add_argument("--resolution", type=int, default=512, help="shadow map size (default 512)")
-    _add_method_flags(p)
+    add_method_flags(p)
     p.set_defaults(func=_shadow)
 
     p = _parser(subparsers, "best-view", "find the camera position that sees the most points",
                 "Gradient descent on the network's soft visibility over camera positions on the "
-                "sphere of radius = bbox diagonal; prints the position (x,y,z).",
+                "sphere of radius = bbox diagonal; prints the position X Y Z.",
                 "o3dvis best-view scan.ply --steps 300 -o best.png")
     p.add_argument("input", help="point cloud file readable by Open3D")
     p.add_argument("--worst", action="store_true", help="find the view that sees the fewest points")
@@ -136,22 +85,22 @@ def register(subparsers) -> None:
     p.add_argument("--starts", type=int, default=8, help="starting directions (default 8)")
     p.add_argument("-o", "--output", default=None, help="also render the view to this image")
     p.add_argument("--plot", default=None, help="save the loss curve to this image (matplotlib)")
-    _add_method_flags(p, choices=("neural",))
+    add_method_flags(p, choices=("neural",))
     p.set_defaults(func=_best_view)
 
     p = _parser(subparsers, "render", "render a cloud to an image, hidden points removed",
                 "Renders the points of the input cloud that --camera sees (z-buffered splats, no display needed), "
                 "coloured by their colours or shaded by their normals.",
-                "o3dvis render scan.ply --camera 2,-2,1 -o scan.png --depth-output depth.npy")
+                "o3dvis render scan.ply --camera 2 -2 1 -o scan.png --depth-output depth.npy")
     p.add_argument("input", help="point cloud file readable by Open3D")
-    p.add_argument("--camera", type=_vector, metavar="X,Y,Z", required=True, help="camera position")
+    add_vector(p, "--camera", "camera position", required=True)
     p.add_argument("-o", "--output", required=True, help="output image (.png, .jpg)")
     p.add_argument("--width", type=int, default=640, help="image width (default 640)")
     p.add_argument("--height", type=int, default=480, help="image height (default 480)")
     p.add_argument("--all", action="store_true", help="splat every point (no visibility)")
     p.add_argument("--depth-output", default=None, metavar="FILE.npy",
                    help="also save the float depth image")
-    _add_method_flags(p)
+    add_method_flags(p)
     p.set_defaults(func=_render)
 
 
@@ -162,7 +111,7 @@ def _normals(args: argparse.Namespace) -> int:
     from ..io import read_point_cloud
 
     pcd = read_point_cloud(args.input)
-    method = _method(args)
+    method = visibility_method(args)
     if args.orient_only:
         if args.knn is not None:
             raise ValueError("--knn estimates normals; --orient-only keeps the input's")
@@ -184,7 +133,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
     from ..io import read_point_cloud
 
     pcd = read_point_cloud(args.input)
-    method = _method(args)
+    method = visibility_method(args)
     if args.camera is not None:
         if args.knn is not None:
             raise ValueError("--knn estimates the normals of a Poisson reconstruction; --camera needs none")
@@ -211,11 +160,11 @@ def _shadow(args: argparse.Namespace) -> int:
     from ..io import read_point_cloud
 
     pcd = read_point_cloud(args.input)
-    method = _method(args)
-    with _stages(3 if args.shadow_map else 2, "shadow") as bar:
+    method = visibility_method(args)
+    with stages(3 if args.shadow_map else 2, "shadow") as bar:
         shadowed = points_in_shadow(pcd, args.light, method)
         bar.update()
-        _write_image(args.output, render_with_shadows(pcd, args.light, args.camera, args.width,
+        write_image(args.output, render_with_shadows(pcd, args.light, args.camera, args.width,
                                                       args.height, method))
         bar.update()
         if args.shadow_map:
@@ -231,15 +180,15 @@ def _best_view(args: argparse.Namespace) -> int:
     from ..io import read_point_cloud
 
     pcd = read_point_cloud(args.input)
-    method = _method(args)
+    method = visibility_method(args)
     figure = figure_class("--plot") if args.plot else None
     camera, losses = best_view(pcd, maximize=not args.worst, steps=args.steps, method=method,
                                starts=args.starts, progress=True)
     fraction = -losses.min() if not args.worst else losses.min()
-    print(f"{'worst' if args.worst else 'best'} view: {camera[0]:.6g},{camera[1]:.6g},{camera[2]:.6g} "
+    print(f"{'worst' if args.worst else 'best'} view: {camera[0]:.6g} {camera[1]:.6g} {camera[2]:.6g} "
           f"(sees {100 * fraction:.1f}% of the points, soft count)")
     if args.output:
-        _write_image(args.output, render_points(pcd, camera, method=method))
+        write_image(args.output, render_points(pcd, camera, method=method))
     if figure is not None:
         fig = figure(figsize=(5, 3))
         ax = fig.subplots()
@@ -258,9 +207,9 @@ def _render(args: argparse.Namespace) -> int:
     from ..io import read_point_cloud
 
     pcd = read_point_cloud(args.input)
-    method = None if args.all else _method(args)
-    with _stages(2 if args.depth_output else 1, "render") as bar:
-        _write_image(args.output, render_points(pcd, args.camera, not args.all, args.width,
+    method = None if args.all else visibility_method(args)
+    with stages(2 if args.depth_output else 1, "render") as bar:
+        write_image(args.output, render_points(pcd, args.camera, not args.all, args.width,
                                                 args.height, method))
         bar.update()
         if args.depth_output:

@@ -6,15 +6,19 @@ import argparse
 import json
 import time
 
-
-def _ints(text: str) -> tuple[int, ...]:
-    return tuple(int(v) for v in text.split(",") if v)
+from ._common import positive_ints
 
 
 def _shapes(args) -> int:
-    from ..data.shapes import PRIMITIVES, write_shapes
+    from ..data.shapes import DEFAULT_PRIMITIVES, PRIMITIVES, write_shapes
 
-    names = tuple(PRIMITIVES) if args.primitives == "all" else tuple(args.primitives.split(","))
+    if args.primitives is None:
+        names = DEFAULT_PRIMITIVES
+    else:
+        names = tuple(PRIMITIVES) if args.primitives == "all" else tuple(args.primitives.split(","))
+    if not set(names) <= set(PRIMITIVES):
+        raise ValueError(f"--primitives: unknown {', '.join(sorted(set(names) - set(PRIMITIVES)))}; "
+                         f"choose from {', '.join(PRIMITIVES)}")
     paths = write_shapes(args.out_dir, args.count, args.seed, names, args.enclosed)
     print(f"wrote {len(paths)} meshes to {args.out_dir}")
     return 0
@@ -47,7 +51,7 @@ def _train(args) -> int:
     if args.depth:
         network["depth"] = args.depth
     if args.channels:
-        network["channels"] = _ints(args.channels)
+        network["channels"] = tuple(args.channels)
     if args.frequencies is not None:
         network["num_frequencies"] = args.frequencies
     cfg = TrainConfig(
@@ -87,8 +91,6 @@ def _publish(args) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from ..data.shapes import DEFAULT_PRIMITIVES, PRIMITIVES
-
     fmt = argparse.RawDescriptionHelpFormatter
     p = sub.add_parser("shapes", help="write random procedural training meshes", formatter_class=fmt,
                        description="Write random unions of primitives as PLY meshes.\n\n"
@@ -96,9 +98,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("out_dir", metavar="OUT_DIR", help="folder for the meshes (created)")
     p.add_argument("--count", type=int, default=100, help="number of meshes (default 100)")
     p.add_argument("--seed", type=int, default=0, help="seed; mesh i depends on (seed, i) only (default 0)")
-    p.add_argument("--primitives", default=",".join(DEFAULT_PRIMITIVES),
-                   help=f"comma-separated parts to draw from, or 'all' ({','.join(PRIMITIVES)}; "
-                        "default: all but the thick-walled ones)")
+    p.add_argument("--primitives", default=None,
+                   help="comma-separated parts to draw from (o3dvis.data.shapes.PRIMITIVES), or 'all' "
+                        "(default: all but the thick-walled ones)")
     p.add_argument("--enclosed", action="store_true",
                    help="put each shape inside a closed shell (half of them with a hole cut in it)")
     p.set_defaults(func=_shapes)
@@ -149,7 +151,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the predictor also reads each point's depth residual to a plane fitted to "
                         "the nearest points around its pixel, at every scale (o3dvis.nn.cues)")
     p.add_argument("--depth", type=int, help="octree depth (default: the network's)")
-    p.add_argument("--channels", help="comma-separated stage widths")
+    p.add_argument("--channels", type=positive_ints, help="comma-separated stage widths")
     p.add_argument("--frequencies", type=int, help="view-embedding frequencies (default: the network's)")
     p.add_argument("--workers", type=int, default=0, help="DataLoader worker processes")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from .eval import _floats
-from .visible import _vector
+from ._common import add_vector, floats
 
 __all__ = ["register", "run"]
 
@@ -13,8 +12,7 @@ _EXAMPLE = """example:
   o3dvis demo --out demo --points 20000
 
 The sample is a fixed procedural shape (two tori, a bowl, a cup and a plate
-wound through each other) built at run time; ground truth is ray-cast on it.
-Write negative coordinates with '=', e.g. --camera=-2,0,1."""
+wound through each other) built at run time; ground truth is ray-cast on it."""
 
 
 def register(subparsers) -> None:
@@ -28,12 +26,11 @@ def register(subparsers) -> None:
         epilog=_EXAMPLE, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("-o", "--out", default="o3dvis-demo", help="folder for the PNGs (default: o3dvis-demo)")
     p.add_argument("--points", type=int, default=20_000, help="points on the sample (default: 20000)")
-    p.add_argument("--camera", type=_vector, metavar="X,Y,Z", default=None,
-                   help="camera position (default: one bounding-box diagonal from the centre)")
+    add_vector(p, "--camera", "camera position (default: one bounding-box diagonal from the centre)")
     p.add_argument("--model", default=None,
                    help="shipped model name or .safetensors checkpoint (default: the shipped default)")
     p.add_argument("--device", default=None, help="torch device, e.g. cuda (default: cpu)")
-    p.add_argument("--hpr-k", type=_floats, default=None,
+    p.add_argument("--hpr-k", type=floats, default=None,
                    help="HPR radius = bbox diagonal * 10**K; with several values, the most accurate "
                         "is shown (default: the sweep of o3dvis eval)")
     p.set_defaults(func=run)

@@ -8,6 +8,8 @@ import sys
 from collections import Counter
 from pathlib import Path
 
+from ._common import floats, positive_ints
+
 __all__ = ["register", "run_eval", "run_bench", "main"]
 
 _EVAL_EXAMPLE = """example:
@@ -25,31 +27,8 @@ Open3D's hidden_point_removal runs on the same cloud and cameras in the same
 run; speed-up = its time / the method's time."""
 
 
-def _ints(text: str) -> list[int]:
-    try:
-        values = [int(float(t)) for t in text.split(",") if t.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
-    if not values or min(values) < 1:
-        raise argparse.ArgumentTypeError(f"expected positive integers, got {text!r}")
-    return values
-
-
-def _floats(text: str) -> list[float]:
-    try:
-        return [float(t) for t in text.split(",") if t.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
-
-
 def _names(text: str) -> list[str]:
     return [t.strip() for t in text.split(",") if t.strip()]
-
-
-def _grid(name: str) -> str:
-    from ..baselines import SWEEPS
-
-    return ",".join(f"{v:g}" for v in SWEEPS[name][2])
 
 
 def _add_method_args(p: argparse.ArgumentParser, default: str) -> None:
@@ -71,17 +50,17 @@ def register(subparsers) -> None:
                                           "methods against ray-cast labels, per density and noise level.",
                               epilog=_EVAL_EXAMPLE, formatter_class=fmt)
     p.add_argument("--data", type=Path, required=True, help="folder of .npz samples from `o3dvis prepare`")
-    p.add_argument("--points", type=_ints, default=[2048, 8192, 32768, 81920],
+    p.add_argument("--points", type=positive_ints, default=[2048, 8192, 32768, 81920],
                    help="densities (default: 2048,8192,32768,81920)")
-    p.add_argument("--noise", type=_floats, default=[0.0],
+    p.add_argument("--noise", type=floats, default=[0.0],
                    help="noise levels as fractions of the bounding-box diagonal (default: 0)")
     _add_method_args(p, "hpr,hpr-exp,neural")
     p.add_argument("--views", type=int, default=None, help="first K viewpoints of each file (default: all)")
     p.add_argument("--limit", type=int, default=None, help="first M files only")
-    p.add_argument("--hpr-k", type=_floats, default=None,
-                   help=f"HPR sweep: radius = diagonal * 10^k (default: {_grid('hpr')})")
-    p.add_argument("--gamma", type=_floats, default=None,
-                   help=f"hpr-exp sweep of the kernel exponent, < 0 (default: {_grid('hpr-exp')})")
+    p.add_argument("--hpr-k", type=floats, default=None,
+                   help="HPR sweep: radius = diagonal * 10^k (default: the sweep of o3dvis.baselines.SWEEPS)")
+    p.add_argument("--gamma", type=floats, default=None,
+                   help="hpr-exp sweep of the kernel exponent, < 0 (default: the sweep of o3dvis.baselines.SWEEPS)")
     p.add_argument("--seed", type=int, default=0, help="seed of subsampling and noise (default: 0)")
     p.add_argument("-o", "--out", type=Path, default=None, help="write JSON here and the Markdown next to it (.md)")
     p.add_argument("--cache", type=Path, default=None,
@@ -93,9 +72,9 @@ def register(subparsers) -> None:
                               description="Times visibility methods and Open3D HPR on the same procedural "
                                           "clouds and cameras.",
                               epilog=_BENCH_EXAMPLE, formatter_class=fmt)
-    p.add_argument("--points", type=_ints, default=[2048, 8192, 32768, 81920, 200_000, 1_000_000],
+    p.add_argument("--points", type=positive_ints, default=[2048, 8192, 32768, 81920, 200_000, 1_000_000],
                    help="cloud sizes (default: 2048,8192,32768,81920,200000,1000000)")
-    p.add_argument("--views", type=_ints, default=[1, 26], help="numbers of views (default: 1,26)")
+    p.add_argument("--views", type=positive_ints, default=[1, 26], help="numbers of views (default: 1,26)")
     _add_method_args(p, "hpr,hpr-exp,neural")
     p.add_argument("--repeats", type=int, default=1, help="best of this many runs (default: 1)")
     p.add_argument("--seed", type=int, default=0, help="seed of the cloud and cameras (default: 0)")

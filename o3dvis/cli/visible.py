@@ -5,25 +5,9 @@ from __future__ import annotations
 import argparse
 import sys
 
+from ._common import add_precision_flag, add_vector, stages
+
 __all__ = ["register", "run"]
-
-
-def _vector(text: str) -> list[float]:
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) != 3:
-        raise argparse.ArgumentTypeError(f"expected three comma-separated numbers x,y,z, got {text!r}")
-    return values
-
-
-def _add_precision_flag(parser: argparse.ArgumentParser) -> None:
-    from ..nn.predictor import PRECISIONS
-
-    parser.add_argument("--precision", choices=PRECISIONS, default="auto",
-                        help="dtype of the network's per-view matrix products (default auto: bfloat16 on "
-                             "CPUs with native bfloat16 dot products, else float32)")
 
 
 def register(subparsers) -> None:
@@ -32,14 +16,12 @@ def register(subparsers) -> None:
         "visible", help="keep the points of a cloud that a camera sees",
         description="Writes the points of INPUT visible from a camera position (or an orthographic "
                     "direction), with their colours and normals.",
-        epilog="Write negative coordinates with '=', e.g. --camera=-2,0,5.\n\nexample:\n"
-               "  o3dvis visible scan.ply --camera 0,0,5 -o scan_visible.ply",
+        epilog="example:\n  o3dvis visible scan.ply --camera -2 0 5 -o scan_visible.ply",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("input", help="point cloud file readable by Open3D (.ply, .pcd, .xyz, ...)")
     view = parser.add_mutually_exclusive_group(required=True)
-    view.add_argument("--camera", type=_vector, metavar="X,Y,Z", help="camera position")
-    view.add_argument("--direction", type=_vector, metavar="X,Y,Z",
-                      help="viewing direction of an orthographic camera")
+    add_vector(view, "--camera", "camera position")
+    add_vector(view, "--direction", "viewing direction of an orthographic camera")
     parser.add_argument("-o", "--output", required=True, help="output point cloud file")
     parser.add_argument("--model", default=None,
                         help="shipped model name or .safetensors checkpoint (default: the shipped default)")
@@ -48,7 +30,7 @@ def register(subparsers) -> None:
     parser.add_argument("--device", default=None, help="torch device, e.g. cuda (default: cpu)")
     parser.add_argument("--no-normals", action="store_true",
                         help="ignore the normals of the input cloud")
-    _add_precision_flag(parser)
+    add_precision_flag(parser)
     parser.set_defaults(func=run)
 
 
@@ -65,12 +47,11 @@ def run(args: argparse.Namespace) -> int:
 
     from ..io import read_point_cloud
     from ..visibility import NeuralVisibility, select_visible
-    from .apps import _stages
 
     model = args.model
     if args.precision != "auto":
         model = NeuralVisibility.pretrained(model or "default", device=args.device, precision=args.precision)
-    with _stages(3, "visible") as bar:
+    with stages(3, "visible") as bar:
         pcd = read_point_cloud(args.input)
         bar.update()
         visible = select_visible(pcd, args.camera, direction=args.direction, threshold=args.threshold,

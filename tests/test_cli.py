@@ -1,0 +1,137 @@
+"""The ``o3dvis`` command as users run it: ``python -m o3dvis`` in a subprocess."""
+
+import ast
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+import o3dvis
+from o3dvis.cli import _common
+
+_ROOT = Path(__file__).resolve().parent.parent
+_USER_COMMANDS = ["visible", "normals", "reconstruct", "shadow", "best-view", "render", "demo"]
+_TRAINING_COMMANDS = ["shapes", "prepare", "train", "calibrate", "publish", "eval", "bench"]
+
+
+def _o3dvis(*argv: str, python: tuple[str, ...] = ()) -> subprocess.CompletedProcess:
+    """The command's run, its output decoded with carriage returns kept (see :func:`_screen`)."""
+    env = {**os.environ, "PYTHONPATH": str(_ROOT)}
+    run = subprocess.run([sys.executable, *python, "-m", "o3dvis", *argv], capture_output=True, env=env, timeout=300)
+    run.stdout, run.stderr = run.stdout.decode(), run.stderr.decode()
+    return run
+
+
+def _screen(text: str) -> list[str]:
+    """The lines a terminal shows of ``text``: what follows a carriage return overwrites the line."""
+    lines = []
+    for raw in text.split("\n"):
+        line = ""
+        for part in raw.split("\r"):
+            line = part + line[len(part):]
+        if line.strip():
+            lines.append(line.rstrip())
+    return lines
+
+
+@pytest.fixture(scope="module")
+def sphere_file(tmp_path_factory) -> Path:
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(3000, 3))
+    points /= np.linalg.norm(points, axis=1, keepdims=True)
+    path = tmp_path_factory.mktemp("cli") / "sphere.ply"
+    o3d.io.write_point_cloud(str(path), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)))
+    return path
+
+
+def test_help_lists_the_user_commands_first_and_imports_nothing_heavy():
+    run = _o3dvis("--help", python=("-X", "importtime"))
+    assert run.returncode == 0, run.stderr
+    listed = re.findall(r"^    (\S+)", run.stdout, flags=re.MULTILINE)
+    assert listed == _USER_COMMANDS + _TRAINING_COMMANDS
+    imported = {line.split("|")[-1].strip() for line in run.stderr.splitlines() if line.startswith("import time:")}
+    assert not imported & {"torch", "open3d", "numpy", "scipy", "tqdm"}, sorted(imported & {"torch", "open3d"})
+
+
+def test_help_answers_within_half_a_second_of_the_interpreters_start():
+    def best(*argv: str) -> float:
+        times = []
+        for _ in range(3):
+            start = time.perf_counter()
+            assert subprocess.run([sys.executable, *argv], capture_output=True, cwd=_ROOT).returncode == 0
+            times.append(time.perf_counter() - start)
+        return min(times)
+
+    assert best("-m", "o3dvis", "--help") - best("-c", "pass") < 0.5
+
+
+def test_version():
+    run = _o3dvis("--version")
+    assert run.returncode == 0 and run.stdout.strip() == f"o3dvis {o3dvis.__version__}"
+
+
+def test_every_command_has_help():
+    for command in _USER_COMMANDS + _TRAINING_COMMANDS:
+        run = _o3dvis(command, "--help")
+        assert run.returncode == 0 and f"usage: o3dvis {command}" in run.stdout, command
+
+
+def test_a_camera_is_three_numbers_negative_ones_too(sphere_file, tmp_path):
+    pcd = o3d.io.read_point_cloud(str(sphere_file))
+    _, expected = o3dvis.hidden_point_removal_neural(pcd, [-2.0, 0.5, -3.0])
+    for camera in (["-2", "0.5", "-3"], ["-2,0.5,-3"], ["--camera=-2,0.5,-3"]):
+        out = tmp_path / "out.ply"
+        argv = camera if camera[0].startswith("--") else ["--camera", *camera]
+        run = _o3dvis("visible", str(sphere_file), *argv, "-o", str(out))
+        assert run.returncode == 0, run.stderr
+        assert f"{len(expected)} of 3000 points visible" in run.stdout
+        assert len(o3d.io.read_point_cloud(str(out)).points) == len(expected)
+        out.unlink()
+
+
+@pytest.mark.parametrize("camera", [["1", "2"], ["1", "2", "x"], ["1,2"]])
+def test_a_camera_of_other_than_three_numbers_is_a_usage_error(sphere_file, tmp_path, camera):
+    run = _o3dvis("render", str(sphere_file), "--camera", *camera, "-o", str(tmp_path / "r.png"))
+    assert run.returncode == 2 and "--camera" in run.stderr and "Traceback" not in run.stderr
+
+
+@pytest.mark.parametrize("case", ["missing file", "camera inside the cloud"])
+def test_a_user_error_is_one_line_with_no_traceback_and_no_bar(sphere_file, tmp_path, case):
+    source, camera = (tmp_path / "none.ply", "0 0 5") if case == "missing file" else (sphere_file, "0 0 0")
+    run = _o3dvis("visible", str(source), "--camera", *camera.split(), "-o", str(tmp_path / "out.ply"))
+    assert run.returncode == 2
+    screen = _screen(run.stderr)
+    assert len(screen) == 1 and screen[0].startswith("o3dvis visible: error: "), run.stderr
+    assert not (tmp_path / "out.ply").exists()
+
+
+@pytest.mark.parametrize("content", [b"", b"ply\nformat ascii 1.0\nend_header\n", os.urandom(4096)],
+                         ids=["empty", "header only", "random bytes"])
+@pytest.mark.parametrize("command", [["visible", "--camera", "0", "0", "5", "-o", "out.ply"],
+                                     ["render", "--camera", "0", "0", "5", "-o", "out.png"]])
+def test_a_corrupt_input_exits_non_zero(tmp_path, content, command):
+    source = tmp_path / "corrupt.ply"
+    source.write_bytes(content)
+    run = _o3dvis(command[0], str(source), *[str(tmp_path / a) if a.startswith("out.") else a for a in command[1:]])
+    assert run.returncode != 0 and "Traceback" not in run.stderr, run.stderr
+    assert not list(tmp_path.glob("out.*"))
+
+
+def test_the_precision_choices_are_the_networks():
+    from o3dvis.nn.predictor import PRECISIONS
+
+    assert _common._PRECISIONS == PRECISIONS
+
+
+def test_the_command_modules_share_helpers_through_one_module_only():
+    """No command module imports another (``apps`` and ``visible`` once imported each other)."""
+    for path in (_ROOT / "o3dvis" / "cli").glob("*.py"):
+        siblings = {node.module for node in ast.walk(ast.parse(path.read_text()))
+                    if isinstance(node, ast.ImportFrom) and node.level == 1 and node.module}
+        assert siblings <= {"_common"}, (path.name, siblings)

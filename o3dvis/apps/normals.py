@@ -312,7 +312,7 @@ def _covisible_path(points: np.ndarray, method, cameras: np.ndarray, refine_view
     """:func:`multiview_normals` with ``search_param``: co-visible planes, oriented by the views."""
     from tqdm import tqdm
 
-    with tqdm(total=3, disable=not progress, desc="normals", unit="step", leave=False) as bar:
+    with tqdm(total=3, disable=not progress, desc="normals", unit="step") as bar:
         bar.set_postfix_str("visibility")
         neighbours = neighbourhoods(points, search_param, tree)
         visibility = method(points, cameras)

@@ -14,7 +14,8 @@ from nbclient import NotebookClient
 ROOT = Path(__file__).resolve().parents[1]
 TUTORIALS = ROOT / "tutorials"
 NOTEBOOKS = sorted(TUTORIALS.glob("*.ipynb"))
-PUBLIC_MODULES = {"cli", "data"}  # the command line, and the reader of prepared training data
+# the command line, and for the training tutorial the training side (o3dvis.training, formerly o3dvis.data)
+PUBLIC_MODULES = {"cli", "data", "training"}
 CELL_TIMEOUT = 240  # seconds; each notebook takes well under a minute on 2 cores when the machine is idle
 
 

@@ -9,7 +9,7 @@ With an Open3D search parameter instead, each point's normal is a plane fitted
 to its neighbours as ``PointCloud.estimate_normals`` fits it, but each
 neighbour weighted by how many of the point's views also see it: the far
 side of a thin wall, never seen with the point, drops out. The cameras that
-see the point then orient it. No triangulation, so faster (measured in the README).
+see the point then orient it. No triangulation, so faster (``docs/results.md``).
 """
 
 from __future__ import annotations
@@ -355,9 +355,8 @@ def estimate_normals_neural(pcd, num_views: int = 26, method=None, *, refine_vie
             triangulating, fit each normal to the neighbours this search
             finds, as ``pcd.estimate_normals(search_param)`` does, but weighting
             each by the share of the point's views that see it too, then orient
-            it towards the cameras that see it. On the bench's validation
-            meshes 1.9 (20 k points) to 3.0 (100 k) times faster, with
-            0.1-0.4 points fewer normals oriented right (see the README).
+            it towards the cameras that see it. Faster than the triangulation,
+            slightly less accurate (``docs/results.md`` measures both).
 
     Returns:
         ``pcd``, with unit normals set.

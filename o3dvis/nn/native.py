@@ -4,7 +4,7 @@ CPU, and the octree's Morton keys in one.
 ``kernels.c`` computes what :class:`~o3dvis.nn.cues.ViewProjection` and the view
 embedding times the projected features compute in some seventy eager torch
 ops, each a pass over memory, and runs the predictor's MLP on those inputs
-while they are in cache (see the README for what it saves).
+while they are in cache (``docs/results.md`` measures what it saves).
 It is C with no dependency, built with the package for a baseline CPU, AVX2 and
 AVX-512 with bfloat16, and called through ``ctypes`` (see :mod:`o3dvis.clib`).
 Where it was not built, or with ``O3DVIS_NATIVE=0`` in the environment, queries

@@ -142,9 +142,8 @@ class VisibilityPredictor(nn.Module):
 
         The embedding times the features is written straight into a ``dtype``
         buffer (the cast costs no pass of its own) and the cues are cast into
-        the rows after it; :meth:`margin_from_inputs` does the rest. On the
-        shipped default at 200 k points, 0.014 % of the answers differ from
-        float32 ones in bfloat16 (see the README).
+        the rows after it; :meth:`margin_from_inputs` does the rest. How much
+        the answers differ from float32 ones is measured in ``docs/results.md``.
         """
         e = self.embedding.dim
         embedded = self.embedding(dirs.transpose(-1, -2))  # (..., E, n)

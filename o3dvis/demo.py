@@ -248,8 +248,7 @@ def run_demo(out_dir: str | Path = "o3dvis-demo", num_points: int = 20_000, came
     Args:
         out_dir: folder for the PNGs (created).
         num_points: points on the sample.
-        camera: (3,) camera position (default: :func:`default_camera`); it must
-            lie outside the cloud's bounding box.
+        camera: (3,) camera position (default: :func:`default_camera`), not on a point.
         model: shipped model name or ``.safetensors`` path (default: the shipped default).
         device: torch device of the network (default: CPU).
         hpr_k: HPR radius exponents, radius = diagonal x 10^k; the most accurate

@@ -2,9 +2,9 @@
 
 The network's U-Net runs once per cloud (:meth:`NeuralVisibility.encode`); each
 view then costs a depth-buffer pass and a small MLP over the points
-(:meth:`VisibilityField.query`). Cameras must lie outside the axis-aligned
-bounding box of the cloud (which also rules out a camera on a point); an
-orthographic ``direction`` has no such restriction. A flat cloud (a plane, a
+(:meth:`VisibilityField.query`). A camera may stand anywhere but on a point of
+the cloud: outside it, or inside a room, a street or a scan, where a scene
+model answers when one is installed (see :class:`NeuralVisibility`). A flat cloud (a plane, a
 line, coincident points) seen from off its plane or line hides nothing: there
 every point is visible, exactly, whatever the network says.
 """
@@ -41,6 +41,7 @@ DEFAULT_CHUNK = 1 << 15
 """Rows (views x points) that one predictor call processes at most: small enough for the cache."""
 
 _NORMALS_MODEL = "normals"
+_SCENE_MODEL = "scene"
 _INSIDE_TOL = 1e-6
 _FLAT_TOL = 1e-9
 
@@ -73,6 +74,24 @@ def _threaded_map(fn: Callable, items: Iterable, workers: int) -> Iterator:
 
 def _fmt(vector: Tensor) -> str:
     return "(" + ", ".join(f"{x:.6g}" for x in vector.detach().tolist()) + ")"
+
+
+def _subset(views: Views, index: np.ndarray) -> Views:
+    """The views ``index`` of ``views``."""
+    rows = torch.from_numpy(index)
+    pick = (lambda t: None if t is None else t[rows.to(t.device)])
+    return Views(pick(views.positions), pick(views.directions), tuple(views.frustums[i] for i in index.tolist()))
+
+
+def _checked_range(max_range) -> float | None:
+    """``max_range`` as a positive float (None: no crop)."""
+    if max_range is None:
+        return None
+    if isinstance(max_range, bool) or not isinstance(max_range, (int, float, np.floating, np.integer)):
+        raise TypeError(f"max_range must be a number or None, got {type(max_range).__name__}")
+    if not max_range > 0:  # NaN too
+        raise ValueError(f"max_range must be positive, got {max_range}")
+    return float(max_range)
 
 
 def _flat_hull(points: Tensor) -> tuple[Tensor, Tensor] | None:
@@ -141,7 +160,10 @@ class VisibilityField:
     ``calibration``: the ``(scale, shift)`` that a calibrated network applies
     to this cloud's margins in every frame (see :mod:`o3dvis.nn.calibration`).
     ``matmul_dtype``: the dtype of the per-view matrix products when no gradient
-    is asked for (see ``NeuralVisibility(precision=...)``).
+    is asked for (see ``NeuralVisibility(precision=...)``). ``scene``: makes the
+    field of the same cloud that answers the cameras inside its bounding box
+    (encoded with a scene model, on the first such camera); None: this field
+    answers every view.
 
     The rows of ``features``, ``points_n`` and ``normals`` may be stored in
     another order than the cloud's (:meth:`NeuralVisibility.encode` sorts them
@@ -154,7 +176,8 @@ class VisibilityField:
                  normals: Tensor | None, center: Tensor, scale: Tensor, bounds: tuple[Tensor, Tensor],
                  chunk_size: int = DEFAULT_CHUNK, hull: tuple[Tensor, Tensor] | None = None,
                  rank: Tensor | None = None, rotated: Sequence[RotatedEncoding] = (),
-                 calibration: tuple[float, float] | None = None, matmul_dtype: torch.dtype = torch.float32):
+                 calibration: tuple[float, float] | None = None, matmul_dtype: torch.dtype = torch.float32,
+                 scene: Callable[[], "VisibilityField"] | None = None):
         self.network = network
         self.features = features
         self.points_n = points_n
@@ -167,6 +190,8 @@ class VisibilityField:
         self.rotated = tuple(rotated)
         self.calibration = calibration
         self.matmul_dtype = matmul_dtype
+        self._scene_factory, self._scene = scene, None
+        self._scene_lock = threading.Lock()
 
     @property
     def num_points(self) -> int:
@@ -189,17 +214,95 @@ class VisibilityField:
         positions = views.positions.to(self.device)
         lo, hi = self.bounds
         tol = _INSIDE_TOL * (hi - lo).amax() / 2  # zero when all points coincide: only they are inside
-        inside = ((positions.detach() >= lo - tol) & (positions.detach() <= hi + tol)).all(dim=1)
-        if inside.any():
-            i = int(inside.nonzero()[0, 0])
-            raise ValueError(f"camera {i} at {_fmt(positions[i])} lies inside the bounding box "
-                             f"{_fmt(lo)} - {_fmt(hi)} of the point cloud (or on a point); "
-                             f"cameras must be outside it")
+        for i in self._inside(views).nonzero()[:, 0].tolist():  # only a camera inside the box can be on a point
+            gap = self._nearest_distance(positions[i].detach())
+            if gap <= tol:
+                raise ValueError(f"camera {i} at {_fmt(positions[i])} lies on a point of the cloud "
+                                 f"(the nearest is {gap:.3g} away); move it off the surface")
         cameras = ((positions - self.center) / self.scale).to(dtype)
         if not torch.isfinite(cameras.detach()).all():
             raise ValueError("a camera is too far from the point cloud to be represented; "
                              "use direction= for a camera at infinity")
         return cameras, None
+
+    def _inside(self, views: Views) -> Tensor | None:
+        """(V,) bool: the cameras inside the cloud's bounding box, up to a tolerance (None for directions)."""
+        if views.positions is None:
+            return None
+        positions = views.positions.detach().to(self.device)
+        lo, hi = self.bounds
+        tol = _INSIDE_TOL * (hi - lo).amax() / 2
+        return ((positions >= lo - tol) & (positions <= hi + tol)).all(dim=1)
+
+    def _scene_field(self) -> "VisibilityField":
+        """The field answering cameras inside the bounding box, encoded on first use (thread-safe)."""
+        with self._scene_lock:
+            if self._scene is None:
+                self._scene = self._scene_factory()
+            return self._scene
+
+    def _parts(self, views: Views) -> list[tuple["VisibilityField", np.ndarray | None, Views]]:
+        """``(field, the views' indices (None: all), those views)``: the cameras inside the bounding box
+        go to the scene field where there is one, the other views stay with this one."""
+        inside = self._inside(views)
+        if self._scene_factory is None or inside is None or not inside.any():
+            return [(self, None, views)]
+        if inside.all():
+            return [(self._scene_field(), None, views)]
+        inside = inside.cpu().numpy()
+        return [(field, index, _subset(views, index)) for field, index in
+                ((self, np.flatnonzero(~inside)), (self._scene_field(), np.flatnonzero(inside)))]
+
+    def _restricted(self, kept: Tensor) -> "VisibilityField":
+        """This field on the stored rows ``kept`` only: they alone occlude and are answered, in that order."""
+        def rows(t: Tensor | None) -> Tensor | None:
+            return None if t is None else t.index_select(0, kept)
+
+        def channels_first(t: Tensor) -> Tensor:  # the layout encode() stores features in
+            return t.t().index_select(1, kept).t()
+
+        rotated = [e._replace(features=channels_first(e.features), points=rows(e.points), normals=rows(e.normals))
+                   for e in self.rotated]
+        return VisibilityField(self.network, channels_first(self.features), rows(self.points_n), rows(self.normals),
+                               self.center, self.scale, self.bounds, self.chunk_size, self.hull, None, rotated,
+                               self.calibration, self.matmul_dtype)
+
+    def _cropped(self, view: Views, max_range: float) -> Tensor:
+        """(1, N) probabilities, in the cloud's order, of one view that sees only the points within
+        ``max_range`` of its camera: the others neither occlude nor are visible."""
+        cameras, _ = self._normalised(view)
+        if cameras is None:
+            raise ValueError("max_range needs camera positions, not viewing directions")
+        reach = (self.points_n - cameras[0].detach()).square().sum(dim=1) <= (max_range / float(self.scale)) ** 2
+        kept = reach.nonzero()[:, 0]
+        probs = self.features.new_zeros(1, self.num_points)
+        if len(kept):
+            near = torch.cat([p for _, p in self._restricted(kept)._batches(view)], dim=1)
+            probs = probs.to(near.dtype).index_put((torch.zeros_like(kept), kept), near[0])
+        return probs if self.rank is None else probs[:, self.rank]
+
+    def _answers(self, views: Views, rows: Tensor | None, max_range: float | None,
+                 finish: Callable[[Tensor], Tensor] | None = None) -> Iterator[tuple[np.ndarray | slice, Tensor]]:
+        """Yields ``(views' indices, (v, M) probabilities)`` of the points ``rows`` (None: all) for
+        every view, each view by its field (see :meth:`_parts`), or ``finish`` of them."""
+        for field, index, part in self._parts(views):
+            if max_range is None:
+                for batch, probs in field._batches(part, rows, finish):
+                    yield (batch if index is None else index[batch]), probs
+                continue
+            for j in range(len(part)):
+                probs = field._cropped(_subset(part, np.array([j])), max_range)
+                probs = probs if rows is None else probs[:, rows]
+                yield (slice(j, j + 1) if index is None else index[j:j + 1]), (probs if finish is None else finish(probs))
+
+    def _nearest_distance(self, position: Tensor) -> float:
+        """The distance from a (3,) position in the cloud's frame to its nearest point: one pass over
+        the points, in chunks (linear in N, the cost of one view's projection)."""
+        camera = ((position - self.center) / self.scale).to(self.points_n.dtype)
+        step = 1 << 20
+        nearest = min(float((self.points_n[a:a + step] - camera).square().sum(dim=1).min())
+                      for a in range(0, self.num_points, step))
+        return float(nearest) ** 0.5 * float(self.scale)
 
     def _off_the_hull(self, views: Views) -> Tensor | None:
         """(V,) bool: the views from off the plane or line of a flat cloud (None for a 3-D cloud)."""
@@ -315,7 +418,7 @@ class VisibilityField:
         yield from zip(batches, _threaded_map(answer, batches, workers) if parallel else map(answer, batches))
 
     def probabilities(self, cameras=None, direction=None, *, frustum: bool = True,
-                      indices=None) -> Tensor:
+                      indices=None, max_range: float | None = None) -> Tensor:
         """Probability that each point is visible from each view.
 
         Differentiable with respect to camera positions (or directions) given
@@ -332,25 +435,34 @@ class VisibilityField:
                 outside the image or lie behind the camera get probability 0.
             indices: predict only these points (every point still occludes);
                 None: all points. Costs in proportion to their number.
+            max_range: only the points within this distance of a camera are seen
+                by it: the others get probability 0 and hide nothing (a range crop,
+                as a LiDAR's); None: no limit. Camera positions only.
 
         Returns:
             (V, N) float tensor on the field's device, (V, len(indices)) with ``indices``.
 
         Raises:
-            ValueError: a camera inside the cloud's bounding box or on a point,
-                NaN/Inf, bad shapes, both or neither of cameras and direction.
+            ValueError: a camera on a point of the cloud, NaN/Inf, bad shapes,
+                both or neither of cameras and direction, a max_range that is not
+                positive or given with directions.
             TypeError: cameras that are not real numbers, or indices that are not integers.
             IndexError: an index out of range.
         """
         views = as_views(cameras, direction, frustum=frustum)
-        rows = self._rows(indices)
+        rows, max_range = self._rows(indices), _checked_range(max_range)
         given = views.positions if views.positions is not None else views.directions
         grad = torch.is_grad_enabled() and given.requires_grad
         with contextlib.nullcontext() if grad else torch.inference_mode():
-            return torch.cat([probs for _, probs in self._batches(views, rows)])
+            parts = list(self._answers(views, rows, max_range))
+            probs = torch.cat([p for _, p in parts])
+            if all(isinstance(index, slice) for index, _ in parts):  # in the views' order already
+                return probs
+            order = np.concatenate([np.arange(len(views))[index] for index, _ in parts])
+            return probs[torch.from_numpy(np.argsort(order)).to(probs.device)]
 
     def query(self, cameras=None, direction=None, threshold: float = 0.5, *,
-              frustum: bool = True, indices=None) -> np.ndarray:
+              frustum: bool = True, indices=None, max_range: float | None = None) -> np.ndarray:
         """Which points each view sees.
 
         Args:
@@ -359,6 +471,8 @@ class VisibilityField:
             threshold: a point is visible when its probability exceeds this, in [0, 1].
             frustum: cull points outside the image of pinhole cameras with an image size.
             indices: answer only for these points, as in :meth:`probabilities`.
+            max_range: points farther from a camera are not visible from it and
+                hide nothing, as in :meth:`probabilities`.
 
         Returns:
             (V, N) bool numpy array, (V, len(indices)) with ``indices``.
@@ -372,12 +486,12 @@ class VisibilityField:
         if not 0 <= threshold <= 1:
             raise ValueError(f"threshold must be in [0, 1], got {threshold}")
         views = as_views(cameras, direction, frustum=frustum)
-        rows = self._rows(indices)
+        rows, max_range = self._rows(indices), _checked_range(max_range)
         out = np.empty((len(views), self.num_points if rows is None else len(rows)), dtype=bool)
         with torch.inference_mode():
             # thresholded on the threads that answer: an op here, on the caller's thread, would wake
             # the caller's OpenMP threads, which then spin for a while on the cores the workers use
-            for batch, visible in self._batches(views, rows, lambda probs: (probs > threshold).cpu()):
+            for batch, visible in self._answers(views, rows, max_range, lambda probs: (probs > threshold).cpu()):
                 out[batch] = visible.numpy()
         return out
 
@@ -392,6 +506,9 @@ class NeuralVisibility:
             clouds, when it takes normals itself).
         normals_network: optional network taking normals, used automatically
             for clouds that have normals.
+        scene_network: optional network (without normals) that answers the
+            cameras inside a cloud's bounding box (rooms, streets, scans);
+            None: ``network`` answers them too.
         device: torch device to run on (default: the network's device).
         chunk_size: rows (views x points) per MLP call; bounds the memory of queries.
         num_rotations: answer with the mean of the network's answers for this many
@@ -416,18 +533,23 @@ class NeuralVisibility:
 
     def __init__(self, network: VisibilityNetwork, normals_network: VisibilityNetwork | None = None, *,
                  device: str | torch.device | None = None, chunk_size: int = DEFAULT_CHUNK,
-                 num_rotations: int = 1, precision: str = "auto"):
-        for name, net in (("network", network), ("normals_network", normals_network)):
+                 num_rotations: int = 1, precision: str = "auto",
+                 scene_network: VisibilityNetwork | None = None):
+        for name, net in (("network", network), ("normals_network", normals_network),
+                          ("scene_network", scene_network)):
             if net is not None and not isinstance(net, VisibilityNetwork):
                 raise TypeError(f"{name} must be a VisibilityNetwork, got {type(net).__name__}")
         if normals_network is not None and not normals_network.config.use_normals:
             raise ValueError("normals_network must be a model that takes normals (config.use_normals)")
+        if scene_network is not None and scene_network.config.use_normals:
+            raise ValueError("scene_network must be a model that takes no normals")
         if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
             raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}")
         if isinstance(num_rotations, bool) or not isinstance(num_rotations, int) or num_rotations < 1:
             raise ValueError(f"num_rotations must be a positive int, got {num_rotations!r}")
         self.network = network
         self.normals_network = normals_network
+        self.scene_network = scene_network
         self.chunk_size = chunk_size
         self.rotations = fixed_rotations(num_rotations)
         resolve_precision(precision, torch.device("cpu"))  # a bad value raises here, not at the first encode
@@ -437,16 +559,19 @@ class NeuralVisibility:
     @classmethod
     def pretrained(cls, name: str = "default", device: str | torch.device | None = None, *,
                    use_normals: bool = True, weights_dir: str | Path | None = None,
-                   num_rotations: int = 1, precision: str = "auto") -> "NeuralVisibility":
+                   num_rotations: int = 1, precision: str = "auto", use_scene: bool = True) -> "NeuralVisibility":
         """A shipped model from ``o3dvis/weights`` (sha256-checked, no pickle).
 
         With ``name="default"`` the shipped ``"normals"`` model, when there is
-        one, is loaded too and used for clouds that have normals.
+        one, is loaded too and used for clouds that have normals, and the
+        shipped ``"scene"`` model, when there is one, for cameras inside a
+        cloud's bounding box.
 
         Args:
             name: model name in the model card, or a ``.safetensors`` path.
             device: torch device (default: CPU).
             use_normals: False never loads the companion normals model.
+            use_scene: False never loads the companion scene model.
             weights_dir: folder of the model card (default: the shipped one).
             num_rotations, precision: as in :class:`NeuralVisibility`.
 
@@ -464,7 +589,11 @@ class NeuralVisibility:
         if (use_normals and name == "default" and not network.config.use_normals
                 and _NORMALS_MODEL in available_models(weights_dir)):
             normals_network = load_model(_NORMALS_MODEL, device, weights_dir=weights_dir)
-        return cls(network, normals_network, device=device, num_rotations=num_rotations, precision=precision)
+        scene_network = None
+        if use_scene and name == "default" and _SCENE_MODEL in available_models(weights_dir):
+            scene_network = load_model(_SCENE_MODEL, device, weights_dir=weights_dir)
+        return cls(network, normals_network, device=device, num_rotations=num_rotations, precision=precision,
+                   scene_network=scene_network)
 
     @property
     def device(self) -> torch.device:
@@ -473,13 +602,14 @@ class NeuralVisibility:
     def to(self, device: str | torch.device) -> "NeuralVisibility":
         """Moves the networks to ``device`` (in place) and returns self."""
         device = torch_device(device)
-        for net in (self.network, self.normals_network):
+        for net in (self.network, self.normals_network, self.scene_network):
             if net is not None:
                 net.to(device).eval()
         return self
 
     def __repr__(self) -> str:
         normals = " + normals model" if self.normals_network is not None else ""
+        normals += " + scene model" if self.scene_network is not None else ""
         turns = f", {len(self.rotations)} rotations" if len(self.rotations) > 1 else ""
         dtype = str(resolve_precision(self.precision, self.device)).removeprefix("torch.")
         return (f"NeuralVisibility({self.network.num_parameters()} parameters{normals}, {self.device}{turns}, "
@@ -538,6 +668,17 @@ class NeuralVisibility:
         rank[order] = torch.arange(len(order), device=order.device)
         points_n = points_n.index_select(0, order)
         unit = None if unit is None else unit.to(self.device).index_select(0, order).float()
+        frame = (points_n, center, scale, (lo, hi), hull, rank)
+        scene = None
+        if self.scene_network is not None:
+            def scene() -> VisibilityField:
+                return self._field(self.scene_network, None, *frame)
+        return self._field(network, unit, *frame, scene=scene)
+
+    def _field(self, network: VisibilityNetwork, unit: Tensor | None, points_n: Tensor, center: Tensor,
+               scale: Tensor, bounds: tuple[Tensor, Tensor], hull: tuple[Tensor, Tensor] | None, rank: Tensor,
+               scene: Callable[[], VisibilityField] | None = None) -> VisibilityField:
+        """The field of ``network`` over the normalised, Morton-ordered points of :meth:`encode`."""
         calibrated = network.calibration is not None
         with torch.no_grad():
             noise = network.cloud_noise(points_n, ordered=True) if network.config.noise_cues or calibrated else None
@@ -545,8 +686,9 @@ class NeuralVisibility:
             rotated = [self._rotated(network, points_n, unit, r) for r in self.rotations[1:]]
         calibration = (network.calibration.affine(calibration_terms(noise[0], len(points_n)))
                        if calibrated else None)
-        return VisibilityField(network, features, points_n, unit, center, scale, (lo, hi), self.chunk_size,
-                               hull, rank, rotated, calibration, resolve_precision(self.precision, self.device))
+        return VisibilityField(network, features, points_n, unit, center, scale, bounds, self.chunk_size,
+                               hull, rank, rotated, calibration, resolve_precision(self.precision, self.device),
+                               scene)
 
     @staticmethod
     def _rotated(network: VisibilityNetwork, points_n: Tensor, normals: Tensor | None,
@@ -613,14 +755,29 @@ def _resolve_model(model, device: torch.device) -> NeuralVisibility:
 
 
 def _visible_indices(pcd, cameras, direction, threshold: float, model, device, normals,
-                     frustum: bool = True) -> np.ndarray:
-    """Sorted int64 indices of the points of ``pcd`` visible from one view."""
+                     frustum: bool = True, max_range: float | None = None) -> np.ndarray:
+    """Sorted int64 indices of the points of ``pcd`` visible from one view.
+
+    With ``max_range``, only the points within it of the camera are encoded and
+    answered (the octree's cells then fit the crop, not the whole cloud)."""
     views = as_views(cameras, direction, frustum=frustum)
     if len(views) != 1:
         raise ValueError(f"give one camera, got {len(views)}")
+    max_range = _checked_range(max_range)
     device = torch_device(device) if device is not None else cloud_device(pcd)
-    field = _resolve_model(model, device).encode(pcd, normals=normals)
-    return np.flatnonzero(field.query(views, threshold=threshold)[0]).astype(np.int64)
+    model = _resolve_model(model, device)
+    if max_range is None:
+        return np.flatnonzero(model.encode(pcd, normals=normals).query(views, threshold=threshold)[0]).astype(np.int64)
+    if views.positions is None:
+        raise ValueError("max_range needs a camera position, not a viewing direction")
+    points, cloud_normals = cloud_arrays(pcd)
+    _, unit = model._pick(cloud_normals, normals, points.shape[0])
+    camera = views.positions[0].detach().to(points.device)
+    near = torch.nonzero((points - camera).square().sum(dim=1) <= max_range ** 2)[:, 0]
+    if len(near) == 0:
+        return np.zeros(0, dtype=np.int64)
+    field = model.encode(points[near], normals=False if unit is None else unit[near.to(unit.device)])
+    return near.cpu().numpy()[np.flatnonzero(field.query(views, threshold=threshold)[0])].astype(np.int64)
 
 
 def _surface_triangles(vertices: np.ndarray, camera: np.ndarray) -> np.ndarray:
@@ -632,7 +789,8 @@ def _surface_triangles(vertices: np.ndarray, camera: np.ndarray) -> np.ndarray:
 
 
 def hidden_point_removal_neural(pcd, camera_location, radius: float | None = None, *,
-                                threshold: float = 0.5, model=None, device=None, triangulate: bool = False):
+                                threshold: float = 0.5, model=None, device=None, triangulate: bool = False,
+                                max_range: float | None = None):
     """Removes hidden points with the neural network: a drop-in for ``hidden_point_removal``.
 
     Returns what Open3D's ``PointCloud.hidden_point_removal`` returns, so
@@ -650,13 +808,17 @@ def hidden_point_removal_neural(pcd, camera_location, radius: float | None = Non
     Args:
         pcd: ``o3d.geometry.PointCloud`` or ``o3d.t.geometry.PointCloud``.
         camera_location: (3,) camera position (list, tuple, numpy, torch or
-            ``o3d.core.Tensor``), outside the cloud's bounding box.
+            ``o3d.core.Tensor``), anywhere but on a point of the cloud: outside
+            it, or inside a room, a street or a scan.
         radius: unused; accepted so that existing calls work unchanged.
         threshold: a point is visible when its probability exceeds this.
         model: None (the shipped default), a model name or checkpoint path, a
             :class:`NeuralVisibility` or a ``VisibilityNetwork``.
         device: torch device, e.g. ``"cuda"`` (default: where the cloud lives, else CPU).
         triangulate: also triangulate the visible surface (see above).
+        max_range: only the points within this distance of the camera are
+            considered (as a LiDAR's range): the others are not visible and hide
+            nothing; None: all points.
 
     Returns:
         ``(mesh, pt_map)``: for a legacy cloud an ``o3d.geometry.TriangleMesh``
@@ -664,8 +826,8 @@ def hidden_point_removal_neural(pcd, camera_location, radius: float | None = Non
         and an Int64 ``o3d.core.Tensor``.
 
     Raises:
-        ValueError: an empty cloud, NaN/Inf, a camera inside the cloud's
-            bounding box or on a point, a camera that is not one position.
+        ValueError: an empty cloud, NaN/Inf, a camera on a point of the cloud,
+            a camera that is not one position, a max_range that is not positive.
         TypeError: ``pcd`` is not an Open3D PointCloud, or bad dtypes.
         FileNotFoundError: no installed model and no ``model`` given.
     """
@@ -674,7 +836,7 @@ def hidden_point_removal_neural(pcd, camera_location, radius: float | None = Non
     camera = as_vectors(camera_location, "camera_location")
     if camera.shape[0] != 1:
         raise ValueError(f"camera_location must be one position of shape (3,), got {tuple(camera.shape)}")
-    index = _visible_indices(pcd, camera[0], None, threshold, model, device, None)
+    index = _visible_indices(pcd, camera[0], None, threshold, model, device, None, max_range=max_range)
     eye = camera[0].detach().cpu().numpy()
     if isinstance(pcd, o3d.geometry.PointCloud):
         vertices = np.asarray(pcd.points)[index]
@@ -695,7 +857,7 @@ def hidden_point_removal_neural(pcd, camera_location, radius: float | None = Non
 
 
 def select_visible(pcd, camera=None, *, direction=None, threshold: float = 0.5, model=None,
-                   device=None, normals=None, frustum: bool = True):
+                   device=None, normals=None, frustum: bool = True, max_range: float | None = None):
     """The points of a cloud that one camera sees, as a point cloud.
 
     Colours, normals and every other per-point attribute are kept.
@@ -713,17 +875,19 @@ def select_visible(pcd, camera=None, *, direction=None, threshold: float = 0.5, 
         device: torch device (default: where the cloud lives, else CPU).
         normals: as in :meth:`NeuralVisibility.encode`.
         frustum: False ignores the image bounds of a pinhole camera.
+        max_range: only the points within this distance of the camera are
+            considered; None: all points. Camera positions only.
 
     Returns:
         A cloud of the same kind as ``pcd`` (a legacy ``PointCloud`` for arrays)
         holding the visible points in their original order.
 
     Raises:
-        ValueError: an empty cloud, NaN/Inf, a camera inside the cloud's
-            bounding box or on a point, more than one camera.
+        ValueError: an empty cloud, NaN/Inf, a camera on a point of the cloud,
+            more than one camera, a max_range that is not positive or given with a direction.
         TypeError: unsupported input types or dtypes.
     """
-    index = _visible_indices(pcd, camera, direction, threshold, model, device, normals, frustum)
+    index = _visible_indices(pcd, camera, direction, threshold, model, device, normals, frustum, max_range)
     if isinstance(pcd, o3d.geometry.PointCloud):
         return pcd.select_by_index(index.tolist())
     if isinstance(pcd, o3d.t.geometry.PointCloud):

@@ -66,8 +66,8 @@ def test_cli(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path), "--points", "2000", "--hpr-k", "2"]) == 0
     text = capsys.readouterr().out
     assert "accuracy" in text and "Open3D HPR (k=2)" in text and str(tmp_path / "demo.png") in text
-    assert main(["demo", "--out", str(tmp_path), "--points", "2000", "--camera", "0,0,0"]) == 2
-    assert "inside the bounding box" in capsys.readouterr().err
+    assert main(["demo", "--out", str(tmp_path), "--points", "2000", "--camera=0,0,nan"]) == 2
+    assert "NaN" in capsys.readouterr().err
 
 
 def test_without_matplotlib_the_demo_names_the_extra_before_any_work(tmp_path, monkeypatch, capsys):

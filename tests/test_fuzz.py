@@ -5,7 +5,8 @@ with repeated points, flat, on a line, clustered; as numpy/torch arrays or Open3
 float32 or float64, at scales from 2^-36 to 2^24. Properties:
 
 * any cloud with cameras outside its bounding box gets a (V, N) bool answer, probabilities in
-  [0, 1], and the drop-in functions agree with it; a camera inside gets a ValueError;
+  [0, 1], and the drop-in functions agree with it; a camera inside gets one too, a camera on a
+  point a ValueError;
 * the answer does not depend on the order of the points (up to float summation order);
 * moving cloud and camera together, or scaling both by a power of two, changes nothing, bit for
   bit (on a dyadic grid these maps are exact in float64, so any difference is a real dependence);
@@ -147,8 +148,13 @@ def test_any_cloud_gets_a_well_formed_answer(cloud, data):
     fraction = data.draw(arrays(np.int64, 3, elements=st.integers(0, 2**20))) / 2**20
     lo, hi = _world(units.min(axis=0), exponent), _world(units.max(axis=0), exponent)
     inside = lo + (hi - lo) * fraction
-    with pytest.raises(ValueError, match="inside the bounding box"):
-        field.query(inside)
+    world = _world(units, exponent)
+    if np.linalg.norm(world - inside, axis=1).min() > 1e-6 * (hi - lo).max():  # off the points: answered
+        probs = field.probabilities(inside)
+        assert probs.shape == (1, n) and bool(((probs >= 0) & (probs <= 1)).all())
+    on = world[data.draw(st.integers(0, n - 1))]
+    with pytest.raises(ValueError, match="on a point"):
+        field.query(on)
 
 
 @given(grid_clouds(), st.data())

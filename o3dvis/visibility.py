@@ -94,6 +94,14 @@ def _checked_range(max_range) -> float | None:
     return float(max_range)
 
 
+def _inside_box(positions: Tensor, bounds: tuple[Tensor, Tensor]) -> Tensor:
+    """(V,) bool: which of the (V, 3) positions lie in the box ``bounds``, up to a tolerance."""
+    lo, hi = bounds
+    tol = _INSIDE_TOL * (hi - lo).amax() / 2
+    positions = positions.detach()
+    return ((positions >= lo - tol) & (positions <= hi + tol)).all(dim=1)
+
+
 def _flat_hull(points: Tensor) -> tuple[Tensor, Tensor] | None:
     """Centre and orthonormal basis (rows) of the affine hull of a flat cloud; None for a 3-D one.
 
@@ -226,13 +234,8 @@ class VisibilityField:
         return cameras, None
 
     def _inside(self, views: Views) -> Tensor | None:
-        """(V,) bool: the cameras inside the cloud's bounding box, up to a tolerance (None for directions)."""
-        if views.positions is None:
-            return None
-        positions = views.positions.detach().to(self.device)
-        lo, hi = self.bounds
-        tol = _INSIDE_TOL * (hi - lo).amax() / 2
-        return ((positions >= lo - tol) & (positions <= hi + tol)).all(dim=1)
+        """(V,) bool: the cameras inside the cloud's bounding box (None for directions)."""
+        return None if views.positions is None else _inside_box(views.positions.to(self.device), self.bounds)
 
     def _scene_field(self) -> "VisibilityField":
         """The field answering cameras inside the bounding box, encoded on first use (thread-safe)."""
@@ -656,6 +659,11 @@ class NeuralVisibility:
                 normals that the loaded models cannot use.
             TypeError: unsupported input types or dtypes.
         """
+        return self._encode(pcd, normals)
+
+    def _encode(self, pcd, normals=None, camera: Tensor | None = None) -> VisibilityField:
+        """:meth:`encode`; given the (3,) ``camera`` of the only view to come, a camera inside the
+        cloud's bounding box with a scene network gets the scene model's field alone."""
         points, cloud_normals = cloud_arrays(pcd)
         network, unit = self._pick(cloud_normals, normals, points.shape[0])
         points = points.to(self.device)
@@ -670,6 +678,8 @@ class NeuralVisibility:
         unit = None if unit is None else unit.to(self.device).index_select(0, order).float()
         frame = (points_n, center, scale, (lo, hi), hull, rank)
         scene = None
+        if self.scene_network is not None and camera is not None and _inside_box(camera.to(lo)[None], (lo, hi))[0]:
+            return self._field(self.scene_network, None, *frame)
         if self.scene_network is not None:
             def scene() -> VisibilityField:
                 return self._field(self.scene_network, None, *frame)
@@ -766,17 +776,19 @@ def _visible_indices(pcd, cameras, direction, threshold: float, model, device, n
     max_range = _checked_range(max_range)
     device = torch_device(device) if device is not None else cloud_device(pcd)
     model = _resolve_model(model, device)
+    camera = None if views.positions is None else views.positions[0]
     if max_range is None:
-        return np.flatnonzero(model.encode(pcd, normals=normals).query(views, threshold=threshold)[0]).astype(np.int64)
+        field = model._encode(pcd, normals, camera)
+        return np.flatnonzero(field.query(views, threshold=threshold)[0]).astype(np.int64)
     if views.positions is None:
         raise ValueError("max_range needs a camera position, not a viewing direction")
     points, cloud_normals = cloud_arrays(pcd)
     _, unit = model._pick(cloud_normals, normals, points.shape[0])
-    camera = views.positions[0].detach().to(points.device)
+    camera = camera.detach().to(points.device)
     near = torch.nonzero((points - camera).square().sum(dim=1) <= max_range ** 2)[:, 0]
     if len(near) == 0:
         return np.zeros(0, dtype=np.int64)
-    field = model.encode(points[near], normals=False if unit is None else unit[near.to(unit.device)])
+    field = model._encode(points[near], False if unit is None else unit[near.to(unit.device)], camera)
     return near.cpu().numpy()[np.flatnonzero(field.query(views, threshold=threshold)[0])].astype(np.int64)
 
 

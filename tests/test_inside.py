@@ -152,5 +152,12 @@ def test_scene_model_answers_the_cameras_inside(room):
     np.testing.assert_array_equal(probs[1:3], alone)
     np.testing.assert_array_equal(probs[[0, 3]], shared_pretrained().encode(points).probabilities(outside).numpy())
     np.testing.assert_array_equal(both.query(cameras), probs > 0.5)
+    # The one-view functions answer an inside camera by the scene model too (encoding only it).
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    model = o3dvis.NeuralVisibility(default, scene_network=scene)
+    _, pt_map = o3dvis.hidden_point_removal_neural(pcd, CAMERAS[0], model=model)
+    np.testing.assert_array_equal(pt_map, np.flatnonzero(alone[0] > 0.5))
+    _, pt_map = o3dvis.hidden_point_removal_neural(pcd, outside[0], model=model)
+    np.testing.assert_array_equal(pt_map, np.flatnonzero(probs[0] > 0.5))
     with pytest.raises(ValueError, match="takes no normals"):
         o3dvis.NeuralVisibility(default, scene_network=VisibilityNetwork(NetworkConfig(use_normals=True)))

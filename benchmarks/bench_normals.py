@@ -37,7 +37,7 @@ import open3d as o3d
 from mesh_bench import (Timed, add_common_flags, command_line, emit_report, load_mesh, markdown,
                         mesh_subset, method_label, open3d_normals, sample, visibility_method)
 from o3dvis.apps.normals import estimate_normals_neural, orient_normals_neural
-from o3dvis.data.groundtruth import sample_viewpoints, visibility_from_mesh
+from o3dvis.groundtruth import sample_viewpoints, visibility_from_mesh
 
 PIPELINES = ("Open3D", "o3dvis", "o3dvis KNN", "PCA + o3dvis")
 REFERENCE_VIEWS = 100

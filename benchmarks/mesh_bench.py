@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import open3d as o3d  # noqa: E402
 
-from o3dvis.data.prepare import MESH_SUFFIXES, sample_surface  # noqa: E402
+from o3dvis.training.data.prepare import MESH_SUFFIXES, sample_surface  # noqa: E402
 
 DEFAULT_MESHES = Path(__file__).resolve().parents[2] / "shared" / "meshes" / "val"  # ../shared beside the project
 
@@ -52,13 +52,13 @@ def data_settings(args: argparse.Namespace):
     """The prepared files of the data flags, and each (points, noise) setting with its clouds.
 
     Sets the torch threads from ``--threads``. Returns ``(files, settings)``: ``settings`` yields
-    ``(points, noise, clouds)``, ``clouds`` an iterator of ``o3dvis.evaluate.EvalCloud``
+    ``(points, noise, clouds)``, ``clouds`` an iterator of ``o3dvis.training.evaluate.EvalCloud``
     (subsampled, noised, ``--views`` views), one per file.
     """
     import torch
 
-    from o3dvis.data.prepare import load_sample
-    from o3dvis.evaluate import eval_cloud, list_samples
+    from o3dvis.training.data.prepare import load_sample
+    from o3dvis.training.evaluate import eval_cloud, list_samples
 
     torch.set_num_threads(args.threads)
     files = list_samples(args.data, args.limit)

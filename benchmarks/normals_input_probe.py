@@ -30,8 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from o3dvis import NeuralVisibility
 from o3dvis.apps.normals import multiview_normals
-from o3dvis.data.prepare import load_sample
-from o3dvis.evaluate import Counts, eval_cloud, list_samples
+from o3dvis.training.data.prepare import load_sample
+from o3dvis.training.evaluate import Counts, eval_cloud, list_samples
 
 
 def pca_normals(points: np.ndarray, k: int) -> np.ndarray:

@@ -20,8 +20,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from o3dvis.data.prepare import load_sample
-from o3dvis.evaluate import list_samples, subsample_indices
+from o3dvis.training.data.prepare import load_sample
+from o3dvis.training.evaluate import list_samples, subsample_indices
 from o3dvis.nn import Octree, normalize_points
 
 

@@ -38,7 +38,7 @@ import o3dvis  # noqa: E402
 from o3dvis.cameras import as_views  # noqa: E402
 from o3dvis.nn import native  # noqa: E402
 from o3dvis.nn.cues import num_cues  # noqa: E402
-from o3dvis.speed import bench_cloud  # noqa: E402
+from o3dvis.training.speed import bench_cloud  # noqa: E402
 
 
 def _best_ms(fn: Callable[[], object], repeats: int) -> float:

@@ -22,8 +22,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from o3dvis.data.prepare import load_sample
-from o3dvis.evaluate import eval_cloud, list_samples
+from o3dvis.training.data.prepare import load_sample
+from o3dvis.training.evaluate import eval_cloud, list_samples
 from o3dvis.nn import view_cues
 from o3dvis.nn.cues import DEFAULT_SCALES
 

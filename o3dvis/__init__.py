@@ -20,7 +20,7 @@ __version__ = "0.1.0"
 _EXPORTS = {
     "NeuralVisibility": "visibility", "VisibilityField": "visibility",
     "hidden_point_removal_neural": "visibility", "select_visible": "visibility", "register": "visibility",
-    "load_model": "models", "available_models": "models", "visibility_from_mesh": "data",
+    "load_model": "models", "available_models": "models", "visibility_from_mesh": "groundtruth",
     "hidden_point_removal_mask": "baselines", "exponential_hpr_mask": "baselines",
     **dict.fromkeys(["estimate_normals_neural", "orient_normals_neural", "reconstruct_view_dependent",
                      "reconstruct_poisson", "shadow_map", "points_in_shadow", "render_with_shadows", "best_view",

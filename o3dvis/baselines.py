@@ -25,7 +25,7 @@ import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
 from .cameras import real_array
-from .data.noise import diagonal
+from .clouds import diagonal
 
 __all__ = ["hidden_point_removal_mask", "exponential_hpr_mask", "hpr_method", "exponential_method",
            "SWEEPS", "sweep", "Method", "distinct_points"]

@@ -139,7 +139,7 @@ def ground_truth_method(mesh) -> Method:
     Returns:
         A visibility method.
     """
-    from .data.groundtruth import as_legacy_mesh, visibility_from_mesh
+    from .groundtruth import as_legacy_mesh, visibility_from_mesh
 
     mesh = as_legacy_mesh(mesh)
     return lambda points, cameras: visibility_from_mesh(mesh, points, cameras)

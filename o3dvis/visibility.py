@@ -25,7 +25,6 @@ from torch import Tensor
 
 from .cameras import Views, as_vectors, as_views
 from .clouds import cloud_arrays, cloud_device, unit_normals
-from .data.dataset import random_rotation
 from . import models
 from .models import available_models, load_model, torch_device
 from .nn import native
@@ -121,6 +120,15 @@ def _normalize(points: Tensor, bounds: tuple[Tensor, Tensor] | None = None
     if (hi - lo).amax() > 0:
         return normalize_points(points, bounds=(lo, hi))
     return points - lo, lo, torch.ones((), dtype=points.dtype, device=points.device)
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """A uniformly distributed 3x3 rotation matrix."""
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q *= np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] *= -1
+    return q
 
 
 def fixed_rotations(count: int) -> Tensor:

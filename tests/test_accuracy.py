@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from o3dvis.baselines import sweep
-from o3dvis.data.prepare import label_mesh
-from o3dvis.data.shapes import write_shapes
+from o3dvis.training.data.prepare import label_mesh
+from o3dvis.training.data.shapes import write_shapes
 from o3dvis.methods import neural_method
 
 

@@ -17,6 +17,7 @@ from o3dvis.cli import build_parser
 from o3dvis.cli._common import split_vectors
 from o3dvis.models import file_sha256
 from o3dvis.nn import NetworkConfig, VisibilityNetwork
+from o3dvis.training.data import random_shape
 from o3dvis.visibility import fixed_rotations, shared_pretrained
 
 SMALL = dict(depth=5, full_depth=2, channels=(8, 16), feature_channels=8, num_frequencies=2, hidden=(16,))
@@ -37,7 +38,7 @@ def vis(network) -> o3dvis.NeuralVisibility:
 @pytest.fixture(scope="module")
 def pcd() -> o3d.geometry.PointCloud:
     """Open3D's HPR example on a procedural shape: 3 000 Poisson-disk samples."""
-    mesh = o3dvis.data.random_shape(np.random.default_rng(3), parts=3)
+    mesh = random_shape(np.random.default_rng(3), parts=3)
     o3d.utility.random.seed(1)
     cloud = mesh.sample_points_poisson_disk(3000)
     cloud.colors = o3d.utility.Vector3dVector(np.random.default_rng(0).random((3000, 3)))

@@ -16,7 +16,7 @@ from o3dvis.apps.normals import (_fit_planes, _smallest_eigenvectors, _vote, cov
                                  multiview_normals, neighbourhoods)
 from o3dvis.cli import build_parser
 from o3dvis.cli._common import split_vectors, visibility_method
-from o3dvis.data.prepare import sample_surface
+from o3dvis.training.data.prepare import sample_surface
 
 
 def _sample(mesh: o3d.geometry.TriangleMesh, count: int, seed: int = 0):

@@ -74,7 +74,7 @@ def test_field_applies_the_calibration_to_every_margin(tmp_path):
 
 
 def test_warm_start_drops_a_calibration():
-    from o3dvis.train import warm_start
+    from o3dvis.training.train import warm_start
 
     torch.manual_seed(0)
     source = VisibilityNetwork(NetworkConfig(**SMALL, calibrated=True))
@@ -86,10 +86,10 @@ def test_warm_start_drops_a_calibration():
 
 
 def test_calibrate_command_writes_a_calibrated_network(tmp_path, monkeypatch):
-    from o3dvis.calibrate import calibrate
-    from o3dvis.data.dataset import Augmentation
-    from o3dvis.data.prepare import _save, label_mesh
-    from o3dvis.data.shapes import write_shapes
+    from o3dvis.training.calibrate import calibrate
+    from o3dvis.training.data.dataset import Augmentation
+    from o3dvis.training.data.prepare import _save, label_mesh
+    from o3dvis.training.data.shapes import write_shapes
 
     data = tmp_path / "data"
     data.mkdir()

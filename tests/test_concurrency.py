@@ -17,7 +17,7 @@ import pytest
 import torch
 
 import o3dvis
-from o3dvis.data import random_shape
+from o3dvis.training.data import random_shape
 
 CLOUDS = 6
 POINTS = 1200

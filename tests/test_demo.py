@@ -7,8 +7,8 @@ import open3d as o3d
 import pytest
 
 from o3dvis.cli import main
-from o3dvis.data.groundtruth import visibility_from_mesh
-from o3dvis.demo import (FALSE_NEGATIVE, FALSE_POSITIVE, IMAGES, default_camera, demo_sample,
+from o3dvis.groundtruth import visibility_from_mesh
+from o3dvis.training.demo import (FALSE_NEGATIVE, FALSE_POSITIVE, IMAGES, default_camera, demo_sample,
                          error_colors, observer_location, run_demo)
 
 

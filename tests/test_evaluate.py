@@ -11,10 +11,10 @@ import pytest
 
 from o3dvis.baselines import hidden_point_removal_mask
 from o3dvis.cli.eval import main
-from o3dvis.data import load_sample, prepare, write_shapes
-from o3dvis.evaluate import (Counts, add_noise, category_of, eval_cloud, evaluate, list_samples,
+from o3dvis.training.data import load_sample, prepare, write_shapes
+from o3dvis.training.evaluate import (Counts, add_noise, category_of, eval_cloud, evaluate, list_samples,
                              markdown_table, subsample_indices, summarize)
-from o3dvis.speed import bench_cloud, benchmark, time_method
+from o3dvis.training.speed import bench_cloud, benchmark, time_method
 
 POINTS, VIEWS = 2000, 3
 
@@ -279,7 +279,7 @@ def test_benchmark_times_methods_against_open3d(capsys):
 def test_peak_memory_sees_a_transient_allocation():
     import time as _time
 
-    from o3dvis.speed import PeakMemory
+    from o3dvis.training.speed import PeakMemory
 
     with PeakMemory() as memory:
         block = np.ones(64 * 2**20 // 8)  # 64 MiB, touched

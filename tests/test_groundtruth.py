@@ -6,8 +6,9 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from o3dvis.data import label_mesh, load_sample, prepare, visibility_from_mesh
-from o3dvis.data.prepare import sample_surface
+from o3dvis import visibility_from_mesh
+from o3dvis.training.data import label_mesh, load_sample, prepare
+from o3dvis.training.data.prepare import sample_surface
 
 
 def _surface(mesh: o3d.geometry.TriangleMesh, count: int, seed: int = 0) -> np.ndarray:

@@ -356,9 +356,9 @@ def test_checkpoint_roundtrip(tmp_path):
 
 def test_training_smoke_loss_falls(tmp_path):
     """A few steps on tiny procedural data: the loss must fall."""
-    from o3dvis.data.prepare import _save, label_mesh
-    from o3dvis.data.shapes import write_shapes
-    from o3dvis.train import TrainConfig, train
+    from o3dvis.training.data.prepare import _save, label_mesh
+    from o3dvis.training.data.shapes import write_shapes
+    from o3dvis.training.train import TrainConfig, train
 
     meshes = write_shapes(str(tmp_path / "meshes"), 3, seed=5)
     data = tmp_path / "data"
@@ -379,8 +379,8 @@ def test_training_smoke_loss_falls(tmp_path):
 def test_teacher_targets_and_the_mixed_loss():
     """A one-frame teacher gives the network's own probabilities, cloud by cloud and in the
     batch's row order; the mixed target's loss is the mix of the two cross-entropies."""
-    from o3dvis.data.dataset import Batch
-    from o3dvis.train import _Encoder, batch_loss, teacher_targets
+    from o3dvis.training.data.dataset import Batch
+    from o3dvis.training.train import _Encoder, batch_loss, teacher_targets
     from o3dvis.visibility import NeuralVisibility
 
     torch.manual_seed(0)
@@ -409,7 +409,7 @@ def test_teacher_targets_and_the_mixed_loss():
 def test_warm_start_with_added_inputs_keeps_the_function(added, torch_ops):
     # the torch ops on both sides: the plane cues' projection has no C kernel, whose pixels can
     # differ at the borders by float32 rounding, which these untrained weights blow up
-    from o3dvis.train import warm_start
+    from o3dvis.training.train import warm_start
 
     torch.manual_seed(0)
     small = dict(depth=6, channels=(8, 16, 16, 16, 16))

@@ -11,7 +11,7 @@ import torch
 
 from o3dvis.models import WEIGHTS_DIR, file_sha256, load_model, read_model_card
 from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
-from o3dvis.publish import portable_path, publish
+from o3dvis.training.publish import portable_path, publish
 
 SMALL = dict(depth=5, channels=(8, 8, 8))
 ABSOLUTE = re.compile(r'"(/|[A-Za-z]:\\\\)[^"]*"')  # a JSON string that is an absolute path

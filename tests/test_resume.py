@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 import torch
 
-from o3dvis.data import load_sample, prepare, write_shapes
+from o3dvis.training.data import load_sample, prepare, write_shapes
 from o3dvis.nn import VisibilityNetwork
-from o3dvis.train import TrainConfig, train
+from o3dvis.training.train import TrainConfig, train
 
 REPO = Path(__file__).resolve().parents[1]
 MESHES = 6

@@ -7,9 +7,10 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from o3dvis.data import load_sample, visibility_from_mesh
-from o3dvis.data.prepare import label_scene, prepare_scenes
-from o3dvis.data.scenes import (HeightField, box_scene, free_positions, random_rooms, random_scene,
+from o3dvis import visibility_from_mesh
+from o3dvis.training.data import load_sample
+from o3dvis.training.data.prepare import label_scene, prepare_scenes
+from o3dvis.training.data.scenes import (HeightField, box_scene, free_positions, random_rooms, random_scene,
                                 random_street, sample_lidar, sample_uniform, scene_sample)
 
 CLOSED = ("box", "sphere", "cylinder", "cone", "torus")  # primitives with no open surface
@@ -198,7 +199,7 @@ def test_bad_arguments_are_named():
 
 def test_prepared_scenes_load_resume_and_feed_the_dataset(tmp_path):
     torch = pytest.importorskip("torch")
-    from o3dvis.data.dataset import Augmentation, VisibilityDataset, collate
+    from o3dvis.training.data.dataset import Augmentation, VisibilityDataset, collate
 
     result = prepare_scenes(tmp_path, 2, None, num_points=3000, num_views=8, progress=False)
     assert result == {"done": 2, "skipped": 0, "failed": []}

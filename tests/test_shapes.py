@@ -7,8 +7,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from o3dvis.data.groundtruth import visibility_from_mesh
-from o3dvis.data.shapes import DEFAULT_PRIMITIVES, PRIMITIVES, random_enclosure, random_shape, write_shapes
+from o3dvis.groundtruth import visibility_from_mesh
+from o3dvis.training.data.shapes import DEFAULT_PRIMITIVES, PRIMITIVES, random_enclosure, random_shape, write_shapes
 
 
 def _hits(mesh: o3d.geometry.TriangleMesh, origin, direction) -> np.ndarray:

@@ -10,7 +10,7 @@ from ._common import positive_ints
 
 
 def _shapes(args) -> int:
-    from ..data.shapes import DEFAULT_PRIMITIVES, PRIMITIVES, write_shapes
+    from ..training.data.shapes import DEFAULT_PRIMITIVES, PRIMITIVES, write_shapes
 
     if args.primitives is None:
         names = DEFAULT_PRIMITIVES
@@ -25,7 +25,7 @@ def _shapes(args) -> int:
 
 
 def _prepare(args) -> int:
-    from ..data.prepare import prepare, prepare_scenes
+    from ..training.data.prepare import prepare, prepare_scenes
 
     t = time.time()
     if args.scenes is None:
@@ -43,7 +43,7 @@ def _prepare(args) -> int:
 def _train(args) -> int:
     import torch
 
-    from ..train import TrainConfig, train
+    from ..training.train import TrainConfig, train
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -69,8 +69,8 @@ def _train(args) -> int:
 def _calibrate(args) -> int:
     import torch
 
-    from ..calibrate import calibrate
-    from ..data.dataset import Augmentation
+    from ..training.calibrate import calibrate
+    from ..training.data.dataset import Augmentation
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -82,7 +82,7 @@ def _calibrate(args) -> int:
 
 
 def _publish(args) -> int:
-    from ..publish import publish
+    from ..training.publish import publish
 
     entry = publish(args.checkpoint, args.name, args.run, args.manifest, args.eval, args.command_line,
                     root=args.root)
@@ -99,7 +99,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--count", type=int, default=100, help="number of meshes (default 100)")
     p.add_argument("--seed", type=int, default=0, help="seed; mesh i depends on (seed, i) only (default 0)")
     p.add_argument("--primitives", default=None,
-                   help="comma-separated parts to draw from (o3dvis.data.shapes.PRIMITIVES), or 'all' "
+                   help="comma-separated parts to draw from (o3dvis.training.data.shapes.PRIMITIVES), or 'all' "
                         "(default: all but the thick-walled ones)")
     p.add_argument("--enclosed", action="store_true",
                    help="put each shape inside a closed shell (half of them with a hole cut in it)")

@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
     Returns:
         0.
     """
-    from ..demo import IMAGES, run_demo
+    from ..training.demo import IMAGES, run_demo
 
     result = run_demo(args.out, args.points, args.camera, model=args.model, device=args.device,
                       hpr_k=args.hpr_k)

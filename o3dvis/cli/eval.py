@@ -121,7 +121,7 @@ def _methods(args, sweeps: dict):
 
 def run_eval(args) -> int:
     """``o3dvis eval``: prints the Markdown tables; ``--out`` also writes JSON."""
-    from ..evaluate import category_of, evaluate, list_samples, markdown_table, summarize
+    from ..training.evaluate import category_of, evaluate, list_samples, markdown_table, summarize
 
     if args.views is not None and args.views < 1:
         raise ValueError("--views must be >= 1")
@@ -146,7 +146,7 @@ def run_eval(args) -> int:
 def run_bench(args) -> int:
     """``o3dvis bench``: prints the timing table; ``--out`` also writes JSON."""
     from ..nn import native
-    from ..speed import benchmark, markdown_table
+    from ..training.speed import benchmark, markdown_table
 
     _check_out(args.out)
     # one setting per baseline: Open3D's usual radius (k = 2) and a mid-grid kernel exponent

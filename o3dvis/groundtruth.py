@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
-from ..cameras import real_array
+from .cameras import real_array
 
 __all__ = ["visibility_from_mesh", "sample_viewpoints", "as_legacy_mesh", "orient_normals"]
 

@@ -19,7 +19,7 @@ ground).
 * :func:`sample_uniform` (area-weighted on the surfaces) and :func:`sample_lidar`
   (the hits of rays cast from a few sensor positions: density falls with range,
   surfaces no sensor saw have no points).
-* :func:`scene_sample`: a labelled :class:`~o3dvis.data.prepare.Sample` of a
+* :func:`scene_sample`: a labelled :class:`~o3dvis.training.data.prepare.Sample` of a
   scene: points, normals, cameras inside and outside, ray-cast visibility.
 
 Everything is a function of the random generator passed in.
@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from .groundtruth import orient_normals, sample_viewpoints, visibility_from_mesh
+from ...groundtruth import orient_normals, sample_viewpoints, visibility_from_mesh
 from .prepare import Sample, sample_surface
 from .shapes import DEFAULT_PRIMITIVES, random_shape
 
@@ -360,7 +360,7 @@ def random_rooms(rng: np.random.Generator, meshes: Sequence[str | Path] = (),
     Args:
         rng: numpy random generator (the scene is a function of its state).
         meshes: mesh files to draw furniture from (none: procedural shapes only).
-        primitives: parts of the procedural shapes (see :mod:`o3dvis.data.shapes`).
+        primitives: parts of the procedural shapes (see :mod:`o3dvis.training.data.shapes`).
 
     Returns:
         A :class:`Scene` of kind ``"rooms"``, floor at z = 0, centred on x = y = 0.
@@ -709,7 +709,7 @@ def scene_sample(scene: Scene, sampling: str, num_points: int, inside: int, outs
         name: the sample's name.
 
     Returns:
-        A :class:`~o3dvis.data.prepare.Sample`; the inside cameras come first.
+        A :class:`~o3dvis.training.data.prepare.Sample`; the inside cameras come first.
     """
     if sampling not in SAMPLINGS:
         raise ValueError(f"unknown sampling {sampling!r}; choose from {', '.join(SAMPLINGS)}")

@@ -9,11 +9,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..nn.octree import normalize_points
-from .noise import add_noise, diagonal
+from ...clouds import diagonal
+from ...nn.octree import normalize_points
+from ...visibility import random_rotation
+from .noise import add_noise
 from .prepare import Sample, load_sample
 
-__all__ = ["Augmentation", "VisibilityDataset", "random_rotation", "Batch", "collate"]
+__all__ = ["Augmentation", "VisibilityDataset", "Batch", "collate"]
 
 
 @dataclass
@@ -34,15 +36,6 @@ class Augmentation:
     noise: float = 0.02
     noise_prob: float = 0.5
     rotate: bool = True
-
-
-def random_rotation(rng: np.random.Generator) -> np.ndarray:
-    """A uniformly distributed 3x3 rotation matrix."""
-    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
-    q *= np.sign(np.diag(r))
-    if np.linalg.det(q) < 0:
-        q[:, 0] *= -1
-    return q
 
 
 @dataclass

@@ -16,9 +16,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .baselines import Method
-from .data.groundtruth import sample_viewpoints
-from .data.noise import diagonal
+from ..baselines import Method
+from ..clouds import diagonal
+from ..groundtruth import sample_viewpoints
 from .data.prepare import sample_surface
 from .data.shapes import random_shape
 from .evaluate import EvalCloud, run_method

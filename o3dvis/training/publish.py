@@ -13,7 +13,7 @@ import shutil
 from collections import Counter
 from pathlib import Path
 
-from .models import CARD_NAME, WEIGHTS_DIR, file_sha256, load_model
+from ..models import CARD_NAME, WEIGHTS_DIR, file_sha256, load_model
 
 __all__ = ["publish", "licence_summary", "portable_path", "portable_paths", "validation_table"]
 

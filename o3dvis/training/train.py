@@ -27,13 +27,13 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..nn.network import NetworkConfig, VisibilityNetwork
+from ..nn.octree import normalize_points
 from .data.dataset import Augmentation, Batch, VisibilityDataset, collate
 from .data.prepare import load_sample
-from .nn.network import NetworkConfig, VisibilityNetwork
-from .nn.octree import normalize_points
 
 if TYPE_CHECKING:
-    from .visibility import NeuralVisibility
+    from ..visibility import NeuralVisibility
 
 __all__ = ["TrainConfig", "train", "batch_loss", "teacher_targets", "validate"]
 
@@ -74,7 +74,7 @@ def warm_start(net: VisibilityNetwork, state: dict[str, torch.Tensor]) -> None:
     A calibration in ``state`` is dropped (training changes the margins it was
     fitted to; ``o3dvis calibrate`` fits it anew).
     """
-    from .nn.conv import _Linear
+    from ..nn.conv import _Linear
 
     target = net.state_dict()
     linear = {f"{name}.weight": m for name, m in net.named_modules() if isinstance(m, _Linear)}
@@ -256,7 +256,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
     t0, run_loss, run_acc = time.time(), 0.0, 0.0
     teacher = None
     if cfg.teacher:
-        from .visibility import NeuralVisibility
+        from ..visibility import NeuralVisibility
 
         teacher = NeuralVisibility(VisibilityNetwork.load(cfg.teacher, device),
                                    num_rotations=cfg.teacher_rotations, precision="float32")

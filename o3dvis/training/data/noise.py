@@ -4,12 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["add_noise", "diagonal"]
-
-
-def diagonal(points: np.ndarray) -> float:
-    """Length of the diagonal of the axis-aligned bounding box."""
-    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+__all__ = ["add_noise"]
 
 
 def add_noise(points: np.ndarray, level: float, scale: float, rng: np.random.Generator) -> np.ndarray:

@@ -21,21 +21,21 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from ._optional import figure_class
-from .apps.camera import View, make_view
-from .apps.render import image_from, lambert, splat, splat_size
-from .baselines import SWEEPS, hpr_method
+from .._optional import figure_class
+from ..apps.camera import View, make_view
+from ..apps.render import image_from, lambert, splat, splat_size
+from ..baselines import SWEEPS, hpr_method
+from ..methods import NeuralMethod, ground_truth_method
 from .data.prepare import sample_surface
 from .data.shapes import random_shape
 from .evaluate import Counts, EvalCloud
-from .methods import NeuralMethod, ground_truth_method
 from .speed import time_method
 
 __all__ = ["SAMPLE_SEED", "SAMPLE_PARTS", "demo_sample", "default_camera", "observer_location",
            "MethodResult", "DemoResult", "run_demo", "error_colors", "IMAGES"]
 
 SAMPLE_SEED = 7
-"""Seed of :func:`o3dvis.data.shapes.random_shape` for the shipped sample."""
+"""Seed of :func:`o3dvis.training.data.shapes.random_shape` for the shipped sample."""
 SAMPLE_PARTS = 5
 CAMERA_DIRECTION = (1.0, -1.0, 0.6)
 """Direction from the sample's centre to the default camera."""
@@ -152,7 +152,7 @@ def _visible_colors(mask: np.ndarray, shade: np.ndarray) -> np.ndarray:
 
 
 def _neural(model, device) -> tuple[object, str]:
-    from .visibility import NeuralVisibility
+    from ..visibility import NeuralVisibility
 
     name = "default" if model is None else str(model)
     return NeuralMethod(NeuralVisibility.pretrained(name, device=device), name), f"neural ({Path(name).name})"
@@ -265,7 +265,7 @@ def run_demo(out_dir: str | Path = "o3dvis-demo", num_points: int = 20_000, came
     """
     from tqdm import tqdm
 
-    from .apps.camera import as_camera_location
+    from ..apps.camera import as_camera_location
 
     figure_class("the demo's figure")
     pcd, mesh = demo_sample(num_points)

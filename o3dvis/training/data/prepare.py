@@ -65,7 +65,7 @@ def label_mesh(path: str | Path, num_points: int = 100_000, num_views: int = 16,
     """
     import open3d as o3d
 
-    from .groundtruth import orient_normals, sample_viewpoints, visibility_from_mesh
+    from ...groundtruth import orient_normals, sample_viewpoints, visibility_from_mesh
 
     path = Path(path)
     mesh = o3d.io.read_triangle_mesh(str(path))
@@ -157,7 +157,7 @@ def label_scene(index: int, meshes: list[str], num_points: int = 100_000, num_vi
                 seed: int = 0, kinds: tuple[str, ...] = ("rooms", "street"),
                 samplings: tuple[str, ...] = ("uniform", "lidar"),
                 max_range: float | None = None) -> list[Sample]:
-    """Procedural scene ``index`` (see :mod:`o3dvis.data.scenes`) labelled once per sampling.
+    """Procedural scene ``index`` (see :mod:`o3dvis.training.data.scenes`) labelled once per sampling.
 
     The scene's kind is ``kinds[index % len(kinds)]``; its geometry depends on
     ``(seed, index)`` only, each sampling's points and cameras on ``(seed,
@@ -170,7 +170,7 @@ def label_scene(index: int, meshes: list[str], num_points: int = 100_000, num_vi
         meshes: mesh files to draw furniture and objects from (may be empty).
         num_points, num_views: points and cameras per sample.
         seed: base seed.
-        kinds, samplings: see ``o3dvis.data.scenes.KINDS`` and ``SAMPLINGS``.
+        kinds, samplings: see ``o3dvis.training.data.scenes.KINDS`` and ``SAMPLINGS``.
         max_range: LiDAR-like range limit in metres (default: none).
     """
     from .scenes import SAMPLINGS, random_scene, scene_sample

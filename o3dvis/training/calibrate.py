@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..models import load_model
+from ..nn.calibration import NUM_TERMS, calibration_loss, calibration_terms, fit_calibration
+from ..nn.network import NetworkConfig, VisibilityNetwork
 from .data.dataset import Augmentation, VisibilityDataset
-from .models import load_model
-from .nn.calibration import NUM_TERMS, calibration_loss, calibration_terms, fit_calibration
-from .nn.network import NetworkConfig, VisibilityNetwork
 from .publish import portable_path
 
 __all__ = ["calibrate"]
@@ -56,7 +56,7 @@ def calibrate(checkpoint: str | Path, data: list[str | Path], out: str | Path, c
     from tqdm import tqdm
 
     from .evaluate import list_samples
-    from .visibility import NeuralVisibility
+    from ..visibility import NeuralVisibility
 
     if clouds < 1 or keep < 1:
         raise ValueError(f"clouds and keep must be positive, got {clouds} and {keep}")

@@ -26,8 +26,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .baselines import Method
-from .data.noise import add_noise, diagonal
+from ..baselines import Method
+from ..clouds import diagonal
+from .data.noise import add_noise
 from .data.prepare import Sample, load_sample
 
 __all__ = ["Counts", "list_samples", "category_of", "subsample_indices", "add_noise", "EvalCloud", "eval_cloud",

@@ -17,7 +17,7 @@ import torch
 
 from mesh_bench import command_line, data_parser, data_settings, emit_report, markdown
 from o3dvis.cameras import as_views
-from o3dvis.visibility import NeuralVisibility
+from o3dvis.neural import NeuralVisibility
 
 
 def main() -> int:

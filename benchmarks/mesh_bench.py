@@ -127,7 +127,7 @@ def visibility_method(args: argparse.Namespace, mesh: o3d.geometry.TriangleMesh)
         from o3dvis.baselines import hpr_method
 
         return hpr_method(args.hpr_k)
-    from o3dvis.visibility import NeuralVisibility
+    from o3dvis.neural import NeuralVisibility
 
     return NeuralVisibility.pretrained(args.checkpoint or "default")
 

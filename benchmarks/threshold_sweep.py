@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from mesh_bench import command_line, data_parser, data_settings, emit_report, markdown
-from o3dvis.visibility import NeuralVisibility
+from o3dvis.neural import NeuralVisibility
 
 
 def main() -> int:

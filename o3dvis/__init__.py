@@ -18,8 +18,8 @@ __version__ = "0.1.0"
 # each public name and the module that defines it, imported on first use: ``import o3dvis`` (and
 # ``o3dvis --help``) loads no torch and no Open3D before they are needed
 _EXPORTS = {
-    "NeuralVisibility": "visibility", "VisibilityField": "visibility",
-    "hidden_point_removal_neural": "visibility", "select_visible": "visibility", "register": "visibility",
+    "NeuralVisibility": "neural", "VisibilityField": "field",
+    "hidden_point_removal_neural": "dropins", "select_visible": "dropins", "register": "dropins",
     "load_model": "models", "available_models": "models", "visibility_from_mesh": "groundtruth",
     "hidden_point_removal_mask": "baselines", "exponential_hpr_mask": "baselines",
     **dict.fromkeys(["estimate_normals_neural", "orient_normals_neural", "reconstruct_view_dependent",

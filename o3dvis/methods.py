@@ -37,7 +37,9 @@ _NETWORK_VARIANT = re.compile(r"(neural(?:-normals)?)(?:-x([1-9][0-9]*))?(?:-(fl
 def _neural(method):
     """``method`` as a NeuralVisibility or VisibilityField when it is one (None: the pretrained
     network, loaded once per process; a :class:`NeuralMethod` gives its NeuralVisibility), else None."""
-    from .visibility import NeuralVisibility, VisibilityField, shared_pretrained
+    from .field import VisibilityField
+    from .neural import NeuralVisibility
+    from .pretrained import shared_pretrained
 
     if method is None:
         return shared_pretrained()
@@ -202,7 +204,7 @@ def neural_method(checkpoint: str | Path | None = None, device: str | None = Non
         LookupError: the neural API or the weights are not available, with the reason.
     """
     try:
-        from .visibility import NeuralVisibility
+        from .neural import NeuralVisibility
     except ImportError as e:
         raise LookupError(f"o3dvis.NeuralVisibility is not available ({e})") from e
     try:

@@ -16,9 +16,10 @@ from o3dvis.cameras import as_views
 from o3dvis.cli import build_parser
 from o3dvis.cli._common import split_vectors
 from o3dvis.models import file_sha256
+from o3dvis.neural import fixed_rotations
 from o3dvis.nn import NetworkConfig, VisibilityNetwork
+from o3dvis.pretrained import shared_pretrained
 from o3dvis.training.data import random_shape
-from o3dvis.visibility import fixed_rotations, shared_pretrained
 
 SMALL = dict(depth=5, full_depth=2, channels=(8, 16), feature_channels=8, num_frequencies=2, hidden=(16,))
 CAMERA = [0.0, 0.0, 5.0]

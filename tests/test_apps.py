@@ -512,7 +512,7 @@ def test_best_and_worst_view_beat_brute_force(box_field, maximize):
 
 def test_best_view_with_the_network_field(sphere):
     from o3dvis.nn import NetworkConfig, VisibilityNetwork
-    from o3dvis.visibility import NeuralVisibility
+    from o3dvis.neural import NeuralVisibility
 
     torch.manual_seed(0)
     network = VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 16), feature_channels=8,
@@ -529,7 +529,7 @@ def test_best_view_with_the_network_field(sphere):
 def test_methods_answer_for_indices_and_encode_a_cloud_once(sphere):
     from o3dvis.apps import resolve_method
     from o3dvis.nn import NetworkConfig, VisibilityNetwork
-    from o3dvis.visibility import NeuralVisibility
+    from o3dvis.neural import NeuralVisibility
 
     points, _, truth = sphere
     cameras = np.array([[0.0, 0.0, 4.0], [4.0, 1.0, 0.0]])

@@ -9,7 +9,7 @@ import torch
 from o3dvis.nn.calibration import NUM_TERMS, calibration_terms, fit_calibration
 from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
 from o3dvis.nn.octree import normalize_points
-from o3dvis.visibility import NeuralVisibility
+from o3dvis.neural import NeuralVisibility
 
 SMALL = dict(depth=6, channels=(8, 16, 16, 16, 16), noise_cues=True)
 

@@ -154,12 +154,12 @@ def test_absent_method_stays_absent(data, tmp_path, capsys):
 
 
 def test_neural_checkpoint_is_scored_like_any_method(data, tmp_path, capsys):
-    pytest.importorskip("o3dvis.visibility")
+    pytest.importorskip("o3dvis.neural")
     import torch
 
     from o3dvis.nn import VisibilityNetwork
     from o3dvis.nn.network import NetworkConfig
-    from o3dvis.visibility import NeuralVisibility
+    from o3dvis.neural import NeuralVisibility
 
     torch.manual_seed(0)
     for use_normals, name, other in ((False, "neural", "neural-normals"), (True, "neural-normals", "neural")):
@@ -183,7 +183,7 @@ def test_neural_checkpoint_is_scored_like_any_method(data, tmp_path, capsys):
 
 
 def test_neural_names_take_a_number_of_rotations_and_a_precision(tmp_path):
-    pytest.importorskip("o3dvis.visibility")
+    pytest.importorskip("o3dvis.neural")
     from o3dvis.methods import resolve_methods
     from o3dvis.nn import VisibilityNetwork
     from o3dvis.nn.network import NetworkConfig

@@ -10,7 +10,7 @@ import torch
 import o3dvis
 from o3dvis.apps import render, shadows
 from o3dvis.nn import NetworkConfig, VisibilityNetwork
-from o3dvis.visibility import shared_pretrained
+from o3dvis.pretrained import shared_pretrained
 
 ROOM = (6.0, 4.0, 3.0)  # length, width, height
 WALL = (2.45, 2.55)  # the partition's faces, across the length: two closed rooms side by side

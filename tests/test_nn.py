@@ -381,7 +381,7 @@ def test_teacher_targets_and_the_mixed_loss():
     batch's row order; the mixed target's loss is the mix of the two cross-entropies."""
     from o3dvis.training.data.dataset import Batch
     from o3dvis.training.train import _Encoder, batch_loss, teacher_targets
-    from o3dvis.visibility import NeuralVisibility
+    from o3dvis.neural import NeuralVisibility
 
     torch.manual_seed(0)
     net = VisibilityNetwork(NetworkConfig(depth=6)).eval()

@@ -68,7 +68,7 @@ def add_method_flags(parser: argparse.ArgumentParser, choices: tuple[str, ...] =
 def visibility_method(args: argparse.Namespace):
     """The visibility method the flags of :func:`add_method_flags` name."""
     if args.method == "neural":
-        from ..visibility import NeuralVisibility
+        from ..neural import NeuralVisibility
 
         return NeuralVisibility.pretrained(args.model or "default", device=args.device, precision=args.precision)
     if args.method == "hpr":

@@ -45,8 +45,9 @@ def run(args: argparse.Namespace) -> int:
     """
     import open3d as o3d
 
+    from ..dropins import select_visible
     from ..io import read_point_cloud
-    from ..visibility import NeuralVisibility, select_visible
+    from ..neural import NeuralVisibility
 
     model = args.model
     if args.precision != "auto":

@@ -56,7 +56,7 @@ def calibrate(checkpoint: str | Path, data: list[str | Path], out: str | Path, c
     from tqdm import tqdm
 
     from .evaluate import list_samples
-    from ..visibility import NeuralVisibility
+    from ..neural import NeuralVisibility
 
     if clouds < 1 or keep < 1:
         raise ValueError(f"clouds and keep must be positive, got {clouds} and {keep}")

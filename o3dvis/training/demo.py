@@ -152,7 +152,7 @@ def _visible_colors(mask: np.ndarray, shade: np.ndarray) -> np.ndarray:
 
 
 def _neural(model, device) -> tuple[object, str]:
-    from ..visibility import NeuralVisibility
+    from ..neural import NeuralVisibility
 
     name = "default" if model is None else str(model)
     return NeuralMethod(NeuralVisibility.pretrained(name, device=device), name), f"neural ({Path(name).name})"

@@ -33,7 +33,7 @@ from .data.dataset import Augmentation, Batch, VisibilityDataset, collate
 from .data.prepare import load_sample
 
 if TYPE_CHECKING:
-    from ..visibility import NeuralVisibility
+    from ..neural import NeuralVisibility
 
 __all__ = ["TrainConfig", "train", "batch_loss", "teacher_targets", "validate"]
 
@@ -256,7 +256,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
     t0, run_loss, run_acc = time.time(), 0.0, 0.0
     teacher = None
     if cfg.teacher:
-        from ..visibility import NeuralVisibility
+        from ..neural import NeuralVisibility
 
         teacher = NeuralVisibility(VisibilityNetwork.load(cfg.teacher, device),
                                    num_rotations=cfg.teacher_rotations, precision="float32")

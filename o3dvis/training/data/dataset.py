@@ -11,7 +11,7 @@ from torch import Tensor
 
 from ...clouds import diagonal
 from ...nn.octree import normalize_points
-from ...visibility import random_rotation
+from ...neural import random_rotation
 from .noise import add_noise
 from .prepare import Sample, load_sample
 

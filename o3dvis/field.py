@@ -1,0 +1,429 @@
+"""The query engine: per-point features of one cloud answering visibility queries for any views.
+
+A :class:`VisibilityField` holds what the network's U-Net computed once for a cloud
+(:meth:`o3dvis.NeuralVisibility.encode` makes it); each query then costs a
+depth-buffer pass and a small MLP over the points per view. A camera may stand
+anywhere but on a point of the cloud: outside it, or inside a room, a street or a
+scan, where a scene model answers when one is installed. A flat cloud (a plane,
+a line, coincident points) seen from off its plane or line hides nothing: there
+every point is visible, exactly, whatever the network says.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .cameras import Views, as_views
+from .nn import native
+from .nn.network import VisibilityNetwork
+from .threads import threaded_map
+
+__all__ = ["VisibilityField", "RotatedEncoding", "DEFAULT_CHUNK", "checked_range", "inside_box"]
+
+DEFAULT_CHUNK = 1 << 15
+"""Rows (views x points) that one predictor call processes at most: small enough for the cache."""
+
+_INSIDE_TOL = 1e-6
+
+
+def _fmt(vector: Tensor) -> str:
+    return "(" + ", ".join(f"{x:.6g}" for x in vector.detach().tolist()) + ")"
+
+
+def _subset(views: Views, index: np.ndarray) -> Views:
+    """The views ``index`` of ``views``."""
+    rows = torch.from_numpy(index)
+    pick = (lambda t: None if t is None else t[rows.to(t.device)])
+    return Views(pick(views.positions), pick(views.directions), tuple(views.frustums[i] for i in index.tolist()))
+
+
+def checked_range(max_range) -> float | None:
+    """``max_range`` as a positive float (None: no crop)."""
+    if max_range is None:
+        return None
+    if isinstance(max_range, bool) or not isinstance(max_range, (int, float, np.floating, np.integer)):
+        raise TypeError(f"max_range must be a number or None, got {type(max_range).__name__}")
+    if not max_range > 0:  # NaN too
+        raise ValueError(f"max_range must be positive, got {max_range}")
+    return float(max_range)
+
+
+def inside_box(positions: Tensor, bounds: tuple[Tensor, Tensor]) -> Tensor:
+    """(V,) bool: which of the (V, 3) positions lie in the box ``bounds``, up to a tolerance."""
+    lo, hi = bounds
+    tol = _INSIDE_TOL * (hi - lo).amax() / 2
+    positions = positions.detach()
+    return ((positions >= lo - tol) & (positions <= hi + tol)).all(dim=1)
+
+
+class RotatedEncoding(NamedTuple):
+    """The U-Net's features of a cloud turned by ``rotation`` and normalised anew.
+
+    A point ``p`` of the field's normalised frame is at ``(rotation @ p - center) / scale``
+    here; ``points`` and ``normals`` are the field's, so mapped, in the field's row order.
+    """
+
+    features: Tensor
+    points: Tensor
+    normals: Tensor | None
+    rotation: Tensor
+    center: Tensor
+    scale: Tensor
+
+    def views(self, cameras: Tensor | None, directions: Tensor | None
+              ) -> tuple[Tensor | None, Tensor | None]:
+        """Normalised cameras or directions of the field, mapped into this frame."""
+        if cameras is not None:
+            return (cameras @ self.rotation.T - self.center) / self.scale, None
+        return None, directions @ self.rotation.T
+
+
+class VisibilityField:
+    """Per-point features of one cloud, answering visibility queries for any views.
+
+    Made by :meth:`NeuralVisibility.encode`. The features are computed once
+    (without autograd); each query runs the per-view predictor only, in
+    batches of views and chunks of points of at most ``chunk_size`` rows.
+    For a flat cloud (``hull``: centre and basis of its plane or line, in the
+    normalised frame), views from off that plane or line see every point.
+    With ``rotated`` encodings (see ``NeuralVisibility(num_rotations=...)``),
+    a probability is the mean of the network's answers in every frame.
+    ``calibration``: the ``(scale, shift)`` that a calibrated network applies
+    to this cloud's margins in every frame (see :mod:`o3dvis.nn.calibration`).
+    ``matmul_dtype``: the dtype of the per-view matrix products when no gradient
+    is asked for (see ``NeuralVisibility(precision=...)``). ``scene``: makes the
+    field of the same cloud that answers the cameras inside its bounding box
+    (encoded with a scene model, on the first such camera); None: this field
+    answers every view.
+
+    The rows of ``features``, ``points_n`` and ``normals`` may be stored in
+    another order than the cloud's (:meth:`NeuralVisibility.encode` sorts them
+    along a Morton curve, which makes the per-view gathers cache-friendly):
+    ``rank[i]`` is then the row of the cloud's point ``i``; None: the same order.
+    Answers always come in the cloud's order.
+    """
+
+    def __init__(self, network: VisibilityNetwork, features: Tensor, points_n: Tensor,
+                 normals: Tensor | None, center: Tensor, scale: Tensor, bounds: tuple[Tensor, Tensor],
+                 chunk_size: int = DEFAULT_CHUNK, hull: tuple[Tensor, Tensor] | None = None,
+                 rank: Tensor | None = None, rotated: Sequence[RotatedEncoding] = (),
+                 calibration: tuple[float, float] | None = None, matmul_dtype: torch.dtype = torch.float32,
+                 scene: Callable[[], "VisibilityField"] | None = None):
+        self.network = network
+        self.features = features
+        self.points_n = points_n
+        self.normals = normals
+        self.center, self.scale = center, scale
+        self.bounds = bounds
+        self.chunk_size = chunk_size
+        self.hull = hull
+        self.rank = rank
+        self.rotated = tuple(rotated)
+        self.calibration = calibration
+        self.matmul_dtype = matmul_dtype
+        self._scene_factory, self._scene = scene, None
+        self._scene_lock = threading.Lock()
+
+    @property
+    def num_points(self) -> int:
+        return self.points_n.shape[0]
+
+    @property
+    def device(self) -> torch.device:
+        return self.points_n.device
+
+    def __repr__(self) -> str:
+        normals = ", with normals" if self.normals is not None else ""
+        frames = f", {1 + len(self.rotated)} frames" if self.rotated else ""
+        return f"VisibilityField({self.num_points} points on {self.device}{normals}{frames})"
+
+    def _normalised(self, views: Views) -> tuple[Tensor | None, Tensor | None]:
+        """(V, 3) cameras or directions of ``views`` in the field's normalised frame."""
+        dtype = self.points_n.dtype
+        if views.directions is not None:
+            return None, views.directions.to(self.device).to(dtype)
+        positions = views.positions.to(self.device)
+        lo, hi = self.bounds
+        tol = _INSIDE_TOL * (hi - lo).amax() / 2  # zero when all points coincide: only they are inside
+        for i in self._inside(views).nonzero()[:, 0].tolist():  # only a camera inside the box can be on a point
+            gap = self._nearest_distance(positions[i].detach())
+            if gap <= tol:
+                raise ValueError(f"camera {i} at {_fmt(positions[i])} lies on a point of the cloud "
+                                 f"(the nearest is {gap:.3g} away); move it off the surface")
+        cameras = ((positions - self.center) / self.scale).to(dtype)
+        if not torch.isfinite(cameras.detach()).all():
+            raise ValueError("a camera is too far from the point cloud to be represented; "
+                             "use direction= for a camera at infinity")
+        return cameras, None
+
+    def _inside(self, views: Views) -> Tensor | None:
+        """(V,) bool: the cameras inside the cloud's bounding box (None for directions)."""
+        return None if views.positions is None else inside_box(views.positions.to(self.device), self.bounds)
+
+    def _scene_field(self) -> "VisibilityField":
+        """The field answering cameras inside the bounding box, encoded on first use (thread-safe)."""
+        with self._scene_lock:
+            if self._scene is None:
+                self._scene = self._scene_factory()
+            return self._scene
+
+    def _parts(self, views: Views) -> list[tuple["VisibilityField", np.ndarray | None, Views]]:
+        """``(field, the views' indices (None: all), those views)``: the cameras inside the bounding box
+        go to the scene field where there is one, the other views stay with this one."""
+        inside = self._inside(views)
+        if self._scene_factory is None or inside is None or not inside.any():
+            return [(self, None, views)]
+        if inside.all():
+            return [(self._scene_field(), None, views)]
+        inside = inside.cpu().numpy()
+        return [(field, index, _subset(views, index)) for field, index in
+                ((self, np.flatnonzero(~inside)), (self._scene_field(), np.flatnonzero(inside)))]
+
+    def _restricted(self, kept: Tensor) -> "VisibilityField":
+        """This field on the stored rows ``kept`` only: they alone occlude and are answered, in that order."""
+        def rows(t: Tensor | None) -> Tensor | None:
+            return None if t is None else t.index_select(0, kept)
+
+        def channels_first(t: Tensor) -> Tensor:  # the layout encode() stores features in
+            return t.t().index_select(1, kept).t()
+
+        rotated = [e._replace(features=channels_first(e.features), points=rows(e.points), normals=rows(e.normals))
+                   for e in self.rotated]
+        return VisibilityField(self.network, channels_first(self.features), rows(self.points_n), rows(self.normals),
+                               self.center, self.scale, self.bounds, self.chunk_size, self.hull, None, rotated,
+                               self.calibration, self.matmul_dtype)
+
+    def _cropped(self, view: Views, max_range: float) -> Tensor:
+        """(1, N) probabilities, in the cloud's order, of one view that sees only the points within
+        ``max_range`` of its camera: the others neither occlude nor are visible."""
+        cameras, _ = self._normalised(view)
+        if cameras is None:
+            raise ValueError("max_range needs camera positions, not viewing directions")
+        reach = (self.points_n - cameras[0].detach()).square().sum(dim=1) <= (max_range / float(self.scale)) ** 2
+        kept = reach.nonzero()[:, 0]
+        probs = self.features.new_zeros(1, self.num_points)
+        if len(kept):
+            near = torch.cat([p for _, p in self._restricted(kept)._batches(view)], dim=1)
+            probs = probs.to(near.dtype).index_put((torch.zeros_like(kept), kept), near[0])
+        return probs if self.rank is None else probs[:, self.rank]
+
+    def _answers(self, views: Views, rows: Tensor | None, max_range: float | None,
+                 finish: Callable[[Tensor], Tensor] | None = None) -> Iterator[tuple[np.ndarray | slice, Tensor]]:
+        """Yields ``(views' indices, (v, M) probabilities)`` of the points ``rows`` (None: all) for
+        every view, each view by its field (see :meth:`_parts`), or ``finish`` of them."""
+        for field, index, part in self._parts(views):
+            if max_range is None:
+                for batch, probs in field._batches(part, rows, finish):
+                    yield (batch if index is None else index[batch]), probs
+                continue
+            for j in range(len(part)):
+                probs = field._cropped(_subset(part, np.array([j])), max_range)
+                probs = probs if rows is None else probs[:, rows]
+                yield (slice(j, j + 1) if index is None else index[j:j + 1]), (probs if finish is None else finish(probs))
+
+    def _nearest_distance(self, position: Tensor) -> float:
+        """The distance from a (3,) position in the cloud's frame to its nearest point: one pass over
+        the points, in chunks (linear in N, the cost of one view's projection)."""
+        camera = ((position - self.center) / self.scale).to(self.points_n.dtype)
+        step = 1 << 20
+        nearest = min(float((self.points_n[a:a + step] - camera).square().sum(dim=1).min())
+                      for a in range(0, self.num_points, step))
+        return float(nearest) ** 0.5 * float(self.scale)
+
+    def _off_the_hull(self, views: Views) -> Tensor | None:
+        """(V,) bool: the views from off the plane or line of a flat cloud (None for a 3-D cloud)."""
+        if self.hull is None:
+            return None
+        centre, basis = self.hull
+        if views.directions is not None:
+            offset, tol = views.directions.detach().to(self.device), _INSIDE_TOL
+        else:
+            lo, hi = self.bounds
+            offset = (views.positions.detach().to(self.device) - self.center) / self.scale - centre
+            tol = _INSIDE_TOL * (hi - lo).amax() / 2 / self.scale
+        return (offset - (offset @ basis.T) @ basis).norm(dim=1) > tol
+
+    def _rows(self, indices) -> Tensor | None:
+        """``indices`` as a checked (M,) long tensor on the field's device (None: all points)."""
+        if indices is None:
+            return None
+        rows = torch.as_tensor(np.asarray(indices) if not isinstance(indices, Tensor) else indices)
+        if rows.numel() == 0:
+            rows = rows.long()
+        if rows.dtype == torch.bool or rows.ndim != 1 or rows.is_floating_point() or rows.is_complex():
+            raise TypeError(f"indices must be a 1-D sequence of integers, got {tuple(rows.shape)} "
+                            f"{rows.dtype}")
+        rows = rows.to(device=self.device, dtype=torch.long)
+        if len(rows) and (int(rows.min()) < 0 or int(rows.max()) >= self.num_points):
+            raise IndexError(f"indices must lie in [0, {self.num_points}), got "
+                             f"{int(rows.min())} .. {int(rows.max())}")
+        return rows
+
+    def _frame_probabilities(self, features: Tensor, points: Tensor, normals: Tensor | None,
+                             cameras: Tensor | None, directions: Tensor | None, batch: slice,
+                             rows: Tensor | None, n: int, workers: int = 1) -> Tensor:
+        """(v, n) probabilities of the views ``batch`` in one frame (features, points and views
+        of that frame), streaming the points ``rows`` (None: all n) in cache-sized chunks, on
+        ``workers`` threads side by side."""
+        projections = [self.network.view(points, None if cameras is None else cameras[i],
+                                         None if directions is None else directions[i])
+                       for i in range(batch.start, batch.stop)]
+        step = min(n, self.chunk_size)
+
+        def chunk_margin(a: int) -> Tensor:
+            chunk = slice(a, a + step) if rows is None else rows[a:a + step]
+            return self.network.view_margin(projections, chunk, features, normals, self.matmul_dtype)
+
+        starts = range(0, n, step)
+        margin = torch.cat(list(threaded_map(chunk_margin, starts, workers) if workers > 1 else
+                                map(chunk_margin, starts)), dim=1)
+        del projections
+        if self.calibration is not None:
+            scale, shift = self.calibration
+            margin.mul_(scale).add_(shift)
+        return torch.sigmoid(margin)
+
+    def _batches(self, views: Views, rows: Tensor | None = None,
+                 finish: Callable[[Tensor], Tensor] | None = None) -> Iterator[tuple[slice, Tensor]]:
+        """Yields ``(views slice, (v, M) probabilities)`` of the points ``rows`` (None: all),
+        with frustum culling applied, or ``finish`` of them (done on the thread that answered
+        the views). Every point occludes, whichever rows are asked for."""
+        cameras, directions = self._normalised(views)
+        clear = self._off_the_hull(views)
+        n, total = self.num_points if rows is None else len(rows), len(views)
+        unsort = None  # the columns, in the cloud's order, of an answer for all stored rows
+        if self.rank is not None:
+            if rows is None:
+                unsort = self.rank
+            else:
+                rows = self.rank[rows]
+        if n == 0:
+            empty = self.features.new_zeros(total, 0)
+            yield slice(0, total), empty if finish is None else finish(empty)
+            return
+        asked = self.points_n if rows is None else self.points_n[rows]
+        frames = [(self.features, self.points_n, self.normals, cameras, directions)] + [
+            (e.features, e.points, e.normals, *e.views(cameras, directions)) for e in self.rotated]
+        per_batch = max(1, self.chunk_size // n)
+        batches = [slice(start, min(total, start + per_batch)) for start in range(0, total, per_batch)]
+
+        def answer(batch: slice, workers: int = 1) -> Tensor:
+            probs = self._frame_probabilities(*frames[0], batch, rows, n, workers)
+            if frames[1:]:  # the mean over the frames
+                for frame in frames[1:]:
+                    probs = probs + self._frame_probabilities(*frame, batch, rows, n, workers)
+                probs = probs / len(frames)
+            if clear is not None:  # a flat cloud seen from off its plane or line hides nothing
+                probs = torch.where(clear[batch, None], torch.ones_like(probs), probs)
+            masks = [(j, f.contains(asked, self.center, self.scale))
+                     for j, f in enumerate(views.frustums[batch]) if f is not None]
+            if masks:
+                keep = torch.ones_like(probs, dtype=torch.bool)
+                for j, mask in masks:
+                    keep[j] = mask
+                probs = probs * keep
+            probs = probs if unsort is None else torch.gather(probs, 1, unsort.expand(len(probs), -1))
+            return probs if finish is None else finish(probs)
+
+        # Views side by side on the CPU's threads, each on one: per-view ops are many and small, and
+        # the C kernels (o3dvis.nn.native) run on one thread each. Without the kernels, a view of at
+        # most one chunk of points is a few large torch ops that split well over the threads, and
+        # is left to them. A single batch of views has its chunks side by side instead.
+        threads = torch.get_num_threads()
+        free = threads > 1 and self.device.type == "cpu" and not torch.is_grad_enabled()
+        if free and len(batches) == 1 and n > self.chunk_size:
+            torch.set_num_threads(1)  # no OpenMP team of the caller's to spin beside the workers
+            try:
+                result = answer(batches[0], threads)
+            finally:
+                torch.set_num_threads(threads)
+            yield batches[0], result
+            return
+        workers = min(threads, len(batches))
+        parallel = free and workers > 1 and (n > self.chunk_size or native.usable(self.features))
+        yield from zip(batches, threaded_map(answer, batches, workers) if parallel else map(answer, batches))
+
+    def probabilities(self, cameras=None, direction=None, *, frustum: bool = True,
+                      indices=None, max_range: float | None = None) -> Tensor:
+        """Probability that each point is visible from each view.
+
+        Differentiable with respect to camera positions (or directions) given
+        as a torch tensor with ``requires_grad``; the point features are fixed.
+        Without such a tensor the computation runs under ``torch.inference_mode``.
+
+        Args:
+            cameras: camera positions, (3,) or (V, 3), as list, tuple, numpy,
+                torch or ``o3d.core.Tensor``; or ``o3d.camera.PinholeCameraParameters``,
+                a list of them, or a ``PinholeCameraTrajectory``.
+            direction: instead of ``cameras``, (3,) or (V, 3) viewing directions
+                (from the camera into the scene) of orthographic views.
+            frustum: for pinhole cameras with an image size, points that project
+                outside the image or lie behind the camera get probability 0.
+            indices: predict only these points (every point still occludes);
+                None: all points. Costs in proportion to their number.
+            max_range: only the points within this distance of a camera are seen
+                by it: the others get probability 0 and hide nothing (a range crop,
+                as a LiDAR's); None: no limit. Camera positions only.
+
+        Returns:
+            (V, N) float tensor on the field's device, (V, len(indices)) with ``indices``.
+
+        Raises:
+            ValueError: a camera on a point of the cloud, NaN/Inf, bad shapes,
+                both or neither of cameras and direction, a max_range that is not
+                positive or given with directions.
+            TypeError: cameras that are not real numbers, or indices that are not integers.
+            IndexError: an index out of range.
+        """
+        views = as_views(cameras, direction, frustum=frustum)
+        rows, max_range = self._rows(indices), checked_range(max_range)
+        given = views.positions if views.positions is not None else views.directions
+        grad = torch.is_grad_enabled() and given.requires_grad
+        with contextlib.nullcontext() if grad else torch.inference_mode():
+            parts = list(self._answers(views, rows, max_range))
+            probs = torch.cat([p for _, p in parts])
+            if all(isinstance(index, slice) for index, _ in parts):  # in the views' order already
+                return probs
+            order = np.concatenate([np.arange(len(views))[index] for index, _ in parts])
+            return probs[torch.from_numpy(np.argsort(order)).to(probs.device)]
+
+    def query(self, cameras=None, direction=None, threshold: float = 0.5, *,
+              frustum: bool = True, indices=None, max_range: float | None = None) -> np.ndarray:
+        """Which points each view sees.
+
+        Args:
+            cameras: camera positions or pinhole cameras, as in :meth:`probabilities`.
+            direction: instead of ``cameras``, viewing directions of orthographic views.
+            threshold: a point is visible when its probability exceeds this, in [0, 1].
+            frustum: cull points outside the image of pinhole cameras with an image size.
+            indices: answer only for these points, as in :meth:`probabilities`.
+            max_range: points farther from a camera are not visible from it and
+                hide nothing, as in :meth:`probabilities`.
+
+        Returns:
+            (V, N) bool numpy array, (V, len(indices)) with ``indices``.
+
+        Raises:
+            ValueError: as :meth:`probabilities`, or a threshold outside [0, 1].
+            TypeError, IndexError: bad ``indices``, as in :meth:`probabilities`.
+        """
+        if isinstance(threshold, bool) or not isinstance(threshold, (int, float, np.floating, np.integer)):
+            raise TypeError(f"threshold must be a number, got {type(threshold).__name__}")
+        if not 0 <= threshold <= 1:
+            raise ValueError(f"threshold must be in [0, 1], got {threshold}")
+        views = as_views(cameras, direction, frustum=frustum)
+        rows, max_range = self._rows(indices), checked_range(max_range)
+        out = np.empty((len(views), self.num_points if rows is None else len(rows)), dtype=bool)
+        with torch.inference_mode():
+            # thresholded on the threads that answer: an op here, on the caller's thread, would wake
+            # the caller's OpenMP threads, which then spin for a while on the cores the workers use
+            for batch, visible in self._answers(views, rows, max_range, lambda probs: (probs > threshold).cpu()):
+                out[batch] = visible.numpy()
+        return out

@@ -1,4 +1,4 @@
-"""Point cloud inputs: legacy and tensor Open3D clouds, numpy and torch arrays."""
+"""Point cloud inputs and conversions: legacy and tensor Open3D clouds, numpy and torch arrays."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ from torch import Tensor
 
 from .cameras import as_vectors
 
-__all__ = ["cloud_arrays", "cloud_device", "unit_normals", "diagonal"]
+__all__ = ["cloud_arrays", "cloud_points", "cloud_normals", "set_cloud_normals", "legacy_cloud",
+           "cloud_device", "unit_normals", "diagonal"]
 
 
 def cloud_arrays(pcd) -> tuple[Tensor, Tensor | None]:
@@ -49,6 +50,39 @@ def cloud_arrays(pcd) -> tuple[Tensor, Tensor | None]:
         raise ValueError("point cloud is empty")
     points = as_vectors(points, "points")
     return points, None if normals is None else as_vectors(normals, "normals").to(points.device)
+
+
+def cloud_points(pcd) -> np.ndarray:
+    """The (N, 3) float64 numpy points of a cloud (see :func:`cloud_arrays`)."""
+    return cloud_arrays(pcd)[0].cpu().numpy()
+
+
+def legacy_cloud(pcd) -> o3d.geometry.PointCloud:
+    """The legacy PointCloud of a legacy or tensor one."""
+    if isinstance(pcd, o3d.t.geometry.PointCloud):
+        return pcd.to_legacy()
+    if isinstance(pcd, o3d.geometry.PointCloud):
+        return pcd
+    raise TypeError(f"expected an open3d PointCloud, got {type(pcd).__name__}")
+
+
+def cloud_normals(pcd) -> np.ndarray | None:
+    """The cloud's (N, 3) float64 normals, None when it has none; TypeError for anything but a PointCloud."""
+    if isinstance(pcd, o3d.geometry.PointCloud):
+        return np.asarray(pcd.normals) if pcd.has_normals() else None
+    if isinstance(pcd, o3d.t.geometry.PointCloud):
+        return pcd.point.normals.numpy().astype(np.float64) if "normals" in pcd.point else None
+    raise TypeError(f"expected an open3d PointCloud, got {type(pcd).__name__}")
+
+
+def set_cloud_normals(pcd, normals: np.ndarray) -> None:
+    """Sets the normals of a legacy or tensor cloud (in the dtype of a tensor cloud's positions)."""
+    if isinstance(pcd, o3d.geometry.PointCloud):
+        pcd.normals = o3d.utility.Vector3dVector(normals)
+    else:
+        dtype = pcd.point.positions.dtype
+        pcd.point.normals = o3d.core.Tensor(normals.astype(np.float32 if dtype == o3d.core.float32
+                                                           else np.float64))
 
 
 def unit_normals(normals, num_points: int) -> Tensor:

@@ -11,7 +11,7 @@ import numpy as np
 import open3d as o3d
 import torch
 
-from .cameras import as_vectors, as_views
+from .cameras import as_camera_location, as_views
 from .clouds import cloud_arrays, cloud_device
 from .field import checked_range
 from .models import torch_device
@@ -101,11 +101,8 @@ def hidden_point_removal_neural(pcd, camera_location, radius: float | None = Non
     """
     if not isinstance(pcd, (o3d.geometry.PointCloud, o3d.t.geometry.PointCloud)):
         raise TypeError(f"pcd must be an Open3D PointCloud (legacy or tensor), got {type(pcd).__name__}")
-    camera = as_vectors(camera_location, "camera_location")
-    if camera.shape[0] != 1:
-        raise ValueError(f"camera_location must be one position of shape (3,), got {tuple(camera.shape)}")
-    index = _visible_indices(pcd, camera[0], None, threshold, model, device, None, max_range=max_range)
-    eye = camera[0].detach().cpu().numpy()
+    eye = as_camera_location(camera_location)
+    index = _visible_indices(pcd, eye, None, threshold, model, device, None, max_range=max_range)
     if isinstance(pcd, o3d.geometry.PointCloud):
         vertices = np.asarray(pcd.points)[index]
         mesh = o3d.geometry.TriangleMesh()

@@ -3,7 +3,7 @@ shadows, best views and headless renders. Each takes the visibility method as ``
 (default: the pretrained neural network; see :mod:`o3dvis.methods`).
 """
 
-from .camera import View, fibonacci_sphere, make_view
+from ..cameras import View, fibonacci_sphere, make_view
 from ..methods import ground_truth_method, resolve_method
 from .normals import estimate_normals_neural, orient_normals_neural
 from .reconstruction import reconstruct_poisson, reconstruct_view_dependent

@@ -26,7 +26,8 @@ from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
 from ..baselines import distinct_points
-from .camera import cloud_points, viewpoints_around
+from ..cameras import viewpoints_around
+from ..clouds import cloud_normals, cloud_points, set_cloud_normals
 from ..methods import resolve_method
 from .triangulation import DEFAULT_EDGE_FACTOR, facing_triangles, local_spacing
 
@@ -37,24 +38,6 @@ _FIT_NEIGHBOURS = 16  # neighbours of the plane fitted where no triangle gives a
 _GRAPH_NEIGHBOURS = 10  # neighbours of a point in the graph that propagates orientation
 _CHUNK = 4096  # rows of neighbourhoods handled at once
 _BIT_COUNT = np.array([bin(byte).count("1") for byte in range(256)], dtype=np.uint8)
-
-
-def _get_normals(pcd) -> np.ndarray | None:
-    """The cloud's normals, None when it has none; TypeError for anything but a PointCloud."""
-    if isinstance(pcd, o3d.geometry.PointCloud):
-        return np.asarray(pcd.normals) if pcd.has_normals() else None
-    if isinstance(pcd, o3d.t.geometry.PointCloud):
-        return pcd.point.normals.numpy().astype(np.float64) if "normals" in pcd.point else None
-    raise TypeError(f"expected an open3d PointCloud, got {type(pcd).__name__}")
-
-
-def _set_normals(pcd, normals: np.ndarray) -> None:
-    if isinstance(pcd, o3d.geometry.PointCloud):
-        pcd.normals = o3d.utility.Vector3dVector(normals)
-    else:
-        dtype = pcd.point.positions.dtype
-        pcd.point.normals = o3d.core.Tensor(normals.astype(np.float32 if dtype == o3d.core.float32
-                                                           else np.float64))
 
 
 def _add_triangle_normals(total: np.ndarray, points: np.ndarray, cameras: np.ndarray,
@@ -362,8 +345,8 @@ def estimate_normals_neural(pcd, num_views: int = 26, method=None, *, refine_vie
         ``pcd``, with unit normals set.
     """
     points = cloud_points(pcd)
-    _get_normals(pcd)  # only clouds can take normals
-    _set_normals(pcd, multiview_normals(points, method, num_views, refine_views, edge_factor, progress,
+    cloud_normals(pcd)  # only clouds can take normals
+    set_cloud_normals(pcd, multiview_normals(points, method, num_views, refine_views, edge_factor, progress,
                                         search_param))
     return pcd
 
@@ -406,14 +389,14 @@ def orient_normals_neural(pcd, num_views: int = 26, method=None, *, refine_views
         ``pcd``, with its normals oriented in place.
     """
     points = cloud_points(pcd)
-    normals = _get_normals(pcd)
+    normals = cloud_normals(pcd)
     if normals is None or len(normals) != len(points):
         raise ValueError("the point cloud has no normals to orient: call estimate_normals first")
     _check_views(num_views, refine_views)
     method = resolve_method(method)
     cameras = viewpoints_around(points, num_views)
     normals = np.array(normals, dtype=np.float64)
-    _set_normals(pcd, _orient(points, normals, np.ones(len(points), dtype=bool), method, cameras,
+    set_cloud_normals(pcd, _orient(points, normals, np.ones(len(points), dtype=bool), method, cameras,
                               method(points, cameras), refine_views, None))
     return pcd
 

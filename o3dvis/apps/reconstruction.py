@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
-from .camera import camera_location_of, cloud_points, legacy_cloud
+from ..cameras import camera_location_of
+from ..clouds import cloud_points, legacy_cloud
 from ..methods import resolve_method
 from .normals import estimate_normals_neural
 from .triangulation import DEFAULT_EDGE_FACTOR, local_spacing, visible_triangles

@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
-from .camera import View, cloud_points, legacy_cloud, make_view
+from ..cameras import View, make_view
+from ..clouds import cloud_points, legacy_cloud
 from ..methods import resolve_method
 from .triangulation import local_spacing
 

@@ -11,7 +11,8 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
-from .camera import as_camera_location, cloud_points, legacy_cloud, make_view
+from ..cameras import as_camera_location, make_view
+from ..clouds import cloud_points, legacy_cloud
 from ..methods import resolve_method
 from .render import image_from, lambert, rasterize, splat, splat_size
 from .triangulation import DEFAULT_EDGE_FACTOR, local_spacing, visible_triangles
@@ -24,7 +25,7 @@ def shadow_map(pcd, light, resolution: int = 512, method=None, *,
     """The depth image of the surface a point light sees.
 
     The light is a pinhole at ``light`` looking at the bounding-box centre,
-    framed to the cloud (:func:`o3dvis.apps.camera.make_view` with
+    framed to the cloud (:func:`o3dvis.cameras.make_view` with
     ``width = height = resolution``). Points visible from the light are
     triangulated in its image plane (long triangles dropped) and their depth
     interpolated linearly inside each triangle.

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .camera import cloud_points, fibonacci_sphere
+from ..cameras import fibonacci_sphere
+from ..clouds import cloud_points
 from ..methods import resolve_soft_method
 
 __all__ = ["best_view"]

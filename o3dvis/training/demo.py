@@ -22,9 +22,9 @@ import numpy as np
 import open3d as o3d
 
 from .._optional import figure_class
-from ..apps.camera import View, make_view
 from ..apps.render import image_from, lambert, splat, splat_size
 from ..baselines import SWEEPS, hpr_method
+from ..cameras import View, as_camera_location, make_view
 from ..methods import NeuralMethod, ground_truth_method
 from .data.prepare import sample_surface
 from .data.shapes import random_shape
@@ -264,8 +264,6 @@ def run_demo(out_dir: str | Path = "o3dvis-demo", num_points: int = 20_000, came
         ImportError: where matplotlib (the ``demo`` extra) is not installed, before any work.
     """
     from tqdm import tqdm
-
-    from ..apps.camera import as_camera_location
 
     figure_class("the demo's figure")
     pcd, mesh = demo_sample(num_points)

@@ -7,7 +7,7 @@ import torch.nn.functional as F
 
 from o3dvis.nn import (NetworkConfig, Octree, OctreeConv, OctreeDownsample, OctreeUpsample,
                        VisibilityNetwork, ViewEmbedding, VisibilityPredictor, morton_decode, morton_encode,
-                       morton_order, noise_cues, normalize_points, octree_interpolate, view_cues)
+                       morton_order, noise_cues, normalize_points, view_cues)
 from o3dvis.nn.cues import ViewProjection
 from o3dvis.nn import octree as octree_module
 
@@ -129,17 +129,6 @@ def test_conv_gradcheck():
         lambda a, w: torch.func.functional_call(conv, {"weight": w}, (a, o, 3)), (x, w))
 
 
-def test_interpolation_is_convex_and_exact_at_centres():
-    o, _ = _full_grid_octree(3)
-    feats = o.coords(3).double()  # linear field: interpolation must reproduce it inside
-    centres = (feats + 0.5) / 8 * 2 - 1
-    out = octree_interpolate(feats, o, centres, torch.zeros(len(centres), dtype=torch.long))
-    torch.testing.assert_close(out, feats)
-    mid = torch.tensor([[0.01, 0.02, -0.03]], dtype=torch.float64)
-    got = octree_interpolate(feats, o, mid, torch.zeros(1, dtype=torch.long))
-    torch.testing.assert_close(got, (mid + 1) / 2 * 8 - 0.5)
-
-
 @pytest.mark.parametrize("frequencies", [0, 1, 6])
 @pytest.mark.parametrize("grad", [False, True])
 def test_embedding_matches_direct_sinusoids(frequencies, grad):
@@ -168,18 +157,15 @@ def test_predictor_equals_the_plain_mlp_on_the_concatenation(grad):
                                    pred.mlp(torch.cat([projected * emb[0], cues[0].expand(2, -1, -1)], dim=-1)))
 
 
-@pytest.mark.parametrize("interpolation", ["nearest", "trilinear"])
-def test_encode_projects_per_leaf_as_the_linear_layer_does_per_point(interpolation):
+def test_encode_projects_per_leaf_as_the_linear_layer_does_per_point():
     torch.manual_seed(0)
-    net = VisibilityNetwork(NetworkConfig(depth=6, interpolation=interpolation)).double().eval()
+    net = VisibilityNetwork(NetworkConfig(depth=6)).double().eval()
     pn, _, _ = normalize_points(_sphere_with_bump().double())
     with torch.no_grad():
         octree = net.octree(pn)
         batch = torch.zeros(len(pn), dtype=torch.long)
         leaf = net.unet(net._signal(pn, batch, octree, None), octree)
-        per_point = (octree_interpolate(leaf, octree, pn, batch) if interpolation == "trilinear"
-                     else leaf[octree.point_leaf])
-        expected = net.predictor.project_feature(torch.cat([per_point, pn], dim=1))
+        expected = net.predictor.project_feature(torch.cat([leaf[octree.point_leaf], pn], dim=1))
         torch.testing.assert_close(net.encode(pn), expected)
 
 
@@ -201,82 +187,23 @@ def test_view_cues_flag_the_far_side_of_a_sphere():
     assert (cues == -5.0).any()
 
 
-@pytest.mark.parametrize("planes", [False, True])
-def test_view_cues_same_in_chunks_and_with_or_without_autograd(planes, torch_ops):
+def test_view_cues_same_in_chunks_and_with_or_without_autograd(torch_ops):
     torch.manual_seed(0)
     p = torch.nn.functional.normalize(torch.randn(5000, 3), dim=1) * torch.rand(5000, 1)
     cam = torch.tensor([2.0, 1.0, -0.5], requires_grad=True)
-    view = ViewProjection(p, cam, planes=planes)
+    view = ViewProjection(p, cam)
     full = view.cues()
-    assert full.shape == (5000, 40 if planes else 36)
+    assert full.shape == (5000, 36)
     full.sum().backward()  # the autograd path is differentiable end to end
     assert torch.isfinite(cam.grad).all()
     with torch.inference_mode():  # the in-place path
-        fast = ViewProjection(p, cam.detach(), planes=planes)
+        fast = ViewProjection(p, cam.detach())
         chunks = torch.cat([fast.cues(slice(a, a + 1234)) for a in range(0, 5000, 1234)])
-    # the plane cues sum their terms in another order on the two paths (float32 rounding)
-    torch.testing.assert_close(chunks, full.detach(), atol=1e-3 if planes else 1e-5, rtol=0)
+    torch.testing.assert_close(chunks, full.detach(), atol=1e-5, rtol=0)
     # an empty neighbour pixel gives exactly the empty cue on both paths (the in-place path maps it
     # to a residual beyond the clamp, whose asinh is that cue, so that no NaN reaches the asinh)
     empty = full.detach() == -5.0
     assert empty.any() and torch.equal(chunks == -5.0, empty)
-    if planes:  # the residual cues are those of the model without planes
-        torch.testing.assert_close(chunks[:, :36], ViewProjection(p, cam.detach()).cues().detach(), atol=1e-5, rtol=0)
-
-
-def _best_threshold_accuracy(score, positive):
-    """Accuracy of the best rule ``score > t`` for ``positive``."""
-    order = torch.argsort(score)
-    pos = positive[order].float()
-    below_neg, below_pos = torch.cumsum(1 - pos, 0), torch.cumsum(pos, 0)
-    return ((below_neg + pos.sum() - below_pos) / len(pos)).max().item()
-
-
-@pytest.mark.parametrize("view", [{"direction": torch.tensor([0.0, 0.0, -1.0])},
-                                  {"camera": torch.tensor([0.2, 0.1, 4.0])}])
-def test_plane_cues_tell_a_point_just_behind_a_sloped_surface(view):
-    """Points a third of a pixel's depth slope behind a tilted plane: their residual to the
-    pixel's nearest point overlaps the front points' (which lie up-slope of it), their residual
-    to the fitted plane does not."""
-    g = torch.Generator().manual_seed(0)
-    xy = torch.rand(8000, 2, generator=g) * 2 - 1
-    z = 0.4 * xy[:, 0] + 0.3 * xy[:, 1] - 0.004 * (torch.arange(8000) >= 4000)
-    behind = torch.arange(8000) >= 4000
-    _, cues = view_cues(torch.cat([xy, z[:, None]], dim=1), planes=True, **view)
-    assert cues.shape == (8000, 40)
-    for s in range(4):  # the own pixel's residual, every scale
-        assert _best_threshold_accuracy(cues[:, 9 * s + 4], behind) < 0.65
-    for s in range(2):  # the plane residual at the two finest scales
-        assert _best_threshold_accuracy(cues[:, 36 + s], behind) > 0.93
-    assert cues[behind, 37].median() > cues[~behind, 37].median() + 0.05
-
-
-def test_fit_planes_is_exact_on_a_plane_and_flat_through_a_lone_point(monkeypatch):
-    from o3dvis.nn import cues as cues_module
-
-    g = torch.Generator().manual_seed(1)
-    res, pixel = 12, 0.5
-    offsets = torch.rand(res, res, 2, generator=g, dtype=torch.float64) - 0.5
-    centre = torch.arange(res, dtype=torch.float64) + 0.5
-    u = (centre[:, None] + offsets[..., 0]) * pixel  # image positions of the nearest points
-    v = (centre[None, :] + offsets[..., 1]) * pixel
-    zbuf = 3.0 + 0.7 * u - 0.2 * v
-    zbuf[5, 7] = float("inf")  # an empty pixel
-    monkeypatch.setattr(cues_module, "_RIDGE", 0.0)
-    planes = cues_module._fit_planes(zbuf, offsets, torch.tensor(3.0, dtype=torch.float64),
-                                     torch.tensor(pixel, dtype=torch.float64)).view(res, res, 3)
-    filled = torch.isfinite(zbuf)
-    torch.testing.assert_close(planes[..., 1][filled], torch.full((res * res - 1,), 0.7, dtype=torch.float64))
-    torch.testing.assert_close(planes[..., 2][filled], torch.full((res * res - 1,), -0.2, dtype=torch.float64))
-    at = planes[..., 0] + planes[..., 1] * u + planes[..., 2] * v
-    torch.testing.assert_close(at[filled], zbuf[filled])
-    monkeypatch.undo()  # with the ridge, a point alone in its neighbourhood gets a flat plane through it
-    lone = torch.full((5, 5), float("inf"), dtype=torch.float64)
-    lone[2, 2] = 2.0
-    plane = cues_module._fit_planes(lone, offsets[:5, :5], torch.tensor(1.0, dtype=torch.float64),
-                                    torch.tensor(pixel, dtype=torch.float64)).view(5, 5, 3)[2, 2]
-    assert plane[1] == 0 and plane[2] == 0
-    torch.testing.assert_close(plane[0], torch.tensor(2.0, dtype=torch.float64))
 
 
 def test_patch_table_rows_are_the_3x3_depth_neighbourhoods_of_the_pixels():
@@ -309,12 +236,10 @@ def _sphere_with_bump(n=3000, seed=0):
     return p * (1 + 0.3 * (p[:, :1] > 0.7))
 
 
-@pytest.mark.parametrize("use_normals, with_noise_cues, planes",
-                         [(False, False, False), (True, False, False), (False, True, False), (False, False, True)])
-def test_network_invariant_to_order_translation_and_scale(use_normals, with_noise_cues, planes):
+@pytest.mark.parametrize("use_normals, with_noise_cues", [(False, False), (True, False), (False, True)])
+def test_network_invariant_to_order_translation_and_scale(use_normals, with_noise_cues):
     torch.manual_seed(0)
-    net = VisibilityNetwork(NetworkConfig(depth=6, use_normals=use_normals, noise_cues=with_noise_cues,
-                                          plane_cues=planes)).eval()
+    net = VisibilityNetwork(NetworkConfig(depth=6, use_normals=use_normals, noise_cues=with_noise_cues)).eval()
     pts = _sphere_with_bump().double()
     normals = torch.nn.functional.normalize(pts, dim=1).float() if use_normals else None
     cam = torch.tensor([2.5, 1.0, 0.5], dtype=torch.float64)
@@ -343,6 +268,16 @@ def test_gradient_reaches_camera_and_all_parameters():
     net.predict(f, pn, cam).log_softmax(1)[:, 1].sum().backward()
     assert cam.grad is not None and torch.isfinite(cam.grad).all() and cam.grad.abs().sum() > 0
     assert all(p.grad is not None for p in net.parameters())
+
+
+def test_config_reads_retired_options_at_their_one_value():
+    """Checkpoints of earlier versions name interpolation, plane_cues and extra: at the value every
+    shipped model has they are read and dropped; any other value is refused, not ignored."""
+    old = {"depth": 6, "interpolation": "nearest", "plane_cues": False, "extra": {}}
+    assert NetworkConfig.from_dict(old) == NetworkConfig(depth=6)
+    for key, value in (("interpolation", "trilinear"), ("plane_cues", True), ("extra", {"a": 1})):
+        with pytest.raises(ValueError, match=key):
+            NetworkConfig.from_dict({**old, key: value})
 
 
 def test_checkpoint_roundtrip(tmp_path):
@@ -376,39 +311,8 @@ def test_training_smoke_loss_falls(tmp_path):
     assert len(losses) == 8 and np.mean(losses[-2:]) < 0.8 * np.mean(losses[:2])
 
 
-def test_teacher_targets_and_the_mixed_loss():
-    """A one-frame teacher gives the network's own probabilities, cloud by cloud and in the
-    batch's row order; the mixed target's loss is the mix of the two cross-entropies."""
-    from o3dvis.training.data.dataset import Batch
-    from o3dvis.training.train import _Encoder, batch_loss, teacher_targets
-    from o3dvis.neural import NeuralVisibility
-
-    torch.manual_seed(0)
-    net = VisibilityNetwork(NetworkConfig(depth=6)).eval()
-    clouds = [normalize_points(_sphere_with_bump(n, seed=s).double())[0].float() for n, s in ((900, 1), (1300, 2))]
-    cams = [torch.tensor([[2.5, 1.0, 0.5], [-0.3, 2.2, 1.0]]), torch.tensor([[0.2, -2.4, 1.1]])]
-    labels = [torch.rand(len(c), len(p)) > 0.5 for c, p in zip(cams, clouds)]
-    sizes = [len(p) for p in clouds]
-    batch = Batch(torch.cat(clouds), torch.zeros(sum(sizes), 3),
-                  torch.cat([torch.full((n,), i) for i, n in enumerate(sizes)]), cams, labels, sizes)
-    with torch.no_grad():
-        targets = teacher_targets(NeuralVisibility(net, precision="float32"), batch, use_normals=False)
-        for p, c, t in zip(clouds, cams, targets):
-            own = torch.stack([net.predict(net.encode(p), p, cam).softmax(dim=1)[:, 1] for cam in c])
-            torch.testing.assert_close(t, own, atol=1e-5, rtol=1e-5)
-        model = _Encoder(net)
-        plain, acc = batch_loss(model, batch, False)
-        soft, _ = batch_loss(model, batch, False, targets, weight=1.0)
-        mixed, acc_mixed = batch_loss(model, batch, False, targets, weight=0.25)
-    assert acc == acc_mixed
-    torch.testing.assert_close(mixed, 0.75 * plain + 0.25 * soft)
-    assert soft < plain  # the network's own answers are closer to it than random labels
-
-
-@pytest.mark.parametrize("added", [{"use_normals": True}, {"noise_cues": True}, {"plane_cues": True}])
+@pytest.mark.parametrize("added", [{"use_normals": True}, {"noise_cues": True}])
 def test_warm_start_with_added_inputs_keeps_the_function(added, torch_ops):
-    # the torch ops on both sides: the plane cues' projection has no C kernel, whose pixels can
-    # differ at the borders by float32 rounding, which these untrained weights blow up
     from o3dvis.training.train import warm_start
 
     torch.manual_seed(0)

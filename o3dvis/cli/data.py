@@ -47,7 +47,7 @@ def _train(args) -> int:
 
     if args.threads:
         torch.set_num_threads(args.threads)
-    network = {"use_normals": args.normals, "noise_cues": args.noise_cues, "plane_cues": args.plane_cues}
+    network = {"use_normals": args.normals, "noise_cues": args.noise_cues}
     if args.depth:
         network["depth"] = args.depth
     if args.channels:
@@ -57,8 +57,7 @@ def _train(args) -> int:
     cfg = TrainConfig(
         data=args.data, out=args.out, val=args.val, steps=args.steps, batch_size=args.batch_size,
         lr=args.lr, val_every=args.val_every, workers=args.workers, seed=args.seed, device=args.device,
-        network=network, init=args.init, teacher=args.teacher, teacher_rotations=args.teacher_rotations,
-        teacher_weight=args.teacher_weight,
+        network=network, init=args.init,
         augmentation={"min_points": args.min_points, "max_points": args.max_points,
                       "views": args.views, "noise": args.noise, "noise_prob": args.noise_prob})
     best = train(cfg)
@@ -147,9 +146,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--normals", action="store_true", help="train a model that takes normals")
     p.add_argument("--noise-cues", action="store_true",
                    help="the U-Net also reads two per-cloud noise statistics (o3dvis.nn.noise)")
-    p.add_argument("--plane-cues", action="store_true",
-                   help="the predictor also reads each point's depth residual to a plane fitted to "
-                        "the nearest points around its pixel, at every scale (o3dvis.nn.cues)")
     p.add_argument("--depth", type=int, help="octree depth (default: the network's)")
     p.add_argument("--channels", type=positive_ints, help="comma-separated stage widths")
     p.add_argument("--frequencies", type=int, help="view-embedding frequencies (default: the network's)")
@@ -158,11 +154,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default="cpu", help="torch device, e.g. cuda (default: cpu)")
     p.add_argument("--seed", type=int, default=0, help="seed of the network and the sampling (default 0)")
     p.add_argument("--init", help="start from this checkpoint (extra input channels start at zero)")
-    p.add_argument("--teacher", help="also learn this checkpoint's answers, averaged over rotations")
-    p.add_argument("--teacher-rotations", type=int, default=4,
-                   help="rotations the teacher averages over (default 4)")
-    p.add_argument("--teacher-weight", type=float, default=0.5,
-                   help="share of the teacher's probability in each target, the rest the label (default 0.5)")
     p.set_defaults(func=_train)
 
     p = sub.add_parser("calibrate", help="fit a trained network's per-cloud calibration", formatter_class=fmt,

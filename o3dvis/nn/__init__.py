@@ -3,7 +3,7 @@
 Nothing in this package imports Open3D.
 """
 
-from .conv import OctreeConv, OctreeDownsample, OctreeUpsample, octree_interpolate
+from .conv import OctreeConv, OctreeDownsample, OctreeUpsample
 from .cues import view_cues
 from .network import NetworkConfig, VisibilityNetwork
 from .noise import noise_cues
@@ -12,6 +12,6 @@ from .predictor import ViewEmbedding, VisibilityPredictor
 from .unet import OctreeUNet
 
 __all__ = ["Octree", "morton_encode", "morton_decode", "morton_order", "normalize_points", "OctreeConv",
-           "OctreeDownsample", "OctreeUpsample", "octree_interpolate", "OctreeUNet",
+           "OctreeDownsample", "OctreeUpsample", "OctreeUNet",
            "ViewEmbedding", "VisibilityPredictor", "view_cues", "noise_cues", "NetworkConfig",
            "VisibilityNetwork"]

@@ -13,8 +13,7 @@ from torch import Tensor, nn
 
 from .octree import Octree
 
-__all__ = ["OctreeConv", "OctreeDownsample", "OctreeUpsample", "ConvBnRelu", "ResBlock",
-           "octree_interpolate", "gather_rows"]
+__all__ = ["OctreeConv", "OctreeDownsample", "OctreeUpsample", "ConvBnRelu", "ResBlock", "gather_rows"]
 
 
 def _pad(x: Tensor) -> Tensor:
@@ -111,31 +110,3 @@ class ResBlock(nn.Module):
 
     def forward(self, x: Tensor, octree: Octree, level: int) -> Tensor:
         return torch.relu(x + self.b(self.a(x, octree, level), octree, level))
-
-
-def octree_interpolate(features: Tensor, octree: Octree, points: Tensor, batch: Tensor) -> Tensor:
-    """Trilinear interpolation of finest-level node features at the points.
-
-    Corners without a node get no weight; the point's own node always has some,
-    so every point receives a convex combination of existing features.
-
-    Args:
-        features: (n, C) features of the nodes at ``octree.depth``.
-        points: (N, 3) points in [-1, 1]^3.
-        batch: (N,) batch index of each point.
-
-    Returns:
-        (N, C) features.
-    """
-    res = 1 << octree.depth
-    grid = (points + 1) * (res / 2) - 0.5
-    base = grid.floor()
-    frac = grid - base
-    corners = torch.tensor([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], device=points.device)
-    xyz = base.long()[:, None, :] + corners[None]
-    idx = octree.lookup(octree.depth, xyz, batch[:, None].expand(-1, 8))
-    w = torch.where(corners[None].bool(), frac[:, None, :], 1 - frac[:, None, :]).prod(dim=-1)
-    w = torch.where(idx >= 0, w, torch.zeros_like(w))
-    w = w / w.sum(dim=1, keepdim=True)
-    gathered = gather_rows(_pad(features), torch.where(idx < 0, torch.full_like(idx, features.shape[0]), idx))
-    return (gathered * w[..., None]).sum(dim=1)

@@ -6,13 +6,8 @@ direction) and a min-depth buffer is built at several resolutions with a
 scatter-min. A point's depth residuals to the 3x3 pixels around its own,
 measured in pixel footprints, show whether it lies behind the nearest surface
 or on it (a sloped surface has residuals that change across the patch); the
-network learns which scale to trust. Optionally (``planes``) a plane is also
-fitted to the nearest points of each pixel's 3x3 neighbourhood, at their exact
-image positions, and a point's depth residual to the plane of its pixel is one
-more cue per scale: it tells a point just behind a sloped front surface from
-one on it, which a pixel's minimum depth alone cannot at sub-pixel distances
-(two walls closer than a pixel). The cost is linear in the number of points
-and has no parameter to tune.
+network learns which scale to trust. The cost is linear in the number of
+points and has no parameter to tune.
 """
 
 from __future__ import annotations
@@ -52,11 +47,9 @@ def _asinh_(x: Tensor) -> Tensor:
     return torch.mul(a, a).add_(1).sqrt_().add_(a.sub_(1)).log1p_().copysign_(x)
 
 
-_RIDGE = 0.1  # pulls the slope of a plane fitted to fewer than 3 pixels' points towards flat
-
-
-def num_cues(scales: Sequence[int] = DEFAULT_SCALES, planes: bool = False) -> int:
-    return (10 if planes else 9) * len(scales)
+def num_cues(scales: Sequence[int] = DEFAULT_SCALES) -> int:
+    """The number of depth-buffer cues of a point: 3x3 residuals at each scale."""
+    return 9 * len(scales)
 
 
 def _sides(num_points: int, scales: Sequence[int]) -> list[int]:
@@ -82,75 +75,6 @@ def _frame(forward: Tensor) -> tuple[Tensor, Tensor]:
     return right, torch.linalg.cross(forward, right)
 
 
-def _neighbourhood_sums(grid: Tensor) -> tuple[Tensor, ...]:
-    """Sums over each pixel's 3x3 neighbourhood, by separable 3-tap passes.
-
-    Args:
-        grid: (C, R + 2, R + 2) images with a border of zeros.
-
-    Returns:
-        With ``du``, ``dv`` a neighbour's row and column shift: the plain sums
-        (C, R, R), the sums of ``du`` and of ``dv`` times the first 4 channels
-        (4, R, R) each, and of ``du^2``, ``dv^2``, ``du dv`` times channel 0 (R, R) each.
-    """
-    up, mid, down = grid[:, :-2], grid[:, 1:-1], grid[:, 2:]
-    rows, rows_x = (up + down).add_(mid), down[:4] - up[:4]
-    left, centre, right = rows[..., :-2], rows[..., 1:-1], rows[..., 2:]
-    k, ky, kyy = (left + right).add_(centre), right[:4] - left[:4], left[0] + right[0]
-    kx = (rows_x[..., :-2] + rows_x[..., 2:]).add_(rows_x[..., 1:-1])
-    outer = up[0] + down[0]
-    kxx = (outer[:, :-2] + outer[:, 2:]).add_(outer[:, 1:-1])
-    return k, kx, ky, kxx, kyy, rows_x[0, :, 2:] - rows_x[0, :, :-2]
-
-
-def _fit_planes(zbuf: Tensor, offsets: Tensor, ref: Tensor, pixel: Tensor) -> Tensor:
-    """Least-squares planes through the nearest points of the 3x3 pixel neighbourhoods.
-
-    Args:
-        zbuf: (R, R) depth of the nearest point in each pixel (inf where empty).
-        offsets: (R, R, 2) image position of that point relative to its pixel's
-            centre, in pixels.
-        ref: a depth near the cloud's (the sums run on depths minus it).
-        pixel: the pixel size.
-
-    Returns:
-        (R * R, 3) ``(c, a, b)``: the plane of a pixel has depth ``c + a u + b v``
-        at image position ``(u, v)`` (from the image's corner). A ridge on the
-        slope keeps the fit defined with fewer than three points (a flat plane
-        through one).
-    """
-    res = zbuf.shape[0]
-    filled = torch.isfinite(zbuf)
-    d = torch.where(filled, zbuf - ref, 0.0)
-    ox, oy = torch.where(filled, offsets[..., 0], 0.0), torch.where(filled, offsets[..., 1], 0.0)
-    # per pixel: w, w x, w y, d, w x^2, w y^2, w x y, d x, d y (x, y: offsets in the own pixel,
-    # w: 1 where filled), written inside a border of zeros
-    grid = zbuf.new_zeros(9, res + 2, res + 2)
-    inner = grid[:, 1:-1, 1:-1]
-    inner[0], inner[1], inner[2], inner[3] = filled.to(zbuf.dtype), ox, oy, d
-    inner[4], inner[5], inner[6], inner[7], inner[8] = ox * ox, oy * oy, ox * oy, d * ox, d * oy
-    k, kx, ky, kxx, kyy, kxy = _neighbourhood_sums(grid)
-    n = k[0].clamp_min(1)
-    sx, sy = k[1] + kx[0], k[2] + ky[0]
-    sxx = k[4] + 2 * kx[1] + kxx + _RIDGE
-    syy = k[5] + 2 * ky[2] + kyy + _RIDGE
-    sxy = k[6] + ky[1] + kx[2] + kxy
-    # depths relative to the pixel's own nearest point
-    sr, sxr, syr = k[3] - n * d, k[7] + kx[3] - sx * d, k[8] + ky[3] - sy * d
-    # Cramer's rule on [[sxx sxy sx] [sxy syy sy] [sx sy n]] (a b c) = (sxr syr sr): positive
-    # definite, and per pixel far faster than a batched solver
-    c00, c01, c02 = syy * n - sy * sy, sx * sy - sxy * n, sxy * sy - syy * sx
-    c11, c12, c22 = sxx * n - sx * sx, sxy * sx - sxx * sy, sxx * syy - sxy * sxy
-    det = sxx * c00 + sxy * c01 + sx * c02
-    a = (c00 * sxr + c01 * syr + c02 * sr) / det
-    b = (c01 * sxr + c11 * syr + c12 * sr) / det
-    c = (c02 * sxr + c12 * syr + c22 * sr) / det
-    # from offsets in the pixel, in pixels, to image positions
-    centre = torch.arange(res, dtype=zbuf.dtype, device=zbuf.device) + 0.5
-    c = ref + d + c - a * centre[:, None] - b * centre[None, :]
-    return torch.stack([c, a / pixel, b / pixel], dim=-1).view(res * res, 3)
-
-
 class ViewProjection:
     """One viewpoint's projection of a cloud: view directions and multi-scale depth buffers.
 
@@ -167,27 +91,24 @@ class ViewProjection:
         direction: (3,) viewing direction of an orthographic camera.
         scales: pixel sizes of the depth buffers, in multiples of the finest
             one, whose resolution is ``ceil(sqrt(N))`` pixels a side.
-        planes: also fit a plane to each pixel's 3x3 neighbourhood at every
-            scale, for the plane-residual cues.
 
     Attributes:
         dirs: (N, 3) unit vectors from the camera to the points.
     """
 
     def __init__(self, points: Tensor, camera: Tensor | None = None, direction: Tensor | None = None,
-                 scales: Sequence[int] = DEFAULT_SCALES, planes: bool = False):
+                 scales: Sequence[int] = DEFAULT_SCALES):
         if (camera is None) == (direction is None):
             raise ValueError("give exactly one of camera and direction")
         sides = _sides(points.shape[0], scales)
-        self.native = (not planes and 0 < points.shape[0] <= native.MAX_POINTS
-                       and native.usable(points, camera, direction))
+        self.native = 0 < points.shape[0] <= native.MAX_POINTS and native.usable(points, camera, direction)
         if self.native:  # the bordered buffers and each point's 3x3 corner in them; the tables on demand
             if direction is not None:
                 direction = direction / direction.norm()
             dirs, self.depth, self.buffers, self.corners, self.rpix = native.project(
                 points.contiguous(), camera, direction, sides)
             self.dirs = dirs if direction is None else direction.expand_as(points)
-            self.perspective, self.planes, self.image = direction is None, None, None
+            self.perspective = direction is None
             self.sides, self.patches, self.pixels, self.inv_footprint = sides, None, None, None
             return
         if direction is None:
@@ -215,28 +136,15 @@ class ViewProjection:
         # patches are written into their rows in place (no concatenation of copies).
         self.patches = depth.new_empty(sum(res * res for res in sides), 9)
         self.pixels = torch.empty(points.shape[0], len(sides), dtype=torch.long, device=points.device)
-        # with planes: (c, a, b) of each pixel's plane (see _fit_planes), in the patches' rows,
-        # and the points' image positions, at which cues() evaluates them
-        self.planes = depth.new_empty(len(self.patches), 3) if planes else None
         u, v = u + half, v + half  # image positions from the corner, computed once for all scales
-        self.image = torch.stack([u, v], dim=1) if planes else None
-        ref = depth.detach().mean() if planes else None
         pixel_sizes, start = [], 0
         for s, res in enumerate(sides):
             pixel = 2 * half / res
             pixel_sizes.append(pixel)
             fu, fv = u / pixel, v / pixel
             iu, iv = fu.long().clamp_(0, res - 1), fv.long().clamp_(0, res - 1)
-            if planes:
-                offset = torch.stack([fu - iu - 0.5, fv - iv - 0.5], 1)
             index = iu.mul_(res).add_(iv)
             zbuf = depth.new_full((res * res,), float("inf")).scatter_reduce(0, index, depth, "amin")
-            if planes:  # the image offset of each pixel's nearest point, and the pixel's plane
-                front = depth.detach() == zbuf.detach()[index]
-                nearest = offset.new_zeros(res * res + 1, 2)  # the last row takes the others
-                nearest.index_put_((torch.where(front, index, res * res),), offset)
-                self.planes[start:start + res * res] = _fit_planes(
-                    zbuf.view(res, res), nearest[:-1].view(res, res, 2), ref, pixel)
             zbuf = torch.where(torch.isinf(zbuf), float("nan"), zbuf).view(res, res)
             _write_patches(F.pad(zbuf, (1, 1, 1, 1), value=float("nan")),
                            self.patches[start:start + res * res].view(res, res, 9))
@@ -280,12 +188,11 @@ class ViewProjection:
         return self.patches, self.pixels
 
     def cues(self, rows: slice = slice(None)) -> Tensor:
-        """(n, 9 * len(scales)) cues of ``points[rows]``, (n, 10 * len(scales)) with planes.
+        """(n, 9 * len(scales)) cues of ``points[rows]``.
 
         For each scale, ``asinh`` of the point's depth residual to each of the
         3x3 pixels around its own, in pixel footprints (clamped to +-50), or
-        ``_EMPTY`` where that pixel is empty; with planes, then for each scale
-        ``asinh`` of its residual to its pixel's plane at its image position.
+        ``_EMPTY`` where that pixel is empty.
         """
         patches, pixels = self._tables()
         pixels = pixels[rows]
@@ -294,32 +201,14 @@ class ViewProjection:
         if torch.is_grad_enabled():  # out of place, and no NaN through which to back-propagate
             empty = torch.isnan(near)
             residual = ((torch.where(empty, depth, near) - depth) * inv).clamp(-50, 50)
-            cues = torch.where(empty, _EMPTY, _asinh(residual)).flatten(1)
-            return cues if self.planes is None else torch.cat([cues, self._planes(pixels, rows)], dim=1)
-        near = _asinh_(near.sub_(depth).mul_(inv).clamp_(-50, 50).nan_to_num_(_EMPTY_RESIDUAL)).flatten(1)
-        if self.planes is None:
-            return near
-        out = near.new_empty(near.shape[0], near.shape[1] + pixels.shape[1])
-        out[:, :near.shape[1]] = near
-        out[:, near.shape[1]:] = self._planes(pixels, rows)
-        return out
-
-    def _planes(self, pixels: Tensor, rows: slice) -> Tensor:
-        """(n, S) plane cues of ``points[rows]``, whose pixels are ``pixels``."""
-        plane = self.planes.index_select(0, pixels.reshape(-1)).view(*pixels.shape, 3)
-        image, depth, inv = self.image[rows], self.depth[rows, None], self.inv_footprint[rows, :, 0]
-        if torch.is_grad_enabled():
-            at = plane[..., 0] + plane[..., 1] * image[:, :1] + plane[..., 2] * image[:, 1:]
-            return _asinh(((at - depth) * inv).clamp(-50, 50))
-        at = torch.addcmul(plane[..., 0], plane[..., 1], image[:, :1]).addcmul_(plane[..., 2], image[:, 1:])
-        return _asinh_(at.sub_(depth).mul_(inv).clamp_(-50, 50))
-
+            return torch.where(empty, _EMPTY, _asinh(residual)).flatten(1)
+        return _asinh_(near.sub_(depth).mul_(inv).clamp_(-50, 50).nan_to_num_(_EMPTY_RESIDUAL)).flatten(1)
 
 def view_cues(points: Tensor, camera: Tensor | None = None, direction: Tensor | None = None,
-              scales: Sequence[int] = DEFAULT_SCALES, planes: bool = False) -> tuple[Tensor, Tensor]:
-    """View directions (N, 3) and depth-buffer cues (N, num_cues(scales, planes)) of one viewpoint.
+              scales: Sequence[int] = DEFAULT_SCALES) -> tuple[Tensor, Tensor]:
+    """View directions (N, 3) and depth-buffer cues (N, num_cues(scales)) of one viewpoint.
 
     See :class:`ViewProjection`, which this builds and reads in one go.
     """
-    view = ViewProjection(points, camera, direction, scales, planes)
+    view = ViewProjection(points, camera, direction, scales)
     return view.dirs, view.cues()

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import torch
 from torch import Tensor, nn
 
 from .calibration import CloudCalibration
-from .conv import octree_interpolate
 from . import native
 from .cues import DEFAULT_SCALES, ViewProjection, num_cues
 from .noise import NUM_NOISE_CUES, noise_cues
@@ -25,6 +24,9 @@ __all__ = ["NetworkConfig", "VisibilityNetwork"]
 _INT_BOUNDS = (("depth", 2, 10), ("full_depth", 1, 5), ("blocks", 0, 8), ("feature_channels", 1, 1024),
                ("num_frequencies", 0, 16))
 _MAX_WIDTH, _MAX_STAGES, _MAX_CUE_SCALE = 1024, 8, 256
+# options that earlier versions stored in every checkpoint's config, with the only value any
+# shipped model used: a config may still name them, with that value
+_RETIRED_OPTIONS = {"interpolation": "nearest", "plane_cues": False, "extra": {}}
 
 
 @dataclass
@@ -38,13 +40,10 @@ class NetworkConfig:
     feature_channels: int = 32
     num_frequencies: int = 4
     hidden: tuple[int, ...] = (32, 32)
-    interpolation: str = "nearest"
     cue_scales: tuple[int, ...] = DEFAULT_SCALES
-    plane_cues: bool = False
     use_normals: bool = False
     noise_cues: bool = False
     calibrated: bool = False
-    extra: dict = field(default_factory=dict)
 
     def __post_init__(self):
         self.check()
@@ -77,28 +76,31 @@ class NetworkConfig:
         if not (self.full_depth < self.depth and len(self.channels) < self.depth):
             raise ValueError(f"network config: depth {self.depth} must exceed full_depth {self.full_depth} "
                              f"and the number of stages {len(self.channels)}")
-        if self.interpolation not in ("nearest", "trilinear"):
-            raise ValueError(f"network config: interpolation must be 'nearest' or 'trilinear', "
-                             f"got {self.interpolation!r}")
-        for name in ("plane_cues", "use_normals", "noise_cues", "calibrated"):
+        for name in ("use_normals", "noise_cues", "calibrated"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"network config: {name} must be true or false, got {getattr(self, name)!r}")
-        if not isinstance(self.extra, dict):
-            raise ValueError(f"network config: extra must be a mapping, got {type(self.extra).__name__}")
 
     @classmethod
     def from_dict(cls, d: dict) -> "NetworkConfig":
         """The config of a mapping of field names (lists for the tuples), checked.
 
+        Earlier versions stored ``interpolation``, ``plane_cues`` and ``extra`` in every
+        config; a mapping may still name them at the one value every shipped model has.
+
         Raises:
-            ValueError: not a mapping, an unknown field, or a field out of bounds.
+            ValueError: not a mapping, an unknown field, a field out of bounds, or a
+                retired option at another value.
         """
         if not isinstance(d, dict):
             raise ValueError(f"network config must be a mapping, got {type(d).__name__}")
+        d = dict(d)
+        for key, value in _RETIRED_OPTIONS.items():
+            if key in d and (given := d.pop(key)) != value:
+                raise ValueError(f"network config: {key} must be {value!r}, the only value this version "
+                                 f"supports, got {given!r}")
         unknown = sorted(set(d) - {f.name for f in fields(cls)})
         if unknown:
             raise ValueError(f"network config: unknown fields {unknown}")
-        d = dict(d)
         for key in ("channels", "hidden", "cue_scales"):
             if isinstance(d.get(key), list):
                 d[key] = tuple(d[key])
@@ -119,7 +121,7 @@ class VisibilityNetwork(nn.Module):
         self.unet = OctreeUNet(in_channels, config.channels, config.blocks, config.feature_channels)
         self.predictor = VisibilityPredictor(
             config.feature_channels + 3, config.num_frequencies,
-            num_cues(config.cue_scales, config.plane_cues) + (1 if config.use_normals else 0), config.hidden)
+            num_cues(config.cue_scales) + (1 if config.use_normals else 0), config.hidden)
         # fitted after training (o3dvis calibrate); applied to the margins by o3dvis.VisibilityField
         self.calibration = CloudCalibration() if config.calibrated else None
 
@@ -172,18 +174,16 @@ class VisibilityNetwork(nn.Module):
             batch = torch.zeros(points.shape[0], dtype=torch.long, device=points.device)
         octree = self.octree(points, batch, batch_size)
         leaf = self.unet(self._signal(points, batch, octree, normals, noise), octree)
-        if self.config.interpolation == "trilinear":
-            def carry(x: Tensor) -> Tensor:
-                return octree_interpolate(x.transpose(0, 1), octree, points, batch).transpose(0, 1)
-        else:
-            def carry(x: Tensor) -> Tensor:  # a gather: 3x faster than index_select along dim 1
-                return torch.gather(x, 1, octree.point_leaf.expand(x.shape[0], -1))
+
+        def carry(x: Tensor) -> Tensor:  # each point takes its leaf's values (a gather along dim 1)
+            return torch.gather(x, 1, octree.point_leaf.expand(x.shape[0], -1))
+
         return self.predictor.project(leaf, points, carry)
 
     def view(self, points: Tensor, camera: Tensor | None = None,
              direction: Tensor | None = None) -> ViewProjection:
         """The projection of one cloud for one camera position or viewing direction."""
-        return ViewProjection(points, camera, direction, self.config.cue_scales, self.config.plane_cues)
+        return ViewProjection(points, camera, direction, self.config.cue_scales)
 
     def view_inputs(self, view: ViewProjection, rows: slice | Tensor = slice(None),
                     normals: Tensor | None = None) -> tuple[Tensor, Tensor]:

@@ -108,8 +108,8 @@ class VisibilityPredictor(nn.Module):
 
         The projection is linear, so the features are projected where they are
         computed, once per octree leaf, and ``carry`` then takes the (E, L)
-        projected leaf features to the (E, N) points (a gather, or an
-        interpolation whose weights sum to 1, which keeps the bias exact).
+        projected leaf features to the (E, N) points (each point takes its leaf's
+        values; any carry whose weights sum to 1 keeps the bias exact).
 
         Args:
             features: (L, C) features of the octree leaves (the layer takes C + 3 inputs).

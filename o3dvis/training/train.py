@@ -6,11 +6,6 @@ optimizer, schedule, step; loaded with ``weights_only=True``), ``best.safetensor
 temporary file and renamed, and ``last_state.pt`` alone is what a resume reads, so
 a run killed at any moment resumes from its last complete checkpoint; log records
 past that checkpoint are dropped then (the resumed run writes them again).
-
-With a ``teacher`` checkpoint, each point's target mixes its ray-cast label with
-the teacher's probability averaged over ``teacher_rotations`` turned copies of
-the cloud (:class:`~o3dvis.NeuralVisibility` with ``num_rotations``): a way to
-teach one pass what the rotation average knows.
 """
 
 from __future__ import annotations
@@ -21,7 +16,6 @@ import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -32,10 +26,7 @@ from ..nn.octree import normalize_points
 from .data.dataset import Augmentation, Batch, VisibilityDataset, collate
 from .data.prepare import load_sample
 
-if TYPE_CHECKING:
-    from ..neural import NeuralVisibility
-
-__all__ = ["TrainConfig", "train", "batch_loss", "teacher_targets", "validate"]
+__all__ = ["TrainConfig", "train", "batch_loss", "validate"]
 
 
 @dataclass
@@ -60,9 +51,6 @@ class TrainConfig:
     network: dict = field(default_factory=dict)
     augmentation: dict = field(default_factory=dict)
     init: str | None = None
-    teacher: str | None = None
-    teacher_rotations: int = 4
-    teacher_weight: float = 0.5
 
 
 def warm_start(net: VisibilityNetwork, state: dict[str, torch.Tensor]) -> None:
@@ -93,40 +81,25 @@ def warm_start(net: VisibilityNetwork, state: dict[str, torch.Tensor]) -> None:
             dst[tuple(slice(0, s) for s in value.shape)].copy_(value)
 
 
-def batch_loss(net: torch.nn.Module, batch: Batch, use_normals: bool,
-               targets: list[torch.Tensor] | None = None, weight: float = 0.0) -> tuple[torch.Tensor, float]:
+def batch_loss(net: torch.nn.Module, batch: Batch, use_normals: bool) -> tuple[torch.Tensor, float]:
     """Cross-entropy averaged per view of each cloud, then over them, and the pooled accuracy.
 
     Each (cloud, view) weighs the same whatever its number of points, so that
     2k-point clouds still count when the batch also holds 80k-point ones.
-    With ``targets`` ((views, n) probabilities of "visible" per cloud, e.g. from
-    :func:`teacher_targets`), the target of a point is ``(1 - weight)`` times its
-    label plus ``weight`` times that probability; the accuracy is always the labels'.
     """
     module = net.module if hasattr(net, "module") else net
     normals = batch.normals if use_normals else None
     features = net(batch.points, batch.batch, normals, len(batch.sizes))
     losses, correct, total = [], 0, 0
     for i, sl in enumerate(batch.slices()):
-        for v, (cam, label) in enumerate(zip(batch.cameras[i], batch.labels[i])):
+        for cam, label in zip(batch.cameras[i], batch.labels[i]):
             logits = module.predict(features[sl], batch.points[sl], cam,
                                     normals=normals[sl] if use_normals else None)
             target = label.long()
-            if targets is None:
-                losses.append(F.cross_entropy(logits, target))
-            else:
-                p = (1 - weight) * label.to(logits.dtype) + weight * targets[i][v]
-                losses.append(F.cross_entropy(logits, torch.stack([1 - p, p], dim=1)))
+            losses.append(F.cross_entropy(logits, target))
             correct += int((logits.argmax(dim=1) == target).sum())
             total += len(target)
     return torch.stack(losses).mean(), correct / total
-
-
-def teacher_targets(teacher: NeuralVisibility, batch: Batch, use_normals: bool) -> list[torch.Tensor]:
-    """(views, n) probabilities of "visible" from ``teacher`` (e.g. one averaging over
-    rotations) for each cloud of ``batch``."""
-    return [teacher.encode(batch.points[sl], normals=batch.normals[sl] if use_normals else False)
-            .probabilities(cameras) for sl, cameras in zip(batch.slices(), batch.cameras)]
 
 
 @torch.no_grad()
@@ -200,8 +173,6 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
     """Runs (or resumes) a training run; returns the path of the best checkpoint."""
     from tqdm import tqdm
 
-    if not 0 <= cfg.teacher_weight <= 1:
-        raise ValueError(f"teacher_weight must be in [0, 1], got {cfg.teacher_weight}")
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     device = torch.device(cfg.device)
@@ -254,16 +225,9 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
     bar = tqdm(total=cfg.steps, initial=start, disable=not progress or rank != 0, desc="train")
     net.train()
     t0, run_loss, run_acc = time.time(), 0.0, 0.0
-    teacher = None
-    if cfg.teacher:
-        from ..neural import NeuralVisibility
-
-        teacher = NeuralVisibility(VisibilityNetwork.load(cfg.teacher, device),
-                                   num_rotations=cfg.teacher_rotations, precision="float32")
     for step, batch in enumerate(loader, start=start + 1):
         batch = batch.to(device)
-        targets = None if teacher is None else teacher_targets(teacher, batch, net.config.use_normals)
-        loss, acc = batch_loss(model, batch, net.config.use_normals, targets, cfg.teacher_weight)
+        loss, acc = batch_loss(model, batch, net.config.use_normals)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)

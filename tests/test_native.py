@@ -16,7 +16,6 @@ import o3dvis
 from o3dvis import clib
 from o3dvis.nn import native
 from o3dvis.nn.cues import ViewProjection
-from o3dvis.nn.predictor import ViewEmbedding
 
 _CAMERA = torch.tensor([2.0, 1.0, -0.5])
 _DIRECTION = torch.tensor([-0.3, 0.2, 1.0])
@@ -87,32 +86,6 @@ def test_projection_equals_the_torch_one(view, variant):
 
 
 @needs_kernels
-@pytest.mark.parametrize("rows", [slice(None), slice(1000, 4321), "indices"])
-@pytest.mark.parametrize("view", [{"camera": _CAMERA}, {"direction": _DIRECTION}])
-def test_inputs_equal_the_embedding_times_the_features_then_the_cues(view, rows, variant):
-    points = _points()
-    if rows == "indices":
-        rows = torch.randperm(len(points), generator=torch.Generator().manual_seed(1))[:2500]
-    projected = torch.randn(27, len(points)).T  # stored channels first, as encode() stores it
-    embedding = ViewEmbedding(4)
-    fast, _ = _views(points, **view)
-    n = len(points[rows])
-    with torch.inference_mode():
-        expected = torch.cat([embedding(fast.dirs[rows].T) * projected[rows].T, fast.cues(rows).T])
-        out = torch.empty(63, n)
-        fast.inputs(rows, projected, 4, out)
-        torch.testing.assert_close(out, expected, atol=1e-5, rtol=1e-5)
-        low = torch.empty(63, n, dtype=torch.bfloat16)
-        fast.inputs(rows, projected, 4, low)
-        with pytest.raises(ValueError, match="stored channels first"):  # no hidden copy of all N per chunk
-            fast.inputs(rows, projected.contiguous(), 4, low)
-    # bfloat16: torch's rounding of the float32 values, but where they lie a few float32 ulps
-    # from a rounding boundary
-    assert (low == expected.to(torch.bfloat16)).float().mean() > 0.999
-    torch.testing.assert_close(low.float(), expected, atol=1e-5, rtol=2 ** -7)
-
-
-@needs_kernels
 def test_morton_keys_equal_the_torch_ones():
     """One pass of C for the octree's keys: the same cells (outside the cube clamped to it, the
     float32 rounding of the cell's coordinate the same) and the same interleaving."""
@@ -132,25 +105,9 @@ def test_morton_keys_equal_the_torch_ones():
 
 
 @needs_kernels
-def test_inputs_reject_what_the_kernel_cannot_take():
+def test_projection_rejects_what_the_kernel_cannot_take():
     points = _points(500)
-    fast, _ = _views(points, camera=_CAMERA)
-    projected = torch.randn(27, 500).T  # channels first, as encode() stores it
     with torch.inference_mode():
-        with pytest.raises(ValueError, match=r"out must be \(63, 500\)"):
-            fast.inputs(slice(None), projected, 4, torch.empty(62, 500))
-        with pytest.raises(ValueError, match="out must be"):
-            fast.inputs(slice(None), projected, 4, torch.empty(500, 63).T)  # rows not contiguous
-        with pytest.raises(ValueError, match="step 1"):
-            fast.inputs(slice(0, 500, 2), projected, 4, torch.empty(63, 250))
-        with pytest.raises(ValueError, match="projected must be"):
-            fast.inputs(slice(None), projected[:, :21], 4, torch.empty(63, 500))
-        with pytest.raises(IndexError, match=r"rows must lie in \[0, 500\)"):
-            fast.inputs(torch.tensor([0, 500]), projected, 4, torch.empty(63, 2))
-        with pytest.raises(ValueError, match="float32 on the CPU"):
-            fast.inputs(slice(None), projected.double(), 4, torch.empty(63, 500))
-        with pytest.raises(ValueError, match="at most 10 frequencies"):
-            fast.inputs(slice(None), torch.randn(69, 500).T, 11, torch.empty(69 + 36, 500))
         with pytest.raises(ValueError, match="need points"):
             native.project(torch.empty(0, 3), _CAMERA, None, [4])
         with pytest.raises(ValueError, match="camera must be"):
@@ -161,10 +118,11 @@ def test_inputs_reject_what_the_kernel_cannot_take():
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
 @pytest.mark.parametrize("config", [{}, {"use_normals": True}, {"num_frequencies": 2, "hidden": (24, 40, 17)}])
 @pytest.mark.parametrize("rows", [slice(None), slice(1000, 4321), "indices", "five"])
-def test_view_margin_equals_the_inputs_then_the_products(config, rows, dtype, variant):
-    """One pass of C for a view's margins: margin_from_inputs on the inputs the C kernel writes,
-    its products in ``dtype``, summed in another order (inputs and hidden widths that fit no
-    register padded with zero weights)."""
+def test_view_margin_equals_the_torch_one(config, rows, dtype, variant):
+    """One pass of C for a view's margins against the torch reference on the same view: the
+    embedding times the features and the cues (a few float32 ulps apart), then the products in
+    ``dtype``, summed in another order (inputs and hidden widths that fit no register padded
+    with zero weights)."""
     from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
 
     if not native.has_view_margin(dtype):
@@ -183,12 +141,8 @@ def test_view_margin_equals_the_inputs_then_the_products(config, rows, dtype, va
     n = len(points[rows])
     with torch.inference_mode():
         margin = network.view_margin([fast], rows, projected, normals, dtype)[0]
-        inputs = predictor.embedding.dim + 36
-        x = torch.empty(1, inputs + (normals is not None), n, dtype=dtype)
-        fast.inputs(rows, projected, predictor.embedding.num_frequencies, x[0, :inputs])
-        if normals is not None:
-            x[0, inputs] = network._normal_cue(normals, rows, fast.dirs[rows])
-        expected = predictor.margin_from_inputs(x)[0]
+        dirs, cues = network.view_inputs(fast, rows, normals)  # torch ops on the view's depth buffers
+        expected = predictor.margin(projected[rows], dirs, cues, dtype)
     assert margin.shape == (n,) and margin.dtype == torch.float32
     scale = expected.abs().max()
     if dtype == torch.float32:
@@ -213,6 +167,14 @@ def test_view_margin_rejects_what_the_kernel_cannot_take():
             fast.margin(slice(None), torch.randn(15, 500).T, 2, None, mlp, torch.empty(500))
         with pytest.raises(ValueError, match=r"out must be a contiguous \(500,\)"):
             fast.margin(slice(None), projected, 4, None, mlp, torch.empty(499))
+        with pytest.raises(ValueError, match="step 1"):
+            fast.margin(slice(0, 500, 2), projected, 4, None, mlp, torch.empty(250))
+        with pytest.raises(ValueError, match="stored channels first"):  # no hidden copy of all N per chunk
+            fast.margin(slice(None), projected.contiguous(), 4, None, mlp, torch.empty(500))
+        with pytest.raises(ValueError, match="float32 on the CPU"):
+            fast.margin(slice(None), projected.double(), 4, None, mlp, torch.empty(500))
+        with pytest.raises(IndexError, match=r"rows must lie in \[0, 500\)"):
+            fast.margin(torch.tensor([0, 500]), projected, 4, None, mlp, torch.empty(2))
         with pytest.raises(ValueError, match="normals must be"):
             fast.margin(slice(None), projected, 4, torch.empty(499, 3), mlp, torch.empty(500))
         wide = native.pack_mlp([(torch.randn(144, 63), torch.randn(144)), (torch.randn(1, 144), torch.randn(1))],
@@ -267,9 +229,9 @@ def test_answers_equal_those_of_the_torch_ops(precision, normals, variant, monke
 
 @needs_kernels
 @pytest.mark.parametrize("precision", ["float32", "bfloat16"])
-def test_without_a_fused_kernel_the_inputs_kernel_and_torch_products_answer_alike(precision, monkeypatch):
-    """The path of a CPU without bfloat16 dot products asked for bfloat16 products: C inputs,
-    torch's products; the same answers as the fused kernel but for sums in another order."""
+def test_without_a_fused_kernel_the_torch_products_answer_alike(precision, monkeypatch):
+    """The path of a CPU without bfloat16 dot products asked for bfloat16 products: the view
+    built by C, the inputs and products by torch; the same answers as the fused kernel."""
     pcd = _cloud(False)
     cameras = np.array([[3.0, 0.5, 0.2], [-0.4, 2.5, 1.0]])
     vis = o3dvis.NeuralVisibility.pretrained(precision=precision)

@@ -83,7 +83,7 @@ class ViewProjection:
     predictor in cache-sized chunks. Differentiable in the camera (the pixel
     assignment itself is piecewise constant). Without autograd on the CPU it is
     built by the C kernels of :mod:`o3dvis.nn.native` where they are available
-    (``native`` is then True), which also write the predictor's inputs (:meth:`inputs`).
+    (``native`` is then True), which also run the predictor on it (:meth:`margin`).
 
     Args:
         points: (N, 3) points (normalised coordinates).
@@ -152,12 +152,6 @@ class ViewProjection:
             start += res * res
         # -1 / (pixel size x footprint): the scale of a depth residual, (N, S, 1)
         self.inv_footprint = (-1 / (footprint[:, None] * torch.stack(pixel_sizes)))[:, :, None]
-
-    def inputs(self, rows: slice | Tensor, projected: Tensor, num_frequencies: int, out: Tensor) -> None:
-        """Writes the predictor's first-layer inputs of ``points[rows]`` into ``out``, channels
-        first (only when ``native``; see :func:`o3dvis.nn.native.view_inputs`)."""
-        native.view_inputs(rows, self.dirs, projected, num_frequencies, self.buffers, self.corners, self.sides,
-                           self.depth, self.rpix, self.perspective, _EMPTY_RESIDUAL, out)
 
     def margin(self, rows: slice | Tensor, projected: Tensor, num_frequencies: int, normals: Tensor | None,
                mlp: native.PackedMLP, out: Tensor) -> None:

@@ -3,16 +3,15 @@
  * o3dvis_project builds a view's projection (o3dvis/nn/cues.py, ViewProjection:
  * view directions, depths, the multi-scale min-depth buffers inside a border)
  * in a few passes over the points instead of some sixty torch ops.
- * o3dvis_view_inputs writes the first MLP layer's input for a chunk of points,
- * channels first: the view embedding times the projected feature, then the
- * asinh of the depth residuals to the 3x3 pixels around each point at every
- * cue scale, which o3dvis/nn/cues.py (ViewProjection.cues) and
- * o3dvis/nn/predictor.py (ViewEmbedding, the product with the features)
- * compute in a dozen eager torch ops, each a pass over memory.
- * o3dvis_view_margin_bf16 and o3dvis_view_margin_f32 compute the same inputs
- * a block of points at a time and run the predictor's MLP on them while they
- * are in the L1 cache (VisibilityPredictor.margin_from_inputs), in bfloat16
- * with the CPU's bfloat16 dot products, or in float32. And for the encoding,
+ * o3dvis_view_margin_bf16 and o3dvis_view_margin_f32 compute the first MLP
+ * layer's inputs a block of points at a time: the view embedding times the
+ * projected feature, then the asinh of the depth residuals to the 3x3 pixels
+ * around each point at every cue scale, which o3dvis/nn/cues.py
+ * (ViewProjection.cues) and o3dvis/nn/predictor.py (ViewEmbedding, the product
+ * with the features) compute in a dozen eager torch ops, each a pass over
+ * memory; and they run the predictor's MLP on them while they are in the L1
+ * cache (VisibilityPredictor.margin_from_inputs), in bfloat16 with the CPU's
+ * bfloat16 dot products, or in float32. And for the encoding,
  * o3dvis_morton_keys computes the octree's Morton keys (o3dvis/nn/octree.py,
  * cell_keys) in one pass instead of some twenty.
  *
@@ -21,8 +20,8 @@
  * has them); asinh is log(|x| + sqrt(x^2 + 1)), or its series below 1/8, where
  * torch's log1p form loses digits; the pixel size enters as its reciprocal;
  * the mean view direction is summed in double. A point within an ulp of a
- * pixel border may thus land on the other side. Values are written as float32
- * or as bfloat16 (rounded to nearest even, as torch rounds).
+ * pixel border may thus land on the other side. The bfloat16 MLP rounds to
+ * nearest even, as torch rounds.
  *
  * C with no dependency (the bfloat16 MLP with the AVX512-BF16 intrinsics, the
  * float32 one with GCC/Clang vector extensions), loaded with ctypes
@@ -388,30 +387,6 @@ static int channels_of(const struct view *v) {
     return 3 + 6 * v->frequencies + 9 * v->scales + (v->normals != NULL);
 }
 
-/* Writes the inputs of n points of the view v, its normal cue aside; returns 0, or -1 when the
- * sizes exceed the buffers. out: 3 + 6 frequencies + 9 scales channels of n values, out_ld
- * elements apart, float32 or bfloat16.
- */
-int o3dvis_view_inputs(int64_t n, const struct view *v, void *out, int64_t out_ld, int32_t out_bf16) {
-    const int channels = channels_of(v) - (v->normals != NULL);
-    float in[MAX_INPUTS * BLOCK] = {0}; /* zeroed: asinh runs over whole blocks */
-    if (channels < 0) return -1;
-    for (int64_t b0 = 0; b0 < n; b0 += BLOCK) {
-        const int m = n - b0 < BLOCK ? (int)(n - b0) : BLOCK;
-        block_inputs(v, b0, m, in);
-        for (int j = 0; j < channels; j++) {
-            const float *x = in + j * BLOCK;
-            if (out_bf16) {
-                uint16_t *o = (uint16_t *)out + j * out_ld + b0;
-                for (int b = 0; b < m; b++) o[b] = bf16_of(x[b]);
-            } else {
-                memcpy((float *)out + j * out_ld + b0, x, sizeof(float) * m);
-            }
-        }
-    }
-    return 0;
-}
-
 /* Whether this build has o3dvis_view_margin_bf16: it needs the CPU's bfloat16 dot products. */
 int o3dvis_has_view_margin_bf16(void) {
 #ifdef __AVX512BF16__
@@ -457,7 +432,7 @@ static void dense_relu(const uint32_t *x, int pairs, const uint32_t *w, const fl
 #endif
 
 /* Writes the margins of n points for one view: the predictor's MLP (o3dvis/nn/predictor.py,
- * VisibilityPredictor.margin_from_inputs) on the inputs o3dvis_view_inputs writes, each product in
+ * VisibilityPredictor.margin_from_inputs) on the inputs block_inputs writes, each product in
  * bfloat16 with float32 sums, each layer's output rounded to bfloat16 as torch rounds it. Returns 0,
  * -1 when the sizes exceed the buffers or do not match, -2 in a build without
  * o3dvis_has_view_margin_bf16.

@@ -22,7 +22,7 @@ from torch import Tensor
 
 from .. import clib
 
-__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "project", "view_inputs", "PackedMLP", "pack_mlp", "view_margin"]
+__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "project", "PackedMLP", "pack_mlp", "view_margin"]
 
 _I64, _I32, _PTR = ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
 
@@ -40,7 +40,6 @@ _VIEW = ctypes.POINTER(_View)
 _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_morton_keys": ([_I64, _PTR, _I32, _PTR], None),
     "o3dvis_project": ([_I64, _PTR, _PTR, _PTR, _I32, _PTR] + [_PTR] * 6, ctypes.c_int),
-    "o3dvis_view_inputs": ([_I64, _VIEW, _PTR, _I64, _I32], ctypes.c_int),
     "o3dvis_has_view_margin_bf16": ([], ctypes.c_int),
     "o3dvis_view_margin_bf16": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_view_margin_f32": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
@@ -134,7 +133,7 @@ def has_view_margin(dtype: torch.dtype) -> bool:
 def _view(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies: int, buffers: Tensor,
           corners: Tensor, sides: list[int], depth: Tensor, rpix: Tensor, perspective: bool, empty: float,
           normals: Tensor | None = None) -> tuple[int, _View]:
-    """The number of points and the kernels' ``struct view`` of them (see :func:`view_inputs`), all
+    """The number of points and the kernels' ``struct view`` of them (see :func:`view_margin`), all
     checked; the struct holds on to the tensors made here that it points into."""
     n_points, scales = corners.shape
     if isinstance(rows, slice):
@@ -169,33 +168,6 @@ def _view(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies
                  rpix.data_ptr(), perspective, scales, empty, normals.data_ptr() if normals is not None else None)
     view.tensors = (rows, widths)
     return n, view
-
-
-def view_inputs(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies: int, buffers: Tensor,
-                corners: Tensor, sides: list[int], depth: Tensor, rpix: Tensor, perspective: bool, empty: float,
-                out: Tensor) -> None:
-    """Writes the first layer's inputs of the points ``rows`` for one view into ``out``, channels first.
-
-    Args:
-        rows: the points, a slice with step 1 or a (n,) long tensor.
-        dirs: (N, 3) view directions, rows contiguous (a direction expanded to N rows will do).
-        projected: (N, E) projected features (:meth:`VisibilityPredictor.project`),
-            E = 3 + 6 ``num_frequencies``, stored channels first (strides (1, N)).
-        buffers, corners, depth, rpix: the view's, as :func:`project` returns them for ``sides``.
-        perspective: a view from a camera (True) or along a direction.
-        empty: the residual an empty pixel takes before ``asinh``.
-        out: (E + 9 S, n) float32 or bfloat16, rows contiguous: ``projected[rows]``
-            times the view embedding of ``dirs[rows]``, then the depth-buffer cues.
-    """
-    n, view = _view(rows, dirs, projected, num_frequencies, buffers, corners, sides, depth, rpix, perspective, empty)
-    channels = 3 + 6 * num_frequencies + 9 * len(sides)
-    if (out.shape != (channels, n) or out.stride(1) != 1 or out.device.type != "cpu"
-            or out.dtype not in (torch.float32, torch.bfloat16)):
-        raise ValueError(f"out must be ({channels}, {n}) float32 or bfloat16 on the CPU with contiguous "
-                         f"rows, got {tuple(out.shape)} {out.dtype} strides {out.stride()} on {out.device}")
-    if _LIBRARY.o3dvis_view_inputs(n, ctypes.byref(view), out.data_ptr(), out.stride(0), out.dtype == torch.bfloat16):
-        raise ValueError(f"the C kernel takes at most 10 frequencies and 7 scales, "
-                         f"got {num_frequencies} and {len(sides)}")
 
 
 @dataclass(frozen=True)
@@ -242,9 +214,30 @@ def pack_mlp(layers: list[tuple[Tensor, Tensor]], dtype: torch.dtype) -> PackedM
 def view_margin(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies: int, buffers: Tensor,
                 corners: Tensor, sides: list[int], depth: Tensor, rpix: Tensor, perspective: bool, empty: float,
                 normals: Tensor | None, mlp: PackedMLP, out: Tensor) -> None:
-    """Writes the margins of the points ``rows`` for one view into ``out`` (n,) float32: the MLP
-    ``mlp`` on the inputs :func:`view_inputs` writes, then with ``normals`` (N, 3) the normal cue,
-    with products in ``mlp.dtype`` and float32 sums (only where :func:`has_view_margin`)."""
+    """Writes the margins of the points ``rows`` for one view into ``out``.
+
+    The MLP ``mlp`` runs on the first layer's inputs of each point: ``projected[rows]`` times
+    the view embedding of ``dirs[rows]``, then the depth-buffer cues, then with ``normals`` the
+    normal cue; its products in ``mlp.dtype`` with float32 sums (only where :func:`has_view_margin`).
+
+    Args:
+        rows: the points, a slice with step 1 or a (n,) long tensor.
+        dirs: (N, 3) view directions, rows contiguous (a direction expanded to N rows will do).
+        projected: (N, E) projected features (:meth:`VisibilityPredictor.project`),
+            E = 3 + 6 ``num_frequencies``, stored channels first (strides (1, N)).
+        buffers, corners, depth, rpix: the view's, as :func:`project` returns them for ``sides``.
+        perspective: a view from a camera (True) or along a direction.
+        empty: the residual an empty pixel takes before ``asinh``.
+        normals: (N, 3) unit normals for a model that takes them, else None.
+        mlp: the predictor's MLP as :func:`pack_mlp` packs it.
+        out: (n,) float32.
+
+    Raises:
+        ValueError: tensors of the wrong shape, dtype, layout or device; an MLP that does not match
+            the inputs or has a layer wider than 128.
+        IndexError: rows out of range.
+        RuntimeError: no kernel for ``mlp.dtype`` in this build.
+    """
     n, view = _view(rows, dirs, projected, num_frequencies, buffers, corners, sides, depth, rpix, perspective, empty,
                     normals)
     _check("out", out, (n,))

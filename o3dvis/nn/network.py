@@ -208,32 +208,26 @@ class VisibilityNetwork(nn.Module):
             rows: the points, a slice or a (n,) long tensor.
             projected: (N, E) the cloud's :meth:`encode` output.
             normals: (N, 3) the cloud's unit normals, for a normals model.
-            dtype: the dtype of the matrix products (None: ``projected``'s); for
-                views built by the C kernels (:attr:`ViewProjection.native`) the
-                inputs and, where :func:`~o3dvis.nn.native.has_view_margin` of
-                ``dtype``, the MLP come from one more pass of C.
+            dtype: the dtype of the matrix products (None: ``projected``'s).
+
+        Two implementations give the same margins, up to float rounding: the torch
+        ops, the reference, which any device, dtype and autograd can run; and, for
+        views built by the C kernels (:attr:`ViewProjection.native`) where
+        :func:`~o3dvis.nn.native.has_view_margin` of ``dtype``, one pass of C per
+        view that computes the inputs and runs the MLP on them while they are in cache.
         """
         predictor = self.predictor
         dtype = dtype or projected.dtype
-        if (dtype in (torch.float32, torch.bfloat16) and all(v.native for v in views) and native.usable(projected)
+        if (all(v.native for v in views) and native.usable(projected) and native.has_view_margin(dtype)
                 and projected.stride(0) == 1):  # stored channels first, as encode() stores it
+            if self.config.use_normals and normals is None:
+                raise ValueError("this model needs normals")
             n = len(range(*rows.indices(projected.shape[0]))) if isinstance(rows, slice) else len(rows)
             frequencies = predictor.embedding.num_frequencies
-            if native.has_view_margin(dtype):  # inputs and products in one pass
-                if self.config.use_normals and normals is None:
-                    raise ValueError("this model needs normals")
-                mlp, out = predictor.packed_mlp(dtype), projected.new_empty(len(views), n)
-                for j, view in enumerate(views):
-                    view.margin(rows, projected, frequencies, normals if self.config.use_normals else None, mlp,
-                                out[j])
-                return out
-            inputs = predictor.embedding.dim + num_cues(self.config.cue_scales)
-            x = projected.new_empty(len(views), inputs + self.config.use_normals, n, dtype=dtype)
+            mlp, out = predictor.packed_mlp(dtype), projected.new_empty(len(views), n)
             for j, view in enumerate(views):
-                view.inputs(rows, projected, frequencies, x[j, :inputs])
-                if self.config.use_normals:
-                    x[j, inputs] = self._normal_cue(normals, rows, view.dirs[rows])
-            return predictor.margin_from_inputs(x)
+                view.margin(rows, projected, frequencies, normals if self.config.use_normals else None, mlp, out[j])
+            return out
         inputs = [self.view_inputs(view, rows, normals) for view in views]
         dirs, cues = ((inputs[0][0][None], inputs[0][1][None]) if len(inputs) == 1 else
                       (torch.stack([d for d, _ in inputs]), torch.stack([c for _, c in inputs])))

@@ -1,8 +1,8 @@
 """Per-cloud recalibration of the predictor's logit margin, fitted after training.
 
 The network's best decision threshold moves with a cloud's noise and density:
-dense noisy clouds want a lower one, sparse clean clouds a higher one
-(``benchmarks/threshold_sweep.py``). A calibrated network maps the margin ``m``
+dense noisy clouds want a lower one, sparse clean clouds a higher one.
+A calibrated network maps the margin ``m``
 (logit of "visible" minus that of "hidden") of every point of a cloud to
 
     m * exp(u . g) + w . g,   g = (1, c1, c2, s, c1 s, c2 s),

@@ -97,8 +97,7 @@ def run_o3dvis(points, method, args, pca_knn=None, search_param=None
     start = time.perf_counter()
     try:
         if pca_knn is None:
-            estimate_normals_neural(pcd, args.views, timed, refine_views=args.refine_views,
-                                    search_param=search_param)
+            estimate_normals_neural(pcd, search_param, args.views, timed, refine_views=args.refine_views)
         else:
             pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(pca_knn))
             orient_normals_neural(pcd, args.views, timed, refine_views=args.refine_views)

@@ -8,6 +8,12 @@ Main entry points::
     mask = field.query(cameras)                      # (V, N) bool
     prob = field.probabilities(cameras)              # (V, N) torch, differentiable in the cameras
     visible = o3dvis.select_visible(pcd, camera)     # a PointCloud with colours and normals
+
+Naming: a function that stands in for an Open3D method is named after it with ``_neural``
+appended (``hidden_point_removal_neural``, ``estimate_normals_neural``,
+``orient_normals_neural``) and takes the cloud, then Open3D's arguments in Open3D's order;
+the others have no Open3D counterpart and a plain name. Every function that runs the network
+takes the source of visibility as ``model=`` (default: the shipped network).
 """
 
 import importlib

@@ -486,7 +486,7 @@ def test_the_shipped_model_is_loaded_once_and_shared(pcd, monkeypatch):
 
     monkeypatch.setattr(o3dvis.NeuralVisibility, "pretrained", load_again)
     cloud = o3d.geometry.PointCloud(pcd)
-    o3dvis.estimate_normals_neural(cloud, num_views=4, refine_views=0)  # method=None: the shared model
+    o3dvis.estimate_normals_neural(cloud, num_views=4, refine_views=0)  # model=None: the shared model
     assert cloud.has_normals()
     _, pt_map = o3dvis.hidden_point_removal_neural(pcd, _camera(np.asarray(pcd.points)))
     assert len(pt_map) > 0

@@ -60,7 +60,7 @@ def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def test_sphere_normals_point_outward(sphere):
     points, _, method = sphere
-    pcd = estimate_normals_neural(_cloud(points), method=method)
+    pcd = estimate_normals_neural(_cloud(points), model=method)
     outward = points / np.linalg.norm(points, axis=1, keepdims=True)
     angles = _angles(np.asarray(pcd.normals), outward)
     assert angles.max() < 90  # every normal oriented
@@ -73,7 +73,7 @@ def test_box_normals_are_face_normals_and_outward():
     points, face_normals, method = _sample(mesh, 5000)
     mesh.compute_triangle_normals()
     assert mesh.is_watertight() and mesh.get_volume() > 0  # face normals point out
-    normals = np.asarray(estimate_normals_neural(_cloud(points), 26, method).normals)
+    normals = np.asarray(estimate_normals_neural(_cloud(points), num_views=26, model=method).normals)
     angles = _angles(normals, face_normals)
     assert (angles < 90).all()
     assert np.median(angles) < 0.5  # flat faces: triangles in a face are coplanar
@@ -82,7 +82,7 @@ def test_box_normals_are_face_normals_and_outward():
 def test_tensor_cloud_gets_normals(sphere):
     points, _, method = sphere
     tcloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(points.astype(np.float32)))
-    out = estimate_normals_neural(tcloud, 12, method)
+    out = estimate_normals_neural(tcloud, num_views=12, model=method)
     assert out is tcloud
     normals = tcloud.point.normals.numpy()
     assert normals.dtype == np.float32 and normals.shape == points.shape
@@ -271,7 +271,7 @@ def test_plane_fit_far_from_the_origin_is_exact():
 def test_knn_normals_on_a_box_are_face_normals_and_outward(capsys):
     mesh = _box((1.5, 1.0, 0.6), (0, 0, 0))
     points, face_normals, method = _sample(mesh, 4000, seed=2)
-    pcd = estimate_normals_neural(_cloud(points), 26, method, progress=True,
+    pcd = estimate_normals_neural(_cloud(points), num_views=26, model=method, progress=True,
                                   search_param=o3d.geometry.KDTreeSearchParamKNN(10))
     assert "3/3" in capsys.readouterr().err  # the steps' progress bar
     cos = np.einsum("ij,ij->i", np.asarray(pcd.normals), face_normals)
@@ -301,13 +301,13 @@ def test_exact_duplicates_share_one_normal(search_param):
     points, _, method = _sample(mesh, 1500)
     order = np.random.default_rng(1).permutation(2 * len(points))
     doubled = np.vstack([points, points])[order]
-    normals = np.asarray(estimate_normals_neural(_cloud(doubled), 26, method, search_param=search_param).normals)
+    normals = np.asarray(estimate_normals_neural(_cloud(doubled), num_views=26, model=method, search_param=search_param).normals)
     first, second = np.empty_like(points), np.empty_like(points)
     first[order[order < len(points)]] = normals[order < len(points)]
     second[order[order >= len(points)] - len(points)] = normals[order >= len(points)]
     assert np.array_equal(first, second)
     # and the answer is the one of the cloud without its duplicates
-    single = np.asarray(estimate_normals_neural(_cloud(points), 26, method, search_param=search_param).normals)
+    single = np.asarray(estimate_normals_neural(_cloud(points), num_views=26, model=method, search_param=search_param).normals)
     assert np.array_equal(first, single)
 
 
@@ -316,20 +316,36 @@ def test_normals_bad_input(sphere):
     with pytest.raises(ValueError, match="no normals"):
         orient_normals_neural(_cloud(points), 4, method)
     with pytest.raises(ValueError, match="empty"):
-        estimate_normals_neural(o3d.geometry.PointCloud(), 4, method)
+        estimate_normals_neural(o3d.geometry.PointCloud(), num_views=4, model=method)
     with pytest.raises(ValueError, match="shape"):
-        estimate_normals_neural(_cloud(points), 4, lambda p, c: np.ones(len(p), bool))
-    with pytest.raises(TypeError, match="method"):
-        estimate_normals_neural(_cloud(points), 4, "neural")
+        estimate_normals_neural(_cloud(points), num_views=4, model=lambda p, c: np.ones(len(p), bool))
+    with pytest.raises(TypeError, match="model must be"):
+        estimate_normals_neural(_cloud(points), num_views=4, model=3.5)
+    with pytest.raises(TypeError, match="search_param, the first argument"):  # Open3D's order: num_views by name
+        estimate_normals_neural(_cloud(points), 4, method)
     with pytest.raises(ValueError, match="one line"):
         line = np.column_stack([np.linspace(0, 1, 50), np.zeros(50), np.zeros(50)])
-        estimate_normals_neural(_cloud(line), 6, lambda p, c: np.ones((len(c), len(p)), bool))
+        estimate_normals_neural(_cloud(line), num_views=6, model=lambda p, c: np.ones((len(c), len(p)), bool))
     with pytest.raises(ValueError, match="three neighbours"):
-        estimate_normals_neural(_cloud(points), 4, method,
+        estimate_normals_neural(_cloud(points), num_views=4, model=method,
                                 search_param=o3d.geometry.KDTreeSearchParamHybrid(1e-6, 30))
     with pytest.raises(ValueError, match="one line"):
-        estimate_normals_neural(_cloud(line), 6, lambda p, c: np.ones((len(c), len(p)), bool),
+        estimate_normals_neural(_cloud(line), num_views=6, model=lambda p, c: np.ones((len(c), len(p)), bool),
                                 search_param=o3d.geometry.KDTreeSearchParamKNN(8))
+
+
+def test_model_keyword_takes_names_and_the_former_method_keyword(box_on_floor):
+    """``model=`` of the applications takes what the drop-ins take (a shipped model's name) and
+    any visibility method; ``method=``, its former name, still works, with a DeprecationWarning."""
+    points, _, method = box_on_floor
+    pcd = _cloud(points)
+    by_name = points_in_shadow(pcd, LIGHT, model="default")
+    np.testing.assert_array_equal(by_name, points_in_shadow(pcd, LIGHT))
+    expected = points_in_shadow(pcd, LIGHT, model=method)
+    with pytest.warns(DeprecationWarning, match="model="):
+        np.testing.assert_array_equal(points_in_shadow(pcd, LIGHT, method=method), expected)
+    with pytest.raises(TypeError, match="both model= and method="):
+        points_in_shadow(pcd, LIGHT, model=method, method=method)
 
 
 # ---------------------------------------------------------------- reconstruction
@@ -362,7 +378,7 @@ def test_view_dependent_mesh_does_not_bridge_depth_jumps():
 def test_poisson_on_neural_normals_recovers_the_sphere(sphere, search_param):
     points, _, method = sphere
     pcd = _cloud(points)
-    mesh, densities = reconstruct_poisson(pcd, depth=6, method=method, search_param=search_param)
+    mesh, densities = reconstruct_poisson(pcd, depth=6, model=method, search_param=search_param)
     radii = np.linalg.norm(np.asarray(mesh.vertices), axis=1)
     assert len(densities) == len(radii)
     assert np.abs(radii - 1).mean() < 0.02
@@ -370,14 +386,14 @@ def test_poisson_on_neural_normals_recovers_the_sphere(sphere, search_param):
     assert not pcd.has_normals()  # the input is left alone
     if search_param is not None:  # the search reaches the fit: one too narrow for any plane fails
         with pytest.raises(ValueError, match="three neighbours"):
-            reconstruct_poisson(pcd, depth=6, method=method,
+            reconstruct_poisson(pcd, depth=6, model=method,
                                 search_param=o3d.geometry.KDTreeSearchParamHybrid(radius=1e-9, max_nn=5))
 
 
 def test_poisson_gives_the_same_mesh_on_every_run(sphere):
     points, _, method = sphere
     pcd = _cloud(points)
-    runs = [reconstruct_poisson(pcd, depth=7, method=method)[0] for _ in range(3)]
+    runs = [reconstruct_poisson(pcd, depth=7, model=method)[0] for _ in range(3)]
     for mesh in runs[1:]:
         assert np.array_equal(np.asarray(mesh.vertices), np.asarray(runs[0].vertices))
         assert np.array_equal(np.asarray(mesh.triangles), np.asarray(runs[0].triangles))
@@ -435,7 +451,7 @@ def test_render_with_shadows_darkens_the_shadow(box_on_floor):
 def test_depth_image_of_a_sphere(sphere):
     points, _, method = sphere
     intrinsic = o3d.camera.PinholeCameraIntrinsic(100, 100, 100.0, 100.0, 49.5, 49.5)
-    depth = np.asarray(depth_image(_cloud(points), [0, 0, 5], intrinsic, method=method))
+    depth = np.asarray(depth_image(_cloud(points), [0, 0, 5], intrinsic, model=method))
     assert depth.shape == (100, 100) and depth.dtype == np.float32
     assert 4.0 <= depth[49:51, 49:51].min() and depth[49:51, 49:51].max() < 4.02
     radius = 100 * np.tan(np.arcsin(1 / 5))  # of the silhouette, in pixels
@@ -497,7 +513,7 @@ def _brute_force(points: np.ndarray, field, count: int = 500) -> np.ndarray:
 @pytest.mark.parametrize("maximize", [True, False])
 def test_best_and_worst_view_beat_brute_force(box_field, maximize):
     points, field = box_field
-    camera, losses = best_view(points, maximize, steps=120, method=field, starts=6)
+    camera, losses = best_view(points, maximize, steps=120, model=field, starts=6)
     assert losses.shape == (120,) and losses[-1] < losses[0]
     diag = np.linalg.norm(points.max(0) - points.min(0))
     assert np.linalg.norm(camera - (points.max(0) + points.min(0)) / 2) == pytest.approx(diag, rel=1e-5)
@@ -522,7 +538,7 @@ def test_best_view_with_the_network_field(sphere):
     camera = torch.tensor([[0.3, 0.2, 4.0]], requires_grad=True)
     vis.encode(points).probabilities(camera).mean().backward()
     assert camera.grad is not None and camera.grad.abs().sum() > 0
-    found, losses = best_view(points, steps=5, method=vis, starts=2)
+    found, losses = best_view(points, steps=5, model=vis, starts=2)
     assert np.isfinite(losses).all() and found.shape == (3,)
 
 

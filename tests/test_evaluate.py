@@ -184,7 +184,7 @@ def test_neural_checkpoint_is_scored_like_any_method(data, tmp_path, capsys):
 
 def test_neural_names_take_a_number_of_rotations_and_a_precision(tmp_path):
     pytest.importorskip("o3dvis.neural")
-    from o3dvis.methods import resolve_methods
+    from o3dvis.training.methods import resolve_methods
     from o3dvis.nn import VisibilityNetwork
     from o3dvis.nn.network import NetworkConfig
 

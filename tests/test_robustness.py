@@ -325,7 +325,7 @@ FUNCS: dict[str, Func] = {
         "any", lambda c, cam, m: o3dvis.shadow_map(c, cam, 32, m),
         lambda r, p, o: _image_answer(r, (32, 32), np.float32), risky=True),
     "depth_image": Func(
-        "any", lambda c, cam, m: o3dvis.depth_image(c, cam, width=32, height=24, method=m),
+        "any", lambda c, cam, m: o3dvis.depth_image(c, cam, width=32, height=24, model=m),
         lambda r, p, o: _image_answer(r, _IMAGE, np.float32)),
     "render_points": Func(
         "pcd", lambda c, cam, m: o3dvis.render_points(c, cam, True, 32, 24, m),
@@ -337,7 +337,7 @@ FUNCS: dict[str, Func] = {
         "pcd", lambda c, cam, m: o3dvis.reconstruct_view_dependent(c, cam, m),
         lambda r, p, o: _mesh_answer(r, o), risky=True),
     "estimate_normals_neural": Func(
-        "pcd", lambda c, cam, m: o3dvis.estimate_normals_neural(c, 6, m, refine_views=4),
+        "pcd", lambda c, cam, m: o3dvis.estimate_normals_neural(c, num_views=6, model=m, refine_views=4),
         lambda r, p, o: _normals_answer(r, len(p)), camera=False, risky=True, canonical=_axes,
         errors={"1 point": _NO_VOLUME, "one point 10 times": _NO_VOLUME, "2 points": _TOO_FEW,
                 "3 points": _TOO_FEW, "collinear": _TOO_FEW, **_ARRAY_CHECKED_FIRST}),
@@ -352,7 +352,7 @@ FUNCS: dict[str, Func] = {
                 "3 points": _TOO_FEW, "collinear": _TOO_FEW},
         truths={"planar": "valid"}),  # an open sheet has no inside: its two sides give any surface
     "best_view": Func(
-        "any", lambda c, cam, m: o3dvis.best_view(c, steps=3, method=m, starts=2),
+        "any", lambda c, cam, m: o3dvis.best_view(c, steps=3, model=m, starts=2),
         lambda r, p, o: _best_view_answer(r, p, o), camera=False, method=False,
         errors={"1 point": _NO_VOLUME, "one point 10 times": _NO_VOLUME}),
     "hidden_point_removal_mask": Func(
@@ -411,14 +411,14 @@ PARAMETERS: dict[str, tuple[Callable, tuple, bool]] = {
     "shadow_map resolution 0": (lambda vis: o3dvis.shadow_map(_PCD, CAMERA, 0, vis), (ValueError, "resolution"), False),
     "render_points width 0": (lambda vis: o3dvis.render_points(_PCD, CAMERA, True, 0, 24, vis),
                               (ValueError, "width"), False),
-    "depth_image point_size NaN": (lambda vis: o3dvis.depth_image(_PCD, CAMERA, point_size=np.nan, method=vis),
+    "depth_image point_size NaN": (lambda vis: o3dvis.depth_image(_PCD, CAMERA, point_size=np.nan, model=vis),
                                    (ValueError, "point_size"), False),
     "render_with_shadows ambient 2": (lambda vis: o3dvis.render_with_shadows(_PCD, CAMERA, CAMERA, 32, 24, vis,
                                                                              ambient=2), (ValueError, "ambient"), False),
-    "best_view steps 0": (lambda vis: o3dvis.best_view(_PCD, steps=0, method=vis), (ValueError, "steps"), False),
-    "best_view negative distance": (lambda vis: o3dvis.best_view(_PCD, steps=2, method=vis, distance=-1.0),
+    "best_view steps 0": (lambda vis: o3dvis.best_view(_PCD, steps=0, model=vis), (ValueError, "steps"), False),
+    "best_view negative distance": (lambda vis: o3dvis.best_view(_PCD, steps=2, model=vis, distance=-1.0),
                                     (ValueError, "distance"), False),
-    "estimate_normals_neural 0 views": (lambda vis: o3dvis.estimate_normals_neural(o3d.geometry.PointCloud(_PCD), 0, vis),
+    "estimate_normals_neural 0 views": (lambda vis: o3dvis.estimate_normals_neural(o3d.geometry.PointCloud(_PCD), num_views=0, model=vis),
                                         (ValueError, "num_views"), False),
     # Open3D's Poisson raises on an octree of fewer than 2 levels, then aborts the process at exit
     "reconstruct_poisson depth 1": (lambda vis: o3dvis.reconstruct_poisson(_PCD, 1, vis, num_views=6),

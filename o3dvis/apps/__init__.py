@@ -1,6 +1,6 @@
 """Applications of point visibility on Open3D geometry: oriented normals, reconstruction,
-shadows, best views and headless renders. Each takes the visibility method as ``method=``
-(default: the pretrained neural network; see :mod:`o3dvis.methods`).
+shadows, best views and headless renders. Each takes the source of visibility as ``model=``,
+as the Open3D drop-ins do (default: the pretrained neural network; see :mod:`o3dvis.methods`).
 """
 
 from ..cameras import View, fibonacci_sphere, make_view

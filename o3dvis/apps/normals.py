@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 from ..baselines import distinct_points
 from ..cameras import viewpoints_around
 from ..clouds import cloud_normals, cloud_points, set_cloud_normals
-from ..methods import resolve_method
+from ..methods import accepts_method_keyword, resolve_method
 from .triangulation import DEFAULT_EDGE_FACTOR, facing_triangles, local_spacing
 
 __all__ = ["estimate_normals_neural", "orient_normals_neural", "multiview_normals",
@@ -222,7 +222,7 @@ def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_vi
 
     Args:
         points: (N, 3) points.
-        method: the visibility method (see :func:`o3dvis.methods.resolve_method`).
+        method: the visibility source, as ``model=`` of :func:`estimate_normals_neural`.
         num_views: cameras on a Fibonacci sphere of radius = bounding-box diagonal.
         refine_views: more cameras for the points that no triangle of the first
             ones covers (in concavities few directions see); only those points
@@ -312,9 +312,9 @@ def _covisible_path(points: np.ndarray, method, cameras: np.ndarray, refine_view
     return normals
 
 
-def estimate_normals_neural(pcd, num_views: int = 26, method=None, *, refine_views: int = 0,
-                            edge_factor: float = DEFAULT_EDGE_FACTOR, progress: bool = False,
-                            search_param=None):
+@accepts_method_keyword
+def estimate_normals_neural(pcd, search_param=None, num_views: int = 26, model=None, *, refine_views: int = 0,
+                            edge_factor: float = DEFAULT_EDGE_FACTOR, progress: bool = False):
     """Estimates oriented normals from visibility, in place, like ``pcd.estimate_normals()``.
 
     Cameras sit on a Fibonacci sphere of radius = bounding-box diagonal around
@@ -323,9 +323,17 @@ def estimate_normals_neural(pcd, num_views: int = 26, method=None, *, refine_vie
 
     Args:
         pcd: ``o3d.geometry.PointCloud`` (legacy or tensor); its normals are replaced.
+        search_param: None to triangulate what each camera sees, or
+            ``o3d.geometry.KDTreeSearchParamKNN(knn)`` /
+            ``KDTreeSearchParamHybrid(radius, max_nn)`` (Open3D's first argument
+            of ``estimate_normals``): fit each normal to the neighbours this
+            search finds, as ``pcd.estimate_normals(search_param)`` does, but
+            weighting each by the share of the point's views that see it too,
+            then orient it towards the cameras that see it. Faster than
+            triangulating, slightly less accurate (``docs/results.md`` measures both).
         num_views: number of cameras.
-        method: the visibility method (default: the pretrained neural network);
-            see :func:`o3dvis.methods.resolve_method`.
+        model: the visibility source (default: the pretrained neural network); see
+            :func:`o3dvis.methods.resolve_method`.
         refine_views: more cameras for the points the first ``num_views`` leave
             without a triangle (default 0: none, their side is propagated from
             the others); those points and their neighbours alone are asked
@@ -333,21 +341,24 @@ def estimate_normals_neural(pcd, num_views: int = 26, method=None, *, refine_vie
         edge_factor: triangles with an edge longer than this many local point
             spacings are dropped (they bridge gaps or depth jumps).
         progress: show progress bars.
-        search_param: ``o3d.geometry.KDTreeSearchParamKNN(knn)`` or
-            ``KDTreeSearchParamHybrid(radius, max_nn)``: instead of
-            triangulating, fit each normal to the neighbours this search
-            finds, as ``pcd.estimate_normals(search_param)`` does, but weighting
-            each by the share of the point's views that see it too, then orient
-            it towards the cameras that see it. Faster than the triangulation,
-            slightly less accurate (``docs/results.md`` measures both).
 
     Returns:
         ``pcd``, with unit normals set.
+
+    Raises:
+        TypeError: ``search_param`` is not None nor an Open3D KNN or hybrid
+            search parameter (e.g. a number of views given where Open3D's
+            ``search_param`` comes first).
     """
+    if search_param is not None and not isinstance(
+            search_param, (o3d.geometry.KDTreeSearchParamKNN, o3d.geometry.KDTreeSearchParamHybrid)):
+        raise TypeError("search_param, the first argument after the cloud as in Open3D's estimate_normals, must "
+                        "be None, KDTreeSearchParamKNN or KDTreeSearchParamHybrid, got "
+                        f"{type(search_param).__name__} (give num_views= and model= by name)")
     points = cloud_points(pcd)
     cloud_normals(pcd)  # only clouds can take normals
-    set_cloud_normals(pcd, multiview_normals(points, method, num_views, refine_views, edge_factor, progress,
-                                        search_param))
+    set_cloud_normals(pcd, multiview_normals(points, model, num_views, refine_views, edge_factor, progress,
+                                             search_param))
     return pcd
 
 
@@ -370,7 +381,8 @@ def _vote(points: np.ndarray, normals: np.ndarray, cameras: np.ndarray, visibili
     return vote
 
 
-def orient_normals_neural(pcd, num_views: int = 26, method=None, *, refine_views: int = 0):
+@accepts_method_keyword
+def orient_normals_neural(pcd, num_views: int = 26, model=None, *, refine_views: int = 0):
     """Flips the normals a cloud already has to face the cameras that see their points.
 
     Each point's orientation is voted by the cameras that see it, weighted by
@@ -381,7 +393,8 @@ def orient_normals_neural(pcd, num_views: int = 26, method=None, *, refine_views
     Args:
         pcd: ``o3d.geometry.PointCloud`` (legacy or tensor) with normals.
         num_views: number of cameras on a sphere of radius = bounding-box diagonal.
-        method: the visibility method (default: the pretrained neural network).
+        model: the visibility source (default: the pretrained neural network); see
+            :func:`o3dvis.methods.resolve_method`.
         refine_views: more cameras asked about the points the first ones do not
             see (0: none).
 
@@ -393,7 +406,7 @@ def orient_normals_neural(pcd, num_views: int = 26, method=None, *, refine_views
     if normals is None or len(normals) != len(points):
         raise ValueError("the point cloud has no normals to orient: call estimate_normals first")
     _check_views(num_views, refine_views)
-    method = resolve_method(method)
+    method = resolve_method(model)
     cameras = viewpoints_around(points, num_views)
     normals = np.array(normals, dtype=np.float64)
     set_cloud_normals(pcd, _orient(points, normals, np.ones(len(points), dtype=bool), method, cameras,

@@ -7,14 +7,15 @@ import open3d as o3d
 
 from ..cameras import camera_location_of
 from ..clouds import cloud_points, legacy_cloud
-from ..methods import resolve_method
+from ..methods import accepts_method_keyword, resolve_method
 from .normals import estimate_normals_neural
 from .triangulation import DEFAULT_EDGE_FACTOR, local_spacing, visible_triangles
 
 __all__ = ["reconstruct_view_dependent", "reconstruct_poisson"]
 
 
-def reconstruct_view_dependent(pcd, camera, method=None, *,
+@accepts_method_keyword
+def reconstruct_view_dependent(pcd, camera, model=None, *,
                                edge_factor: float = DEFAULT_EDGE_FACTOR) -> o3d.geometry.TriangleMesh:
     """The surface a camera sees, as a mesh over the visible points.
 
@@ -26,7 +27,8 @@ def reconstruct_view_dependent(pcd, camera, method=None, *,
         pcd: ``o3d.geometry.PointCloud`` (legacy or tensor); colours carry over.
         camera: a (3,) camera location, a 4x4 extrinsic or
             ``o3d.camera.PinholeCameraParameters``.
-        method: the visibility method (default: the pretrained neural network).
+        model: the visibility source (default: the pretrained neural network); see
+            :func:`o3dvis.methods.resolve_method`.
         edge_factor: longest edge allowed, in local point spacings.
 
     Returns:
@@ -36,7 +38,7 @@ def reconstruct_view_dependent(pcd, camera, method=None, *,
     pcd = legacy_cloud(pcd)
     points = cloud_points(pcd)
     location = camera_location_of(camera)
-    visible = np.flatnonzero(resolve_method(method)(points, location[None])[0])
+    visible = np.flatnonzero(resolve_method(model)(points, location[None])[0])
     triangles = visible_triangles(points, location, visible, edge_factor * local_spacing(points))
     used, triangles = np.unique(triangles, return_inverse=True)
     mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(points[used]),
@@ -47,7 +49,8 @@ def reconstruct_view_dependent(pcd, camera, method=None, *,
     return mesh
 
 
-def reconstruct_poisson(pcd, depth: int = 8, method=None, *, num_views: int = 26,
+@accepts_method_keyword
+def reconstruct_poisson(pcd, depth: int = 8, model=None, *, num_views: int = 26,
                         refine_views: int = 0, width: float = 0,
                         scale: float = 1.1, linear_fit: bool = False, n_threads: int = 1,
                         progress: bool = False, search_param=None
@@ -66,7 +69,8 @@ def reconstruct_poisson(pcd, depth: int = 8, method=None, *, num_views: int = 26
         n_threads: threads of the Poisson solver. The default 1 gives the
             same mesh on every run; more threads (-1: all cores, Open3D's
             default) may give slightly different meshes from run to run.
-        method: the visibility method (default: the pretrained neural network).
+        model: the visibility source (default: the pretrained neural network); see
+            :func:`o3dvis.methods.resolve_method`.
         num_views, refine_views: cameras used to estimate the normals (see
             :func:`~o3dvis.apps.normals.estimate_normals_neural`).
         progress: show a progress bar while estimating the normals.
@@ -91,8 +95,7 @@ def reconstruct_poisson(pcd, depth: int = 8, method=None, *, num_views: int = 26
     if width > 0 and scale * size <= 2 * width:  # Open3D's depth from width: ceil(log2(scale size / width))
         raise ValueError(f"width={width} gives an octree of fewer than 2 levels over a cloud {size:g} "
                          f"wide (scale={scale}); use a smaller width or width=0 with depth")
-    estimate_normals_neural(cloud, num_views, method, refine_views=refine_views, progress=progress,
-                            search_param=search_param)
+    estimate_normals_neural(cloud, search_param, num_views, model, refine_views=refine_views, progress=progress)
     # Open3D's Poisson loses precision far from the origin (georeferenced clouds): solve centred
     center = cloud.get_axis_aligned_bounding_box().get_center()
     mesh, densities = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(

@@ -12,7 +12,7 @@ import open3d as o3d
 
 from ..cameras import View, make_view
 from ..clouds import cloud_points, legacy_cloud
-from ..methods import resolve_method
+from ..methods import accepts_method_keyword, resolve_method
 from .triangulation import local_spacing
 
 __all__ = ["render_points", "depth_image", "splat", "rasterize", "point_colors", "lambert"]
@@ -158,8 +158,9 @@ def image_from(index: np.ndarray, colors: np.ndarray, background) -> o3d.geometr
     return o3d.geometry.Image(np.ascontiguousarray(np.rint(np.clip(rgb, 0, 1) * 255).astype(np.uint8)))
 
 
+@accepts_method_keyword
 def render_points(pcd, camera, visible_only: bool = True, width: int = 640, height: int = 480,
-                  method=None, *, intrinsic=None, point_size: float | None = None,
+                  model=None, *, intrinsic=None, point_size: float | None = None,
                   background=(1.0, 1.0, 1.0)) -> o3d.geometry.Image:
     """Renders a point cloud to an RGB image, headless.
 
@@ -170,7 +171,8 @@ def render_points(pcd, camera, visible_only: bool = True, width: int = 640, heig
             ``o3d.camera.PinholeCameraParameters``.
         visible_only: drop points the visibility method finds hidden before splatting.
         width, height: image size (ignored when an intrinsic is given).
-        method: the visibility method (default: the pretrained neural network).
+        model: the visibility source (default: the pretrained neural network); see
+            :func:`o3dvis.methods.resolve_method`.
         intrinsic: ``o3d.camera.PinholeCameraIntrinsic`` (default: framed to the cloud).
         point_size: splat radius in world units (default: the local point spacing).
         background: RGB in [0, 1].
@@ -181,13 +183,14 @@ def render_points(pcd, camera, visible_only: bool = True, width: int = 640, heig
     pcd = legacy_cloud(pcd)
     points = cloud_points(pcd)
     view = make_view(points, camera, width, height, intrinsic)
-    keep = resolve_method(method)(points, view.location[None])[0] if visible_only else None
+    keep = resolve_method(model)(points, view.location[None])[0] if visible_only else None
     index, _ = splat(view, points, splat_size(points, point_size), keep)
     return image_from(index, point_colors(pcd, points, view.location), background)
 
 
+@accepts_method_keyword
 def depth_image(pcd, camera, intrinsic=None, *, width: int = 640, height: int = 480,
-                visible_only: bool = True, method=None,
+                visible_only: bool = True, model=None,
                 point_size: float | None = None) -> o3d.geometry.Image:
     """A float depth image of a point cloud, like a depth camera would see it.
 
@@ -199,7 +202,8 @@ def depth_image(pcd, camera, intrinsic=None, *, width: int = 640, height: int = 
             cloud at ``width`` x ``height``).
         width, height: image size when no intrinsic is given.
         visible_only: drop points the visibility method finds hidden first.
-        method: the visibility method (default: the pretrained neural network).
+        model: the visibility source (default: the pretrained neural network); see
+            :func:`o3dvis.methods.resolve_method`.
         point_size: splat radius in world units (default: the local point spacing).
 
     Returns:
@@ -209,6 +213,6 @@ def depth_image(pcd, camera, intrinsic=None, *, width: int = 640, height: int = 
     """
     points = cloud_points(pcd)
     view = make_view(points, camera, width, height, intrinsic)
-    keep = resolve_method(method)(points, view.location[None])[0] if visible_only else None
+    keep = resolve_method(model)(points, view.location[None])[0] if visible_only else None
     _, depth = splat(view, points, splat_size(points, point_size), keep)
     return o3d.geometry.Image(depth.astype(np.float32))

@@ -13,14 +13,15 @@ import open3d as o3d
 
 from ..cameras import as_camera_location, make_view
 from ..clouds import cloud_points, legacy_cloud
-from ..methods import resolve_method
+from ..methods import accepts_method_keyword, resolve_method
 from .render import image_from, lambert, rasterize, splat, splat_size
 from .triangulation import DEFAULT_EDGE_FACTOR, local_spacing, visible_triangles
 
 __all__ = ["shadow_map", "points_in_shadow", "render_with_shadows"]
 
 
-def shadow_map(pcd, light, resolution: int = 512, method=None, *,
+@accepts_method_keyword
+def shadow_map(pcd, light, resolution: int = 512, model=None, *,
                edge_factor: float = DEFAULT_EDGE_FACTOR) -> o3d.geometry.Image:
     """The depth image of the surface a point light sees.
 
@@ -34,7 +35,8 @@ def shadow_map(pcd, light, resolution: int = 512, method=None, *,
         pcd: ``o3d.geometry.PointCloud`` (legacy or tensor).
         light: (3,) light position.
         resolution: image width and height in pixels.
-        method: the visibility method (default: the pretrained neural network).
+        model: the visibility source (default: the pretrained neural network); see
+            :func:`o3dvis.methods.resolve_method`.
         edge_factor: triangles with an edge longer than this many local point
             spacings are holes, not surface.
 
@@ -47,28 +49,31 @@ def shadow_map(pcd, light, resolution: int = 512, method=None, *,
     if int(resolution) < 1:
         raise ValueError(f"resolution must be a positive number of pixels, got {resolution}")
     view = make_view(points, light, int(resolution), int(resolution))
-    seen = np.flatnonzero(resolve_method(method)(points, light[None])[0])
+    seen = np.flatnonzero(resolve_method(model)(points, light[None])[0])
     triangles = visible_triangles(points, light, seen, edge_factor * local_spacing(points))
     return o3d.geometry.Image(rasterize(view, points, triangles).astype(np.float32))
 
 
-def points_in_shadow(pcd, light, method=None) -> np.ndarray:
+@accepts_method_keyword
+def points_in_shadow(pcd, light, model=None) -> np.ndarray:
     """Which points a point light does not reach.
 
     Args:
         pcd: ``o3d.geometry.PointCloud`` (legacy or tensor).
         light: (3,) light position.
-        method: the visibility method (default: the pretrained neural network).
+        model: the visibility source (default: the pretrained neural network); see
+            :func:`o3dvis.methods.resolve_method`.
 
     Returns:
         (N,) bool, True for points in shadow (hidden from the light).
     """
     points = cloud_points(pcd)
     light = as_camera_location(light, "light")
-    return ~resolve_method(method)(points, light[None])[0]
+    return ~resolve_method(model)(points, light[None])[0]
 
 
-def render_with_shadows(pcd, light, camera, width: int = 640, height: int = 480, method=None, *,
+@accepts_method_keyword
+def render_with_shadows(pcd, light, camera, width: int = 640, height: int = 480, model=None, *,
                         ambient: float = 0.3, intrinsic=None, point_size: float | None = None,
                         background=(1.0, 1.0, 1.0)) -> o3d.geometry.Image:
     """Renders the points a camera sees, lit by a point light, with cast shadows.
@@ -82,7 +87,8 @@ def render_with_shadows(pcd, light, camera, width: int = 640, height: int = 480,
         camera: a (3,) location looking at the cloud's centre, a 4x4 extrinsic or
             ``o3d.camera.PinholeCameraParameters``.
         width, height: image size (ignored when an intrinsic is given).
-        method: the visibility method (default: the pretrained neural network).
+        model: the visibility source (default: the pretrained neural network); see
+            :func:`o3dvis.methods.resolve_method`.
         ambient: brightness of shadowed points, in [0, 1].
         intrinsic: ``o3d.camera.PinholeCameraIntrinsic`` (default: framed to the cloud).
         point_size: splat radius in world units (default: the local point spacing).
@@ -97,7 +103,7 @@ def render_with_shadows(pcd, light, camera, width: int = 640, height: int = 480,
     points = cloud_points(pcd)
     light = as_camera_location(light, "light")
     view = make_view(points, camera, width, height, intrinsic)
-    seen_by_camera, lit = resolve_method(method)(points, np.stack([view.location, light]))
+    seen_by_camera, lit = resolve_method(model)(points, np.stack([view.location, light]))
     base = np.clip(np.asarray(pcd.colors), 0, 1) if pcd.has_colors() else np.full((len(points), 3), 0.8)
     brightness = np.where(lit, ambient + (1 - ambient) * lambert(pcd, points, light), ambient)
     index, _ = splat(view, points, splat_size(points, point_size), seen_by_camera)

@@ -7,12 +7,13 @@ import torch
 
 from ..cameras import fibonacci_sphere
 from ..clouds import cloud_points
-from ..methods import resolve_soft_method
+from ..methods import accepts_method_keyword, resolve_soft_method
 
 __all__ = ["best_view"]
 
 
-def best_view(pcd, maximize: bool = True, steps: int = 300, method=None, *, starts: int = 8,
+@accepts_method_keyword
+def best_view(pcd, maximize: bool = True, steps: int = 300, model=None, *, starts: int = 8,
               lr: float = 0.05, distance: float | None = None,
               progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The camera position that sees the most (or the fewest) points.
@@ -27,9 +28,9 @@ def best_view(pcd, maximize: bool = True, steps: int = 300, method=None, *, star
         pcd: ``o3d.geometry.PointCloud`` (legacy or tensor) or (N, 3) points.
         maximize: True for the best view, False for the worst.
         steps: optimisation steps.
-        method: None (the pretrained network), a ``NeuralVisibility``, a
-            ``VisibilityField`` of this cloud, or a callable mapping a (V, 3)
-            camera tensor to (V, N) differentiable visibility probabilities.
+        model: the visibility source (default: the pretrained network): as in
+            :func:`o3dvis.methods.resolve_soft_method`, a network, or a callable
+            mapping a (V, 3) camera tensor to (V, N) differentiable probabilities.
         starts: number of starting directions.
         lr: Adam learning rate (a step of ``lr`` moves the camera by about
             ``lr`` radians at first), decayed with a cosine schedule.
@@ -46,7 +47,7 @@ def best_view(pcd, maximize: bool = True, steps: int = 300, method=None, *, star
     if steps < 1 or starts < 1:
         raise ValueError(f"steps and starts must be at least 1, got {steps} and {starts}")
     points = cloud_points(pcd)
-    soft = resolve_soft_method(method, points)
+    soft = resolve_soft_method(model, points)
     lo, hi = points.min(axis=0), points.max(axis=0)
     radius = float(np.linalg.norm(hi - lo)) if distance is None else float(distance)
     if not radius > 0:

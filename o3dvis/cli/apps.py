@@ -117,8 +117,8 @@ def _normals(args: argparse.Namespace) -> int:
             raise ValueError("--knn estimates normals; --orient-only keeps the input's")
         orient_normals_neural(pcd, args.views, method, refine_views=args.refine_views)
     else:
-        estimate_normals_neural(pcd, args.views, method, refine_views=args.refine_views, progress=True,
-                                search_param=_search(args))
+        estimate_normals_neural(pcd, _search(args), args.views, method, refine_views=args.refine_views,
+                                progress=True)
     if not o3d.io.write_point_cloud(args.output, pcd):
         raise RuntimeError(f"could not write {args.output}")
     print(f"{len(pcd.points)} oriented normals -> {args.output}")
@@ -182,13 +182,13 @@ def _best_view(args: argparse.Namespace) -> int:
     pcd = read_point_cloud(args.input)
     method = visibility_method(args)
     figure = figure_class("--plot") if args.plot else None
-    camera, losses = best_view(pcd, maximize=not args.worst, steps=args.steps, method=method,
+    camera, losses = best_view(pcd, maximize=not args.worst, steps=args.steps, model=method,
                                starts=args.starts, progress=True)
     fraction = -losses.min() if not args.worst else losses.min()
     print(f"{'worst' if args.worst else 'best'} view: {camera[0]:.6g} {camera[1]:.6g} {camera[2]:.6g} "
           f"(sees {100 * fraction:.1f}% of the points, soft count)")
     if args.output:
-        write_image(args.output, render_points(pcd, camera, method=method))
+        write_image(args.output, render_points(pcd, camera, model=method))
     if figure is not None:
         fig = figure(figsize=(5, 3))
         ax = fig.subplots()
@@ -214,7 +214,7 @@ def _render(args: argparse.Namespace) -> int:
         bar.update()
         if args.depth_output:
             depth = depth_image(pcd, args.camera, width=args.width, height=args.height,
-                                visible_only=not args.all, method=method)
+                                visible_only=not args.all, model=method)
             np.save(args.depth_output, np.asarray(depth))
             bar.update()
     print(f"{args.width}x{args.height} render -> {args.output}")

@@ -110,7 +110,7 @@ def _checkpoint(model: str | None) -> Path | None:
 def _methods(args, sweeps: dict):
     import torch
 
-    from ..methods import resolve_methods
+    from ..training.methods import resolve_methods
 
     torch.set_num_threads(max(1, args.threads))
     methods, absent = resolve_methods(args.methods, _checkpoint(args.checkpoint), sweeps)

@@ -25,10 +25,11 @@ from .._optional import figure_class
 from ..apps.render import image_from, lambert, splat, splat_size
 from ..baselines import SWEEPS, hpr_method
 from ..cameras import View, as_camera_location, make_view
-from ..methods import NeuralMethod, ground_truth_method
+from ..methods import ground_truth_method
 from .data.prepare import sample_surface
 from .data.shapes import random_shape
 from .evaluate import Counts, EvalCloud
+from .methods import NeuralMethod
 from .speed import time_method
 
 __all__ = ["SAMPLE_SEED", "SAMPLE_PARTS", "demo_sample", "default_camera", "observer_location",

@@ -48,29 +48,29 @@ class Frustum:
     width: int
     height: int
 
-    def contains(self, points_n: Tensor, center: Tensor, scale: Tensor) -> Tensor:
+    def contains(self, points: Tensor, center: Tensor, scale: Tensor) -> Tensor:
         """Which points project into the image from in front of the camera.
 
         A pixel ``(i, j)`` covers ``[i - 0.5, i + 0.5)`` of the image plane, so a
         point is inside when its projection rounds to a pixel of the image.
 
         Args:
-            points_n: (N, 3) points in normalised coordinates,
-                ``world = points_n * scale + center``.
+            points: (N, 3) points in normalised coordinates,
+                ``world = points * scale + center``.
             center: (3,) float64 centre of the normalisation.
             scale: float64 scalar scale of the normalisation.
 
         Returns:
-            (N,) bool tensor on the device of ``points_n``.
+            (N,) bool tensor on the device of ``points``.
         """
         # x_cam = R (s x_n + c) + t = s (R x_n + (R c + t) / s): the scale changes
         # neither the sign of z nor the projected pixel, so work in normalised units.
-        rotation = torch.tensor(self.extrinsic[:3, :3], dtype=torch.float64, device=points_n.device)
-        shift = (rotation @ center.to(points_n.device) + torch.as_tensor(
-            self.extrinsic[:3, 3].copy(), dtype=torch.float64, device=points_n.device)) / scale
-        k = torch.tensor(self.intrinsic, dtype=torch.float64, device=points_n.device)
-        cam = points_n @ rotation.to(points_n.dtype).T + shift.to(points_n.dtype)
-        uvw = cam @ k.to(points_n.dtype).T
+        rotation = torch.tensor(self.extrinsic[:3, :3], dtype=torch.float64, device=points.device)
+        shift = (rotation @ center.to(points.device) + torch.as_tensor(
+            self.extrinsic[:3, 3].copy(), dtype=torch.float64, device=points.device)) / scale
+        k = torch.tensor(self.intrinsic, dtype=torch.float64, device=points.device)
+        cam = points @ rotation.to(points.dtype).T + shift.to(points.dtype)
+        uvw = cam @ k.to(points.dtype).T
         z = uvw[:, 2]
         front = cam[:, 2] > 0
         safe_z = torch.where(front, z, torch.ones_like(z))

@@ -39,7 +39,7 @@ def _visible_indices(pcd, cameras, direction, threshold: float, model, device, n
     if views.positions is None:
         raise ValueError("max_range needs a camera position, not a viewing direction")
     points, cloud_normals = cloud_arrays(pcd)
-    _, unit = model._pick(cloud_normals, normals, points.shape[0])
+    _, unit = model._network_and_normals(cloud_normals, normals, points.shape[0])
     camera = camera.detach().to(points.device)
     near = torch.nonzero((points - camera).square().sum(dim=1) <= max_range ** 2)[:, 0]
     if len(near) == 0:

@@ -103,14 +103,14 @@ class VisibilityField:
     (encoded with a scene model, on the first such camera); None: this field
     answers every view.
 
-    The rows of ``features``, ``points_n`` and ``normals`` may be stored in
+    The rows of ``features``, ``points`` and ``normals`` may be stored in
     another order than the cloud's (:meth:`NeuralVisibility.encode` sorts them
     along a Morton curve, which makes the per-view gathers cache-friendly):
     ``rank[i]`` is then the row of the cloud's point ``i``; None: the same order.
     Answers always come in the cloud's order.
     """
 
-    def __init__(self, network: VisibilityNetwork, features: Tensor, points_n: Tensor,
+    def __init__(self, network: VisibilityNetwork, features: Tensor, points: Tensor,
                  normals: Tensor | None, center: Tensor, scale: Tensor, bounds: tuple[Tensor, Tensor],
                  chunk_size: int = DEFAULT_CHUNK, hull: tuple[Tensor, Tensor] | None = None,
                  rank: Tensor | None = None, rotated: Sequence[RotatedEncoding] = (),
@@ -118,7 +118,7 @@ class VisibilityField:
                  scene: Callable[[], "VisibilityField"] | None = None):
         self.network = network
         self.features = features
-        self.points_n = points_n
+        self.points = points
         self.normals = normals
         self.center, self.scale = center, scale
         self.bounds = bounds
@@ -133,11 +133,11 @@ class VisibilityField:
 
     @property
     def num_points(self) -> int:
-        return self.points_n.shape[0]
+        return self.points.shape[0]
 
     @property
     def device(self) -> torch.device:
-        return self.points_n.device
+        return self.points.device
 
     def __repr__(self) -> str:
         normals = ", with normals" if self.normals is not None else ""
@@ -146,7 +146,7 @@ class VisibilityField:
 
     def _normalised(self, views: Views) -> tuple[Tensor | None, Tensor | None]:
         """(V, 3) cameras or directions of ``views`` in the field's normalised frame."""
-        dtype = self.points_n.dtype
+        dtype = self.points.dtype
         if views.directions is not None:
             return None, views.directions.to(self.device).to(dtype)
         positions = views.positions.to(self.device)
@@ -196,7 +196,7 @@ class VisibilityField:
 
         rotated = [e._replace(features=channels_first(e.features), points=rows(e.points), normals=rows(e.normals))
                    for e in self.rotated]
-        return VisibilityField(self.network, channels_first(self.features), rows(self.points_n), rows(self.normals),
+        return VisibilityField(self.network, channels_first(self.features), rows(self.points), rows(self.normals),
                                self.center, self.scale, self.bounds, self.chunk_size, self.hull, None, rotated,
                                self.calibration, self.matmul_dtype)
 
@@ -206,7 +206,7 @@ class VisibilityField:
         cameras, _ = self._normalised(view)
         if cameras is None:
             raise ValueError("max_range needs camera positions, not viewing directions")
-        reach = (self.points_n - cameras[0].detach()).square().sum(dim=1) <= (max_range / float(self.scale)) ** 2
+        reach = (self.points - cameras[0].detach()).square().sum(dim=1) <= (max_range / float(self.scale)) ** 2
         kept = reach.nonzero()[:, 0]
         probs = self.features.new_zeros(1, self.num_points)
         if len(kept):
@@ -231,9 +231,9 @@ class VisibilityField:
     def _nearest_distance(self, position: Tensor) -> float:
         """The distance from a (3,) position in the cloud's frame to its nearest point: one pass over
         the points, in chunks (linear in N, the cost of one view's projection)."""
-        camera = ((position - self.center) / self.scale).to(self.points_n.dtype)
+        camera = ((position - self.center) / self.scale).to(self.points.dtype)
         step = 1 << 20
-        nearest = min(float((self.points_n[a:a + step] - camera).square().sum(dim=1).min())
+        nearest = min(float((self.points[a:a + step] - camera).square().sum(dim=1).min())
                       for a in range(0, self.num_points, step))
         return float(nearest) ** 0.5 * float(self.scale)
 
@@ -250,7 +250,7 @@ class VisibilityField:
             tol = _INSIDE_TOL * (hi - lo).amax() / 2 / self.scale
         return (offset - (offset @ basis.T) @ basis).norm(dim=1) > tol
 
-    def _rows(self, indices) -> Tensor | None:
+    def _checked_indices(self, indices) -> Tensor | None:
         """``indices`` as a checked (M,) long tensor on the field's device (None: all points)."""
         if indices is None:
             return None
@@ -308,13 +308,13 @@ class VisibilityField:
             empty = self.features.new_zeros(total, 0)
             yield slice(0, total), empty if finish is None else finish(empty)
             return
-        asked = self.points_n if rows is None else self.points_n[rows]
-        frames = [(self.features, self.points_n, self.normals, cameras, directions)] + [
+        asked_points = self.points if rows is None else self.points[rows]
+        frames = [(self.features, self.points, self.normals, cameras, directions)] + [
             (e.features, e.points, e.normals, *e.views(cameras, directions)) for e in self.rotated]
         per_batch = max(1, self.chunk_size // n)
         batches = [slice(start, min(total, start + per_batch)) for start in range(0, total, per_batch)]
 
-        def answer(batch: slice, workers: int = 1) -> Tensor:
+        def probabilities_of(batch: slice, workers: int = 1) -> Tensor:
             probs = self._frame_probabilities(*frames[0], batch, rows, n, workers)
             if frames[1:]:  # the mean over the frames
                 for frame in frames[1:]:
@@ -322,7 +322,7 @@ class VisibilityField:
                 probs = probs / len(frames)
             if clear is not None:  # a flat cloud seen from off its plane or line hides nothing
                 probs = torch.where(clear[batch, None], torch.ones_like(probs), probs)
-            masks = [(j, f.contains(asked, self.center, self.scale))
+            masks = [(j, f.contains(asked_points, self.center, self.scale))
                      for j, f in enumerate(views.frustums[batch]) if f is not None]
             if masks:
                 keep = torch.ones_like(probs, dtype=torch.bool)
@@ -341,14 +341,15 @@ class VisibilityField:
         if free and len(batches) == 1 and n > self.chunk_size:
             torch.set_num_threads(1)  # no OpenMP team of the caller's to spin beside the workers
             try:
-                result = answer(batches[0], threads)
+                result = probabilities_of(batches[0], threads)
             finally:
                 torch.set_num_threads(threads)
             yield batches[0], result
             return
         workers = min(threads, len(batches))
         parallel = free and workers > 1 and (n > self.chunk_size or native.usable(self.features))
-        yield from zip(batches, threaded_map(answer, batches, workers) if parallel else map(answer, batches))
+        yield from zip(batches, threaded_map(probabilities_of, batches, workers) if parallel
+                       else map(probabilities_of, batches))
 
     def probabilities(self, cameras=None, direction=None, *, frustum: bool = True,
                       indices=None, max_range: float | None = None) -> Tensor:
@@ -383,7 +384,7 @@ class VisibilityField:
             IndexError: an index out of range.
         """
         views = as_views(cameras, direction, frustum=frustum)
-        rows, max_range = self._rows(indices), checked_range(max_range)
+        rows, max_range = self._checked_indices(indices), checked_range(max_range)
         given = views.positions if views.positions is not None else views.directions
         grad = torch.is_grad_enabled() and given.requires_grad
         with contextlib.nullcontext() if grad else torch.inference_mode():
@@ -419,7 +420,7 @@ class VisibilityField:
         if not 0 <= threshold <= 1:
             raise ValueError(f"threshold must be in [0, 1], got {threshold}")
         views = as_views(cameras, direction, frustum=frustum)
-        rows, max_range = self._rows(indices), checked_range(max_range)
+        rows, max_range = self._checked_indices(indices), checked_range(max_range)
         out = np.empty((len(views), self.num_points if rows is None else len(rows)), dtype=bool)
         with torch.inference_mode():
             # thresholded on the threads that answer: an op here, on the caller's thread, would wake

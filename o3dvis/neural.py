@@ -86,17 +86,15 @@ class NeuralVisibility:
         chunk_size: rows (views x points) per MLP call; bounds the memory of queries.
         num_rotations: answer with the mean of the network's answers for this many
             copies of the cloud (and its cameras), turned by fixed rotations, the
-            first unturned. More accurate, and as many times slower: on the
-            validation meshes 4 rotations raise the default model's accuracy
-            by 0.5-1.3 points on clean clouds (see the README); 1, the default,
-            is the fast single pass.
+            first unturned: the pixels of the depth buffers fall differently in each
+            frame, so the mean is more accurate, and as many times slower
+            (docs/results.md); 1, the default, is the single pass.
         precision: dtype of the per-view matrix products of queries without
             gradients: ``"auto"`` (default) is ``"bfloat16"`` on CPUs with native
-            bfloat16 dot products (AVX512-BF16, AMX) and ``"float32"`` elsewhere.
-            bfloat16 takes about a third off a view at 200 k points on such a CPU
-            (6.9 against 11.0 ms on two threads) and changes 0.014 % of the
-            answers there (see the README);
-            probabilities differentiated w.r.t. cameras always use float32.
+            bfloat16 dot products (AVX512-BF16, AMX) and ``"float32"`` elsewhere,
+            where bfloat16 products are faster and change a few answers in a
+            hundred thousand (docs/results.md); probabilities differentiated
+            w.r.t. cameras always use float32.
 
     Example:
         >>> vis = NeuralVisibility.pretrained()                     # doctest: +SKIP
@@ -188,7 +186,7 @@ class NeuralVisibility:
         return (f"NeuralVisibility({self.network.num_parameters()} parameters{normals}, {self.device}{turns}, "
                 f"{dtype} products)")
 
-    def _pick(self, cloud_normals: Tensor | None, normals, num_points: int
+    def _network_and_normals(self, cloud_normals: Tensor | None, normals, num_points: int
               ) -> tuple[VisibilityNetwork, Tensor | None]:
         """The network to use and the unit normals to feed it."""
         takes_normals = self.normals_network
@@ -235,18 +233,18 @@ class NeuralVisibility:
         """:meth:`encode`; given the (3,) ``camera`` of the only view to come, a camera inside the
         cloud's bounding box with a scene network gets the scene model's field alone."""
         points, cloud_normals = cloud_arrays(pcd)
-        network, unit = self._pick(cloud_normals, normals, points.shape[0])
+        network, unit = self._network_and_normals(cloud_normals, normals, points.shape[0])
         points = points.to(self.device)
         lo, hi = bounding_box(points)
-        points_n, center, scale = _normalize(points, (lo, hi))
-        hull = _flat_hull(points_n)  # in float64, where a flat cloud is flat to the last bits
-        points_n = points_n.float()
-        order = morton_order(points_n)
+        normalized, center, scale = _normalize(points, (lo, hi))
+        hull = _flat_hull(normalized)  # in float64, where a flat cloud is flat to the last bits
+        normalized = normalized.float()
+        order = morton_order(normalized)
         rank = torch.empty_like(order)
         rank[order] = torch.arange(len(order), device=order.device)
-        points_n = points_n.index_select(0, order)
+        normalized = normalized.index_select(0, order)
         unit = None if unit is None else unit.to(self.device).index_select(0, order).float()
-        frame = (points_n, center, scale, (lo, hi), hull, rank)
+        frame = (normalized, center, scale, (lo, hi), hull, rank)
         scene = None
         if self.scene_network is not None and camera is not None and inside_box(camera.to(lo)[None], (lo, hi))[0]:
             return self._field(self.scene_network, None, *frame)
@@ -255,27 +253,27 @@ class NeuralVisibility:
                 return self._field(self.scene_network, None, *frame)
         return self._field(network, unit, *frame, scene=scene)
 
-    def _field(self, network: VisibilityNetwork, unit: Tensor | None, points_n: Tensor, center: Tensor,
+    def _field(self, network: VisibilityNetwork, unit: Tensor | None, normalized: Tensor, center: Tensor,
                scale: Tensor, bounds: tuple[Tensor, Tensor], hull: tuple[Tensor, Tensor] | None, rank: Tensor,
                scene: Callable[[], VisibilityField] | None = None) -> VisibilityField:
         """The field of ``network`` over the normalised, Morton-ordered points of :meth:`encode`."""
         calibrated = network.calibration is not None
         with torch.no_grad():
-            noise = network.cloud_noise(points_n, ordered=True) if network.config.noise_cues or calibrated else None
-            features = network.encode(points_n, normals=unit, noise=noise)
-            rotated = [self._rotated(network, points_n, unit, r) for r in self.rotations[1:]]
-        calibration = (network.calibration.affine(calibration_terms(noise[0], len(points_n)))
+            noise = network.cloud_noise(normalized, ordered=True) if network.config.noise_cues or calibrated else None
+            features = network.encode(normalized, normals=unit, noise=noise)
+            rotated = [self._rotated(network, normalized, unit, r) for r in self.rotations[1:]]
+        calibration = (network.calibration.affine(calibration_terms(noise[0], len(normalized)))
                        if calibrated else None)
-        return VisibilityField(network, features, points_n, unit, center, scale, bounds, self.chunk_size,
+        return VisibilityField(network, features, normalized, unit, center, scale, bounds, self.chunk_size,
                                hull, rank, rotated, calibration, resolve_precision(self.precision, self.device),
                                scene)
 
     @staticmethod
-    def _rotated(network: VisibilityNetwork, points_n: Tensor, normals: Tensor | None,
+    def _rotated(network: VisibilityNetwork, normalized: Tensor, normals: Tensor | None,
                  rotation: Tensor) -> RotatedEncoding:
         """The encoding of normalised points turned by ``rotation`` and normalised anew."""
-        rotation = rotation.to(points_n)
-        points, center, scale = _normalize(points_n @ rotation.T)
+        rotation = rotation.to(normalized)
+        points, center, scale = _normalize(normalized @ rotation.T)
         normals = None if normals is None else normals @ rotation.T
         return RotatedEncoding(network.encode(points, normals=normals), points, normals, rotation,
                                center, scale)

@@ -22,9 +22,8 @@ def shared_pretrained(name: str = "default", device: str | torch.device | None =
     """The shipped model ``name`` on ``device``, loaded once per process and shared by every caller.
 
     What the functions of o3dvis use when given no model: loading the weights and
-    checking their sha256 takes 0.16-0.19 s the first time in a process and
-    0.06-0.07 s again (two CPU cores), longer than the visibility of a 2 k-point
-    cloud. Thread-safe; the instance is shared, so do not move or change it
+    checking their sha256 can take longer than the visibility of a small cloud,
+    so it is done once. Thread-safe; the instance is shared, so do not move or change it
     (:meth:`NeuralVisibility.pretrained` gives a private one).
 
     Args:

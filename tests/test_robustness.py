@@ -596,7 +596,7 @@ def test_a_flat_cloud_is_all_visible_from_off_its_plane_and_left_to_the_network_
     in_plane = tilted.mean(axis=0) + 3 * (tilted[-1] - tilted[0])
     for cloud in (tilted, noisy):
         field = vis.encode(cloud)
-        raw = o3dvis.VisibilityField(field.network, field.features, field.points_n, None, field.center,
+        raw = o3dvis.VisibilityField(field.network, field.features, field.points, None, field.center,
                                      field.scale, field.bounds, rank=field.rank,
                                      matmul_dtype=field.matmul_dtype)  # without the flat rule
         off = [tilted.mean(axis=0) + 4 * normal, tilted.mean(axis=0) - 5 * normal]

@@ -1,6 +1,6 @@
 """Delaunay triangulation of points in the plane: a sweep in C with exact predicates
-(``delaunay.c``), 5 to 7 times faster than scipy's Qhull on the few thousand points a view
-shows; Qhull where the C library was not built (see :mod:`o3dvis.clib`).
+(``delaunay.c``), faster than scipy's Qhull on the few thousand points a view shows;
+Qhull where the C library was not built (see :mod:`o3dvis.clib`).
 """
 
 from __future__ import annotations

@@ -32,8 +32,9 @@ def gather_rows(x: Tensor, index: Tensor) -> Tensor:
     return x.index_select(0, index.reshape(-1)).view(*index.shape, x.shape[1])
 
 
-class _Linear(nn.Module):
-    """A weight of shape (taps * in_channels, out_channels) with fan-in init."""
+class _GatherMatmul(nn.Module):
+    """A layer that gathers ``taps`` rows per output row and multiplies them by one weight of
+    shape (taps * in_channels, out_channels), with fan-in init: the base of the octree convolutions."""
 
     def __init__(self, taps: int, in_channels: int, out_channels: int):
         super().__init__()
@@ -48,7 +49,7 @@ class _Linear(nn.Module):
         return parts[0] if len(parts) == 1 else torch.cat(parts)
 
 
-class OctreeConv(_Linear):
+class OctreeConv(_GatherMatmul):
     """3x3x3 convolution on the nodes of one level (same semantics as ``conv3d``, padding 1).
 
     The weight row ``o * in_channels + c`` is the tap at offset index ``o`` of
@@ -64,7 +65,7 @@ class OctreeConv(_Linear):
         return self.gather_matmul(_pad(x), nbr)
 
 
-class OctreeDownsample(_Linear):
+class OctreeDownsample(_GatherMatmul):
     """Stride-2 convolution with a 2x2x2 kernel: level ``level`` -> ``level - 1``."""
 
     def __init__(self, in_channels: int, out_channels: int):
@@ -76,7 +77,7 @@ class OctreeDownsample(_Linear):
         return self.gather_matmul(_pad(x), children)
 
 
-class OctreeUpsample(_Linear):
+class OctreeUpsample(_GatherMatmul):
     """Transposed stride-2 convolution: level ``level`` -> ``level + 1``."""
 
     def __init__(self, in_channels: int, out_channels: int):
@@ -88,7 +89,7 @@ class OctreeUpsample(_Linear):
 
 
 class ConvBnRelu(nn.Module):
-    def __init__(self, in_channels: int, out_channels: int, conv: type[_Linear] = OctreeConv,
+    def __init__(self, in_channels: int, out_channels: int, conv: type[_GatherMatmul] = OctreeConv,
                  relu: bool = True):
         super().__init__()
         self.conv = conv(in_channels, out_channels)

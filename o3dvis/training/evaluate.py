@@ -28,7 +28,7 @@ import numpy as np
 
 from ..baselines import Method
 from ..clouds import diagonal
-from .data.noise import add_noise
+from .data.perturb import add_noise
 from .data.prepare import Sample, load_sample
 
 __all__ = ["Counts", "list_samples", "category_of", "subsample_indices", "add_noise", "EvalCloud", "eval_cloud",

@@ -62,10 +62,10 @@ def warm_start(net: VisibilityNetwork, state: dict[str, torch.Tensor]) -> None:
     A calibration in ``state`` is dropped (training changes the margins it was
     fitted to; ``o3dvis calibrate`` fits it anew).
     """
-    from ..nn.conv import _Linear
+    from ..nn.conv import _GatherMatmul
 
     target = net.state_dict()
-    linear = {f"{name}.weight": m for name, m in net.named_modules() if isinstance(m, _Linear)}
+    linear = {f"{name}.weight": m for name, m in net.named_modules() if isinstance(m, _GatherMatmul)}
     for name, value in state.items():
         if name.startswith("calibration.") and name not in target:
             continue

@@ -12,7 +12,7 @@ from torch import Tensor
 from ...clouds import diagonal
 from ...nn.octree import normalize_points
 from ...neural import random_rotation
-from .noise import add_noise
+from .perturb import add_noise
 from .prepare import Sample, load_sample
 
 __all__ = ["Augmentation", "VisibilityDataset", "Batch", "collate"]

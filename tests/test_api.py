@@ -626,3 +626,24 @@ def test_cuda_matches_cpu(network, points):
     assert gpu.device.type == "cuda"
     torch.testing.assert_close(gpu.cpu(), cpu, atol=1e-4, rtol=1e-4)
     network.to("cpu")
+
+
+def test_the_runtime_never_imports_training_code():
+    """Every module outside o3dvis.training and the command line imports without o3dvis.training."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(o3dvis.__file__).parent
+    modules = sorted(".".join(("o3dvis",) + p.relative_to(root).with_suffix("").parts).removesuffix(".__init__")
+                     for p in root.rglob("*.py")
+                     if p.relative_to(root).parts[0] not in ("training", "cli", "__main__.py"))
+    assert {"o3dvis", "o3dvis.neural", "o3dvis.field", "o3dvis.dropins", "o3dvis.apps.normals"} <= set(modules)
+    code = ("import importlib, sys\n"
+            f"for name in {modules!r}:\n"
+            "    importlib.import_module(name)\n"
+            "print(sorted(m for m in sys.modules if m.startswith('o3dvis.training')))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                         cwd=root.parent)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == "[]"

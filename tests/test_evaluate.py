@@ -288,3 +288,59 @@ def test_peak_memory_sees_a_transient_allocation():
     if memory.peak_mib is None:
         pytest.skip("no /proc/self/statm here")
     assert 50 < memory.peak_mib < 200
+
+
+def test_balanced_accuracy_is_the_mean_of_both_recalls():
+    c = Counts(tp=8, fp=1, fn=2, tn=9)
+    assert c.balanced_accuracy == pytest.approx((0.8 + 0.9) / 2)
+    assert np.isnan(Counts(tp=3, fp=0, fn=1, tn=0).balanced_accuracy)
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory) -> Path:
+    """Two procedural scenes (rooms, street), each sampled uniformly and LiDAR-like, 6 cameras inside, 2 out."""
+    from o3dvis.training.data.prepare import prepare_scenes
+
+    root = tmp_path_factory.mktemp("scenes")
+    assert prepare_scenes(root, 2, None, num_points=3000, num_views=8, progress=False)["done"] == 2
+    return root
+
+
+def test_scene_clouds_keep_inside_cameras_and_scale_noise_by_camera_distance(scenes):
+    from o3dvis.training.evaluate import camera_distance, inside_cameras
+
+    sample = load_sample(scenes / "street-uniform__00001.npz")
+    inside = inside_cameras(sample)
+    assert inside.tolist() == [True] * 6 + [False] * 2
+    clean = eval_cloud(sample, 3000, 0.0, inside=True)
+    np.testing.assert_array_equal(clean.cameras, sample.cameras[:6])
+    np.testing.assert_array_equal(clean.labels, sample.visibility[:6])
+    assert eval_cloud(sample, 3000, 0.0, views=4, inside=True).cameras.shape == (4, 3)
+    noisy = eval_cloud(sample, 3000, 0.01, inside=True)
+    moved = np.linalg.norm(noisy.points - clean.points, axis=1)
+    scale = camera_distance(sample.points, sample.cameras[:6].astype(np.float64))
+    assert scale < 0.5 * np.linalg.norm(np.ptp(sample.points, axis=0))  # not the diagonal
+    assert 0.9 * 0.01 * scale < moved.max() <= 0.01 * scale + 1e-9
+
+
+def test_scene_eval_tables_per_sampling_match_an_independent_computation(scenes, tmp_path, capsys):
+    out = tmp_path / "s.json"
+    code, text = _run(["--scenes", "--data", str(scenes), "--points", "3000", "--noise", "0",
+                       "--methods", "hpr,zbuffer", "--hpr-k", "1,2", "--splat", "1", "--out", str(out)], capsys)
+    assert code == 0
+    assert "### lidar (2 files)" in text and "### uniform (2 files)" in text
+    assert "| hpr k=2 (documented) |" in text and "| zbuffer - tuned hpr (points) |" in text
+    report = json.loads(out.read_text())
+    for sampling in ("uniform", "lidar"):
+        right = []
+        for path in sorted(scenes.glob(f"*-{sampling}__*.npz")):
+            s = load_sample(path)
+            points = s.points.astype(np.float64)
+            diagonal = np.linalg.norm(points.max(axis=0) - points.min(axis=0))
+            inside = ((s.cameras > points.min(axis=0)) & (s.cameras < points.max(axis=0))).all(axis=1)
+            mask = hidden_point_removal_mask(points, s.cameras[inside].astype(np.float64), diagonal * 100)
+            right.append(mask == s.visibility[inside])
+        row = next(r for r in report["results"][sampling] if r["method"] == "hpr")
+        assert row["sweep"]["k=2"] == pytest.approx(np.mean(np.concatenate([r.ravel() for r in right])))
+        assert row["accuracy"] == max(row["sweep"].values())
+        assert row["balanced_accuracy"] == max(row["balanced_sweep"].values())

@@ -16,9 +16,17 @@ _EVAL_EXAMPLE = """example:
   o3dvis eval --data data/val --points 2048,8192,32768,81920 --noise 0,0.01,0.02 \\
       --methods hpr,hpr-exp --views 16 --out benchmarks/results/val.json --cache ~/.cache/o3dvis-eval
 
-Baselines are scored at every value of their sweep (--hpr-k, --gamma) and the best
-value per density and noise level over the whole set is reported with it.
-A method that cannot run here (no network weights) is reported absent."""
+Baselines are scored at every value of their sweep (--hpr-k, --gamma, --splat) and the
+best value per density and noise level over the whole set is reported with it.
+A method that cannot run here (no network weights) is reported absent.
+
+Scenes (from `o3dvis prepare --scenes`), cameras inside the cloud only:
+  o3dvis eval --scenes --data data/val_scenes --points 16384 --noise 0,0.01 --views 6 \\
+      --methods hpr,zbuffer,neural --out benchmarks/results/val_scenes.json
+
+With --scenes, noise is relative to the median camera-to-point distance, each
+sampling is its own table, baselines are tuned per column for accuracy and for
+balanced accuracy, and a network that refuses cameras inside is reported absent."""
 
 _BENCH_EXAMPLE = """example:
   o3dvis bench --points 2048,8192,32768 --views 1,26 --methods hpr,hpr-exp,neural
@@ -31,9 +39,12 @@ def _names(text: str) -> list[str]:
     return [t.strip() for t in text.split(",") if t.strip()]
 
 
+_SCENE_HPR_K = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)  # inside a room the best radius is far smaller than outside
+
+
 def _add_method_args(p: argparse.ArgumentParser, default: str) -> None:
     p.add_argument("--methods", type=_names, default=_names(default),
-                   help=f"comma-separated: hpr, hpr-exp, neural, neural-normals; a neural one "
+                   help=f"comma-separated: hpr, hpr-exp, zbuffer, neural, neural-normals; a neural one "
                         f"with -x<K> appended averages K rotations of each cloud, e.g. neural-x8 "
                         f"(default: {default})")
     p.add_argument("--model", "--checkpoint", dest="checkpoint", default=None, metavar="MODEL",
@@ -61,6 +72,12 @@ def register(subparsers) -> None:
                    help="HPR sweep: radius = diagonal * 10^k (default: the sweep of o3dvis.baselines.SWEEPS)")
     p.add_argument("--gamma", type=floats, default=None,
                    help="hpr-exp sweep of the kernel exponent, < 0 (default: the sweep of o3dvis.baselines.SWEEPS)")
+    p.add_argument("--splat", type=floats, default=None,
+                   help="zbuffer sweep of the disc radius, in point spacings (default: the sweep of "
+                        "o3dvis.baselines.SWEEPS)")
+    p.add_argument("--scenes", action="store_true",
+                   help="score the cameras inside the cloud only, per sampling, with balanced accuracy; "
+                        f"the HPR sweep defaults to k = {','.join(f'{k:g}' for k in _SCENE_HPR_K)}")
     p.add_argument("--seed", type=int, default=0, help="seed of subsampling and noise (default: 0)")
     p.add_argument("-o", "--out", type=Path, default=None, help="write JSON here and the Markdown next to it (.md)")
     p.add_argument("--cache", type=Path, default=None,
@@ -121,26 +138,54 @@ def _methods(args, sweeps: dict):
 
 def run_eval(args) -> int:
     """``o3dvis eval``: prints the Markdown tables; ``--out`` also writes JSON."""
-    from ..training.evaluate import category_of, evaluate, list_samples, markdown_table, summarize
+    from ..training.evaluate import category_of, evaluate, list_samples, markdown_table, scene_table, summarize
 
     if args.views is not None and args.views < 1:
         raise ValueError("--views must be >= 1")
     _check_out(args.out)
-    methods, absent = _methods(args, {"hpr": args.hpr_k, "hpr-exp": args.gamma})
+    hpr_k = args.hpr_k or (list(_SCENE_HPR_K) if args.scenes else None)
+    methods, absent = _methods(args, {"hpr": hpr_k, "hpr-exp": args.gamma, "zbuffer": args.splat})
+    files = list_samples(args.data, args.limit)
+    if args.scenes:
+        _drop_refusing(methods, absent, files[0], min(args.points), args.views)
     if not methods:
         print("no method can run", file=sys.stderr)
         return 1
-    files = list_samples(args.data, args.limit)
     per_file = evaluate(files, args.data, methods, args.points, args.noise, args.seed, args.views,
-                        args.cache, cached=[m for m in methods if not m.startswith("neural")])
-    rows = summarize(per_file, methods, args.points, args.noise)
+                        args.cache, cached=[m for m in methods if not m.startswith("neural")],
+                        inside=args.scenes)
     categories = dict(sorted(Counter(category_of(f, args.data) for f in files).items()))
-    report = {"settings": {"data": str(args.data), "files": len(files), "points": args.points,
-                           "noise": args.noise, "views": args.views, "seed": args.seed,
-                           "sweeps": {m: list(s) for m, s in methods.items()}},
-              "categories": categories, "absent": absent, "results": rows}
-    _write(args.out, report, markdown_table(rows, absent, categories))
+    settings = {"data": str(args.data), "files": len(files), "points": args.points, "noise": args.noise,
+                "views": args.views, "seed": args.seed, "scenes": args.scenes,
+                "sweeps": {m: list(s) for m, s in methods.items()}}
+    if args.scenes:
+        groups: dict[str, dict] = {}
+        for name, entry in per_file.items():
+            groups.setdefault(entry["category"].split("-")[-1], {})[name] = entry
+        rows = {g: summarize(group, methods, args.points, args.noise) for g, group in sorted(groups.items())}
+        markdown = scene_table(rows, absent)
+    else:
+        rows = summarize(per_file, methods, args.points, args.noise)
+        markdown = markdown_table(rows, absent, categories)
+    report = {"settings": settings, "categories": categories, "absent": absent, "results": rows}
+    _write(args.out, report, markdown)
     return 0
+
+
+def _drop_refusing(methods: dict, absent: dict, path: Path, points: int, views: int | None) -> None:
+    """Moves to ``absent`` the methods that refuse a camera inside the first file's cloud."""
+    from ..training.data.prepare import load_sample
+    from ..training.evaluate import eval_cloud, run_method
+
+    cloud = eval_cloud(load_sample(path), points, 0.0, views=views, inside=True)
+    first = cloud._replace(cameras=cloud.cameras[:1], labels=cloud.labels[:1])
+    for name in [n for n in methods if n.startswith("neural")]:
+        try:
+            run_method(next(iter(methods[name].values())), first)
+        except ValueError as e:
+            absent[name] = f"refuses a camera inside the cloud: {str(e).splitlines()[0]}"
+            del methods[name]
+            print(f"{name}: absent ({absent[name]})", file=sys.stderr)
 
 
 def run_bench(args) -> int:

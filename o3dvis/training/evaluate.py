@@ -12,6 +12,13 @@ noise level over the whole set (the best of its sweep), as the paper did.
   direction by a distance uniform in [0, level x bounding-box diagonal].
 * Category = the file's subfolder below the data folder, else the part of its
   name before ``__``.
+
+Scenes (``inside=True``, samples from ``o3dvis prepare --scenes``) are scored
+from the cameras inside the cloud's bounding box only, and their noise is
+relative to the median distance from those cameras to the points instead of
+the diagonal (a street's diagonal is ten times what its cameras look across).
+:func:`scene_table` reports accuracy and balanced accuracy per sampling, each
+baseline tuned per column for each of the two, and the differences to tuned HPR.
 """
 
 from __future__ import annotations
@@ -32,8 +39,8 @@ from .data.perturb import add_noise
 from .data.prepare import Sample, load_sample
 
 __all__ = ["Counts", "list_samples", "category_of", "subsample_indices", "add_noise", "EvalCloud", "eval_cloud",
-           "run_method",
-           "evaluate_sample", "evaluate", "summarize", "markdown_table"]
+           "run_method", "inside_cameras", "camera_distance",
+           "evaluate_sample", "evaluate", "summarize", "markdown_table", "scene_table"]
 
 
 @dataclass
@@ -67,6 +74,12 @@ class Counts:
     def accuracy(self) -> float:
         """Correct labels / all labels."""
         return (self.tp + self.tn) / self.total if self.total else float("nan")
+
+    @property
+    def balanced_accuracy(self) -> float:
+        """Mean of the recall of visible points and the recall of hidden points."""
+        return (self.tp / (self.tp + self.fn) + self.tn / (self.tn + self.fp)) / 2 \
+            if self.tp + self.fn and self.tn + self.fp else float("nan")
 
     @property
     def fn_rate(self) -> float:
@@ -122,30 +135,52 @@ class EvalCloud(NamedTuple):
     normals: np.ndarray
 
 
+def inside_cameras(sample: Sample) -> np.ndarray:
+    """(V,) bool: the cameras strictly inside the bounding box of the sample's points."""
+    lo, hi = sample.points.min(axis=0), sample.points.max(axis=0)
+    return ((sample.cameras > lo) & (sample.cameras < hi)).all(axis=1)
+
+
+def camera_distance(points: np.ndarray, cameras: np.ndarray, count: int = 4096) -> float:
+    """Median distance from the cameras to (the first ``count`` of) the points."""
+    return float(np.median(np.linalg.norm(points[None, :count] - cameras[:, None], axis=2)))
+
+
 def eval_cloud(sample: Sample, num_points: int, noise: float, seed: int = 0,
-               views: int | None = None) -> EvalCloud:
+               views: int | None = None, inside: bool = False) -> EvalCloud:
     """The cloud a method is scored on.
 
     Args:
         sample: a labelled sample.
         num_points: density (all points when the sample has fewer).
-        noise: noise level as a fraction of the bounding-box diagonal (normals are not perturbed).
+        noise: noise level as a fraction of the bounding-box diagonal, or with
+            ``inside`` of :func:`camera_distance` (normals are not perturbed).
         seed: seed of subsampling and noise.
         views: use the first ``views`` viewpoints (default: all).
+        inside: keep only those of them inside the cloud's bounding box (scenes).
 
     Returns:
         ``EvalCloud(points (n, 3) float64, cameras (V, 3), labels (V, n) bool, normals (n, 3))``.
+
+    Raises:
+        ValueError: fewer viewpoints than ``views``, or none inside.
     """
+    views = len(sample.cameras) if views is None else views
+    if not 1 <= views <= len(sample.cameras):
+        raise ValueError(f"{sample.name} has {len(sample.cameras)} viewpoints, {views} were asked for")
+    keep = np.arange(views)
+    if inside:
+        keep = keep[inside_cameras(sample)[:views]]
+        if not len(keep):
+            raise ValueError(f"{sample.name}: none of its first {views} viewpoints is inside the cloud")
+    cameras = sample.cameras[keep].astype(np.float64)
     idx = subsample_indices(len(sample.points), num_points, seed, sample.name)
     points = sample.points[idx].astype(np.float64)
     if noise:
         rng = _rng(seed, sample.name, num_points, round(noise * 1e6))
-        points = add_noise(points, noise, diagonal(sample.points), rng)
-    views = len(sample.cameras) if views is None else views
-    if not 1 <= views <= len(sample.cameras):
-        raise ValueError(f"{sample.name} has {len(sample.cameras)} viewpoints, {views} were asked for")
-    return EvalCloud(points, sample.cameras[:views].astype(np.float64), sample.visibility[:views, idx],
-                     sample.normals[idx].astype(np.float64))
+        scale = camera_distance(sample.points, cameras) if inside else diagonal(sample.points)
+        points = add_noise(points, noise, scale, rng)
+    return EvalCloud(points, cameras, sample.visibility[keep][:, idx], sample.normals[idx].astype(np.float64))
 
 
 def run_method(method: Method, cloud: EvalCloud) -> np.ndarray:
@@ -157,7 +192,7 @@ def run_method(method: Method, cloud: EvalCloud) -> np.ndarray:
 
 def evaluate_sample(sample: Sample, methods: dict[str, dict[str, Method]], densities: Iterable[int],
                     noises: Iterable[float], seed: int = 0, views: int | None = None,
-                    done: dict | None = None) -> dict:
+                    done: dict | None = None, inside: bool = False) -> dict:
     """Confusion counts of every method and parameter on one sample.
 
     Args:
@@ -168,6 +203,7 @@ def evaluate_sample(sample: Sample, methods: dict[str, dict[str, Method]], densi
         seed: seed of subsampling and noise.
         views: number of viewpoints (default: all of the sample's).
         done: results already known (same layout as the return value); kept, not recomputed.
+        inside: score the cameras inside the cloud only (see :func:`eval_cloud`).
 
     Returns:
         ``result[method][label][f"{density:g}"][f"{noise:g}"] = [tp, fp, fn, tn]``.
@@ -179,7 +215,7 @@ def evaluate_sample(sample: Sample, methods: dict[str, dict[str, Method]], densi
                     if _key(noise) not in result.get(name, {}).get(label, {}).get(_key(density), {})]
             if not todo:
                 continue
-            cloud = eval_cloud(sample, density, noise, seed, views)
+            cloud = eval_cloud(sample, density, noise, seed, views, inside)
             for name, label, method in todo:
                 c = Counts.of(run_method(method, cloud), cloud.labels)
                 result.setdefault(name, {}).setdefault(label, {}).setdefault(_key(density), {})[_key(noise)] = \
@@ -187,8 +223,8 @@ def evaluate_sample(sample: Sample, methods: dict[str, dict[str, Method]], densi
     return result
 
 
-def _cache_path(cache_dir: Path, path: Path, seed: int, views: int | None) -> Path:
-    return cache_dir / f"{path.stem}.s{seed}.v{views or 'all'}.json"
+def _cache_path(cache_dir: Path, path: Path, seed: int, views: int | None, inside: bool) -> Path:
+    return cache_dir / f"{path.stem}.s{seed}.v{views or 'all'}{'.inside' if inside else ''}.json"
 
 
 def _read_cache(cache: Path, path: Path) -> dict:
@@ -211,7 +247,8 @@ def _write_cache(cache: Path, path: Path, fresh: dict) -> None:
 
 def evaluate(files: list[Path], data_dir: str | Path, methods: dict[str, dict[str, Method]],
              densities: list[int], noises: list[float], seed: int = 0, views: int | None = None,
-             cache_dir: str | Path | None = None, cached: Iterable[str] = (), progress: bool = True) -> dict:
+             cache_dir: str | Path | None = None, cached: Iterable[str] = (), progress: bool = True,
+             inside: bool = False) -> dict:
     """Confusion counts of every method on every file, resuming from a cache.
 
     Args:
@@ -225,6 +262,7 @@ def evaluate(files: list[Path], data_dir: str | Path, methods: dict[str, dict[st
         cache_dir: folder keeping per-file counts, so a rerun resumes.
         cached: names of the methods whose results may be cached (deterministic ones).
         progress: show a tqdm bar.
+        inside: score the cameras inside the cloud only (see :func:`eval_cloud`).
 
     Returns:
         ``{file name: {"category": str, "counts": counts as in :func:`evaluate_sample`}}``.
@@ -237,10 +275,10 @@ def evaluate(files: list[Path], data_dir: str | Path, methods: dict[str, dict[st
         cache_root.mkdir(parents=True, exist_ok=True)
     out = {}
     for path in tqdm(files, desc="eval", unit="file", disable=not progress):
-        cache = _cache_path(cache_root, path, seed, views) if cache_root else None
+        cache = _cache_path(cache_root, path, seed, views, inside) if cache_root else None
         stored = _read_cache(cache, path) if cache else {}
         done = {name: stored[name] for name in cached if name in stored}
-        counts = evaluate_sample(load_sample(path), methods, densities, noises, seed, views, done)
+        counts = evaluate_sample(load_sample(path), methods, densities, noises, seed, views, done, inside)
         fresh = {n: counts[n] for n in cached if n in counts and counts[n] != stored.get(n)}
         if cache and fresh:
             _write_cache(cache, path, fresh)
@@ -256,7 +294,9 @@ def summarize(per_file: dict, methods: dict[str, dict[str, Method]], densities: 
         One row per (method, density, noise): ``method, points, noise, param``
         (best label), ``accuracy, fn_rate, fp_rate, categories`` ({category:
         accuracy}), ``sweep`` ({label: accuracy}), ``files`` (their number),
-        ``file_accuracy`` ({file name: accuracy}, with the best parameter).
+        ``file_accuracy`` ({file name: accuracy}, with the best parameter),
+        ``balanced_param`` (the label best by balanced accuracy),
+        ``balanced_accuracy`` (with it), ``balanced_sweep`` ({label: balanced accuracy}).
     """
     rows = []
     for name, sweep in methods.items():
@@ -273,13 +313,17 @@ def summarize(per_file: dict, methods: dict[str, dict[str, Method]], densities: 
                         cat[entry["category"]] = cat.get(entry["category"], Counts()) + c
                         by_file.setdefault(label, {})[file] = c
                 best = max(sweep, key=lambda label: pooled[label].accuracy)
+                balanced = max(sweep, key=lambda label: pooled[label].balanced_accuracy)
                 rows.append({"method": name, "points": density, "noise": noise, "param": best,
                              "accuracy": pooled[best].accuracy, "fn_rate": pooled[best].fn_rate,
                              "fp_rate": pooled[best].fp_rate,
                              "categories": {k: v.accuracy for k, v in sorted(by_cat[best].items())},
                              "sweep": {label: pooled[label].accuracy for label in sweep},
                              "files": len(per_file),
-                             "file_accuracy": {k: v.accuracy for k, v in by_file[best].items()}})
+                             "file_accuracy": {k: v.accuracy for k, v in by_file[best].items()},
+                             "balanced_param": balanced,
+                             "balanced_accuracy": pooled[balanced].balanced_accuracy,
+                             "balanced_sweep": {label: pooled[label].balanced_accuracy for label in sweep}})
     return rows
 
 
@@ -346,3 +390,57 @@ def _gap_tables(rows: list[dict], baseline: str = "hpr", worst: int = 8) -> list
                   "|---|" + "---|" * len(mine)]
         lines += [f"| {f} | " + " | ".join(f"{g:+.1f}" for g in gaps[f]) + " |" for f in ranked]
     return lines
+
+
+def _bracket(label: str) -> str:
+    return f" ({label})" if label else ""
+
+
+def scene_table(rows_by_group: dict[str, list[dict]], absent: dict[str, str] | None = None,
+                documented: tuple[str, str] = ("hpr", "k=2"), baseline: str = "hpr") -> str:
+    """Markdown for scenes: per group (sampling), accuracy and balanced accuracy of every method.
+
+    Each baseline is tuned per column twice, for accuracy and for balanced
+    accuracy (its best parameter in brackets); the ``documented`` setting of
+    one baseline (Open3D's radius = diameter x 100) gets its own row; then the
+    differences of every method to the tuned ``baseline``, in points.
+
+    Args:
+        rows_by_group: ``{group: rows of summarize() over that group's files}``.
+        absent: methods that could not run, with the reason.
+        documented: (method, label) of the documented setting.
+        baseline: the method the differences are taken to.
+    """
+    lines = ["Accuracy % / balanced accuracy % (mean of the recalls of visible and of hidden points), "
+             "pooled over points, cameras inside the cloud and files; a baseline's parameter is tuned "
+             "per column, for each score separately (in brackets)."]
+    for group, rows in rows_by_group.items():
+        columns = sorted({(r["noise"], r["points"]) for r in rows})
+        by = {(r["method"], r["noise"], r["points"]): r for r in rows}
+        methods = list(dict.fromkeys(r["method"] for r in rows))
+        files = rows[0]["files"] if rows else 0
+        lines += ["", f"### {group} ({files} files)", "",
+                  "| method | " + " | ".join(f"{p:,} pts, noise {100 * n:g} %" for n, p in columns) + " |",
+                  "|---|" + "---|" * len(columns)]
+        for m in methods:
+            cells = []
+            for n, p in columns:
+                r = by[m, n, p]
+                cells.append(f"{_pct(r['accuracy'])}{_bracket(r['param'])} / "
+                             f"{_pct(r['balanced_accuracy'])}{_bracket(r['balanced_param'])}")
+            lines.append(f"| {m} | " + " | ".join(cells) + " |")
+        method, label = documented
+        if all((method, n, p) in by and label in by[method, n, p]["sweep"] for n, p in columns):
+            lines.append(f"| {method} {label} (documented) | " + " | ".join(
+                f"{_pct(by[method, n, p]['sweep'][label])} / {_pct(by[method, n, p]['balanced_sweep'][label])}"
+                for n, p in columns) + " |")
+        for m in methods:
+            if m == baseline or not all((baseline, n, p) in by for n, p in columns):
+                continue
+            lines.append(f"| {m} - tuned {baseline} (points) | " + " | ".join(
+                f"{100 * (by[m, n, p]['accuracy'] - by[baseline, n, p]['accuracy']):+.1f} / "
+                f"{100 * (by[m, n, p]['balanced_accuracy'] - by[baseline, n, p]['balanced_accuracy']):+.1f}"
+                for n, p in columns) + " |")
+    for name, reason in (absent or {}).items():
+        lines.append(f"\n{name}: absent ({reason})")
+    return "\n".join(lines) + "\n"

@@ -344,3 +344,14 @@ def test_scene_eval_tables_per_sampling_match_an_independent_computation(scenes,
         assert row["sweep"]["k=2"] == pytest.approx(np.mean(np.concatenate([r.ravel() for r in right])))
         assert row["accuracy"] == max(row["sweep"].values())
         assert row["balanced_accuracy"] == max(row["balanced_sweep"].values())
+
+
+def test_a_scene_file_without_a_camera_inside_counts_nothing(scenes):
+    from o3dvis.baselines import hpr_method
+    from o3dvis.training.evaluate import evaluate_sample
+
+    sample = load_sample(scenes / "rooms-uniform__00000.npz")
+    outside = sample.__class__(sample.points, sample.normals, sample.cameras[6:], sample.visibility[6:], "out")
+    assert eval_cloud(outside, 3000, 0.01, inside=True).cameras.shape == (0, 3)
+    counts = evaluate_sample(outside, {"hpr": {"k=2": hpr_method(2.0)}}, [3000], [0.0], inside=True)
+    assert counts["hpr"]["k=2"]["3000"]["0"] == [0, 0, 0, 0]

@@ -147,7 +147,9 @@ def run_eval(args) -> int:
     methods, absent = _methods(args, {"hpr": hpr_k, "hpr-exp": args.gamma, "zbuffer": args.splat})
     files = list_samples(args.data, args.limit)
     if args.scenes:
-        _drop_refusing(methods, absent, files[0], min(args.points), args.views)
+        for path in files:  # the first file with a camera inside
+            if not _drop_refusing(methods, absent, path, min(args.points), args.views):
+                break
     if not methods:
         print("no method can run", file=sys.stderr)
         return 1
@@ -172,12 +174,18 @@ def run_eval(args) -> int:
     return 0
 
 
-def _drop_refusing(methods: dict, absent: dict, path: Path, points: int, views: int | None) -> None:
-    """Moves to ``absent`` the methods that refuse a camera inside the first file's cloud."""
+def _drop_refusing(methods: dict, absent: dict, path: Path, points: int, views: int | None) -> bool:
+    """Moves to ``absent`` the methods that refuse a camera inside the file's cloud.
+
+    Returns:
+        True when the file has no camera inside (nothing was tried).
+    """
     from ..training.data.prepare import load_sample
     from ..training.evaluate import eval_cloud, run_method
 
     cloud = eval_cloud(load_sample(path), points, 0.0, views=views, inside=True)
+    if not len(cloud.cameras):
+        return True
     first = cloud._replace(cameras=cloud.cameras[:1], labels=cloud.labels[:1])
     for name in [n for n in methods if n.startswith("neural")]:
         try:
@@ -186,6 +194,7 @@ def _drop_refusing(methods: dict, absent: dict, path: Path, points: int, views: 
             absent[name] = f"refuses a camera inside the cloud: {str(e).splitlines()[0]}"
             del methods[name]
             print(f"{name}: absent ({absent[name]})", file=sys.stderr)
+    return False
 
 
 def run_bench(args) -> int:

@@ -157,13 +157,14 @@ def eval_cloud(sample: Sample, num_points: int, noise: float, seed: int = 0,
             ``inside`` of :func:`camera_distance` (normals are not perturbed).
         seed: seed of subsampling and noise.
         views: use the first ``views`` viewpoints (default: all).
-        inside: keep only those of them inside the cloud's bounding box (scenes).
+        inside: keep only those of them inside the cloud's bounding box (scenes;
+            there may be none).
 
     Returns:
         ``EvalCloud(points (n, 3) float64, cameras (V, 3), labels (V, n) bool, normals (n, 3))``.
 
     Raises:
-        ValueError: fewer viewpoints than ``views``, or none inside.
+        ValueError: fewer viewpoints than ``views``.
     """
     views = len(sample.cameras) if views is None else views
     if not 1 <= views <= len(sample.cameras):
@@ -171,12 +172,10 @@ def eval_cloud(sample: Sample, num_points: int, noise: float, seed: int = 0,
     keep = np.arange(views)
     if inside:
         keep = keep[inside_cameras(sample)[:views]]
-        if not len(keep):
-            raise ValueError(f"{sample.name}: none of its first {views} viewpoints is inside the cloud")
     cameras = sample.cameras[keep].astype(np.float64)
     idx = subsample_indices(len(sample.points), num_points, seed, sample.name)
     points = sample.points[idx].astype(np.float64)
-    if noise:
+    if noise and len(cameras):
         rng = _rng(seed, sample.name, num_points, round(noise * 1e6))
         scale = camera_distance(sample.points, cameras) if inside else diagonal(sample.points)
         points = add_noise(points, noise, scale, rng)
@@ -217,7 +216,7 @@ def evaluate_sample(sample: Sample, methods: dict[str, dict[str, Method]], densi
                 continue
             cloud = eval_cloud(sample, density, noise, seed, views, inside)
             for name, label, method in todo:
-                c = Counts.of(run_method(method, cloud), cloud.labels)
+                c = Counts.of(run_method(method, cloud), cloud.labels) if len(cloud.cameras) else Counts()
                 result.setdefault(name, {}).setdefault(label, {}).setdefault(_key(density), {})[_key(noise)] = \
                     [c.tp, c.fp, c.fn, c.tn]
     return result

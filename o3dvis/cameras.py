@@ -25,7 +25,7 @@ import open3d as o3d
 import torch
 from torch import Tensor
 
-__all__ = ["Frustum", "Views", "as_views", "as_vectors", "as_camera_location", "real_array", "frustum_from_pinhole",
+__all__ = ["Frustum", "Views", "as_views", "as_vectors", "as_camera_location", "real_array", "frustum_from_pinhole", "intrinsic_matrix",
            "View", "make_view", "look_at", "fibonacci_sphere", "viewpoints_around", "camera_location_of"]
 
 _ORTHONORMAL_TOL = 1e-4
@@ -64,13 +64,14 @@ class Frustum:
             (N,) bool tensor on the device of ``points``.
         """
         # x_cam = R (s x_n + c) + t = s (R x_n + (R c + t) / s): the scale changes
-        # neither the sign of z nor the projected pixel, so work in normalised units.
+        # neither the sign of z nor the projected pixel, so work in normalised units, in float64,
+        # where a camera any distance away still tells the points apart.
         rotation = torch.tensor(self.extrinsic[:3, :3], dtype=torch.float64, device=points.device)
         shift = (rotation @ center.to(points.device) + torch.as_tensor(
             self.extrinsic[:3, 3].copy(), dtype=torch.float64, device=points.device)) / scale
         k = torch.tensor(self.intrinsic, dtype=torch.float64, device=points.device)
-        cam = points @ rotation.to(points.dtype).T + shift.to(points.dtype)
-        uvw = cam @ k.to(points.dtype).T
+        cam = points.double() @ rotation.T + shift
+        uvw = cam @ k.T
         z = uvw[:, 2]
         front = cam[:, 2] > 0
         safe_z = torch.where(front, z, torch.ones_like(z))
@@ -169,6 +170,32 @@ def real_array(value, name: str, expected: str = "an array of numbers") -> np.nd
     return array.astype(np.float64)
 
 
+def intrinsic_matrix(intrinsic) -> np.ndarray:
+    """The checked 3x3 matrix of a pinhole intrinsic.
+
+    Args:
+        intrinsic: ``o3d.camera.PinholeCameraIntrinsic`` or a 3x3 matrix
+            ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]``.
+
+    Returns:
+        (3, 3) float64 array.
+
+    Raises:
+        ValueError: not 3x3, not finite, not of that form, or a focal length
+            that is not positive (a negative one turns the image by 180 degrees).
+    """
+    if isinstance(intrinsic, o3d.camera.PinholeCameraIntrinsic):
+        intrinsic = intrinsic.intrinsic_matrix
+    k = real_array(intrinsic, "intrinsic", "a 3x3 matrix")
+    if k.shape != (3, 3) or not np.isfinite(k).all():
+        raise ValueError(f"the intrinsic must be a finite 3x3 matrix, got shape {k.shape}")
+    if k[1, 0] != 0 or not np.array_equal(k[2], [0.0, 0.0, 1.0]):
+        raise ValueError(f"the intrinsic must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {k.tolist()}")
+    if not (k[0, 0] > 0 and k[1, 1] > 0):
+        raise ValueError(f"the intrinsic's focal lengths must be positive, got fx={k[0, 0]:g}, fy={k[1, 1]:g}")
+    return k
+
+
 def frustum_from_pinhole(params: o3d.camera.PinholeCameraParameters) -> tuple[Tensor, Frustum | None]:
     """Camera position and frustum of ``PinholeCameraParameters``.
 
@@ -184,7 +211,8 @@ def frustum_from_pinhole(params: o3d.camera.PinholeCameraParameters) -> tuple[Te
 
     Raises:
         ValueError: the extrinsic is not finite or not a rigid transform
-            (orthonormal rotation, last row ``0 0 0 1``), or the intrinsic is singular.
+            (orthonormal rotation, last row ``0 0 0 1``), or a bad intrinsic
+            (see :func:`intrinsic_matrix`).
     """
     extrinsic = np.asarray(params.extrinsic, dtype=np.float64)
     if extrinsic.shape != (4, 4) or not np.isfinite(extrinsic).all():
@@ -199,10 +227,8 @@ def frustum_from_pinhole(params: o3d.camera.PinholeCameraParameters) -> tuple[Te
     intrinsic = params.intrinsic
     if intrinsic.width <= 0 or intrinsic.height <= 0:
         return position, None
-    k = np.asarray(intrinsic.intrinsic_matrix, dtype=np.float64)
-    if not np.isfinite(k).all() or abs(np.linalg.det(k)) == 0:
-        raise ValueError("PinholeCameraParameters.intrinsic has a singular or non-finite matrix")
-    return position, Frustum(extrinsic.copy(), k, int(intrinsic.width), int(intrinsic.height))
+    return position, Frustum(extrinsic.copy(), intrinsic_matrix(intrinsic), int(intrinsic.width),
+                             int(intrinsic.height))
 
 
 def _pinholes(cameras) -> Sequence[o3d.camera.PinholeCameraParameters] | None:
@@ -402,14 +428,10 @@ def make_view(points: np.ndarray, camera, width: int | None = None, height: int 
         intrinsic, width, height = frustum.intrinsic, frustum.width, frustum.height
     if isinstance(intrinsic, o3d.camera.PinholeCameraIntrinsic):
         width, height = intrinsic.width, intrinsic.height
-        intrinsic = np.asarray(intrinsic.intrinsic_matrix, dtype=np.float64)
     if width is None or height is None or int(width) < 1 or int(height) < 1:
         raise ValueError(f"the image needs a positive width and height, got {width} x {height}")
     width, height = int(width), int(height)
     if intrinsic is None:
         cam = points @ extrinsic[:3, :3].T + extrinsic[:3, 3]
         intrinsic = _fit_intrinsic(cam, width, height, margin)
-    intrinsic = np.asarray(intrinsic, dtype=np.float64)
-    if intrinsic.shape != (3, 3):
-        raise ValueError(f"intrinsic must be 3x3, got {intrinsic.shape}")
-    return View(extrinsic, intrinsic, width, height)
+    return View(extrinsic, intrinsic_matrix(intrinsic), width, height)

@@ -4,9 +4,12 @@ A :class:`VisibilityField` holds what the network's U-Net computed once for a cl
 (:meth:`o3dvis.NeuralVisibility.encode` makes it); each query then costs a
 depth-buffer pass and a small MLP over the points per view. A camera may stand
 anywhere but on a point of the cloud: outside it, or inside a room, a street or a
-scan, where a scene model answers when one is installed. A flat cloud (a plane,
-a line, coincident points) seen from off its plane or line hides nothing: there
-every point is visible, exactly, whatever the network says.
+scan, where a scene model answers when one is installed. A camera more than a
+thousand bounding-box diagonals away is answered as the orthographic view in its
+direction, the limit it tends to (a sun as a light). A flat cloud (a plane, a
+line, coincident points, or one off them by a millionth of its size) seen from
+off its plane or line hides nothing: there every point is visible, exactly,
+whatever the network says.
 """
 
 from __future__ import annotations
@@ -31,6 +34,12 @@ DEFAULT_CHUNK = 1 << 15
 """Rows (views x points) that one predictor call processes at most: small enough for the cache."""
 
 _INSIDE_TOL = 1e-6
+_FAR_VIEW = 1e3
+"""A camera farther than this many bounding-box diagonals from the cloud's centre is answered as
+the orthographic view in its direction, the limit of ever farther cameras. The per-view steps work
+in float32 relative to the cloud, where a camera 10^5 diagonals away starts to lose the points'
+depth differences (accuracy falls from 10^5 on, to half at 10^7): the switch sits well below that,
+where a perspective view differs from the orthographic one by a thousandth of a radian."""
 
 
 def _fmt(vector: Tensor) -> str:
@@ -77,12 +86,11 @@ class RotatedEncoding(NamedTuple):
     center: Tensor
     scale: Tensor
 
-    def views(self, cameras: Tensor | None, directions: Tensor | None
-              ) -> tuple[Tensor | None, Tensor | None]:
-        """Normalised cameras or directions of the field, mapped into this frame."""
-        if cameras is not None:
-            return (cameras @ self.rotation.T - self.center) / self.scale, None
-        return None, directions @ self.rotation.T
+    def views(self, cameras: Tensor | None, directions: Tensor
+              ) -> tuple[Tensor | None, Tensor]:
+        """Normalised cameras (None: none) and directions of the field, mapped into this frame."""
+        mapped = None if cameras is None else (cameras @ self.rotation.T - self.center) / self.scale
+        return mapped, directions @ self.rotation.T
 
 
 class VisibilityField:
@@ -144,11 +152,14 @@ class VisibilityField:
         frames = f", {1 + len(self.rotated)} frames" if self.rotated else ""
         return f"VisibilityField({self.num_points} points on {self.device}{normals}{frames})"
 
-    def _normalised(self, views: Views) -> tuple[Tensor | None, Tensor | None]:
-        """(V, 3) cameras or directions of ``views`` in the field's normalised frame."""
+    def _normalised(self, views: Views) -> tuple[Tensor | None, Tensor, list[bool]]:
+        """The views in the field's normalised frame: (V, 3) camera positions (None for views
+        given as directions), (V, 3) unit viewing directions, and which views are orthographic:
+        those given as directions, and cameras beyond ``_FAR_VIEW`` diagonals, whose direction is
+        the one from the camera to the cloud's centre."""
         dtype = self.points.dtype
         if views.directions is not None:
-            return None, views.directions.to(self.device).to(dtype)
+            return None, views.directions.to(self.device).to(dtype), [True] * len(views)
         positions = views.positions.to(self.device)
         lo, hi = self.bounds
         tol = _INSIDE_TOL * (hi - lo).amax() / 2  # zero when all points coincide: only they are inside
@@ -157,11 +168,12 @@ class VisibilityField:
             if gap <= tol:
                 raise ValueError(f"camera {i} at {_fmt(positions[i])} lies on a point of the cloud "
                                  f"(the nearest is {gap:.3g} away); move it off the surface")
-        cameras = ((positions - self.center) / self.scale).to(dtype)
-        if not torch.isfinite(cameras.detach()).all():
-            raise ValueError("a camera is too far from the point cloud to be represented; "
-                             "use direction= for a camera at infinity")
-        return cameras, None
+        offsets = (positions - self.center) / self.scale  # float64: exact enough at any distance
+        # scaled by the largest coordinate first, so that no norm overflows
+        largest = offsets.detach().abs().amax(dim=1, keepdim=True).clamp_min(torch.finfo(offsets.dtype).tiny)
+        directions = -torch.nn.functional.normalize(offsets / largest, dim=1)
+        far = offsets.detach().norm(dim=1) > _FAR_VIEW * ((hi - lo).norm() / self.scale)
+        return offsets.to(dtype), directions.to(dtype), far.tolist()
 
     def _inside(self, views: Views) -> Tensor | None:
         """(V,) bool: the cameras inside the cloud's bounding box (None for directions)."""
@@ -203,7 +215,7 @@ class VisibilityField:
     def _cropped(self, view: Views, max_range: float) -> Tensor:
         """(1, N) probabilities, in the cloud's order, of one view that sees only the points within
         ``max_range`` of its camera: the others neither occlude nor are visible."""
-        cameras, _ = self._normalised(view)
+        cameras, _, _ = self._normalised(view)
         if cameras is None:
             raise ValueError("max_range needs camera positions, not viewing directions")
         reach = (self.points - cameras[0].detach()).square().sum(dim=1) <= (max_range / float(self.scale)) ** 2
@@ -267,14 +279,13 @@ class VisibilityField:
         return rows
 
     def _frame_probabilities(self, features: Tensor, points: Tensor, normals: Tensor | None,
-                             cameras: Tensor | None, directions: Tensor | None, batch: slice,
-                             rows: Tensor | None, n: int, workers: int = 1) -> Tensor:
+                             cameras: Tensor | None, directions: Tensor, orthographic: list[bool],
+                             batch: slice, rows: Tensor | None, n: int, workers: int = 1) -> Tensor:
         """(v, n) probabilities of the views ``batch`` in one frame (features, points and views
-        of that frame), streaming the points ``rows`` (None: all n) in cache-sized chunks, on
-        ``workers`` threads side by side."""
-        projections = [self.network.view(points, None if cameras is None else cameras[i],
-                                         None if directions is None else directions[i])
-                       for i in range(batch.start, batch.stop)]
+        of that frame, see :meth:`_normalised`), streaming the points ``rows`` (None: all n) in
+        cache-sized chunks, on ``workers`` threads side by side."""
+        projections = [self.network.view(points, direction=directions[i]) if orthographic[i]
+                       else self.network.view(points, cameras[i]) for i in range(batch.start, batch.stop)]
         step = min(n, self.chunk_size)
 
         def chunk_margin(a: int) -> Tensor:
@@ -295,7 +306,7 @@ class VisibilityField:
         """Yields ``(views slice, (v, M) probabilities)`` of the points ``rows`` (None: all),
         with frustum culling applied, or ``finish`` of them (done on the thread that answered
         the views). Every point occludes, whichever rows are asked for."""
-        cameras, directions = self._normalised(views)
+        cameras, directions, orthographic = self._normalised(views)
         clear = self._off_the_hull(views)
         n, total = self.num_points if rows is None else len(rows), len(views)
         unsort = None  # the columns, in the cloud's order, of an answer for all stored rows
@@ -309,8 +320,9 @@ class VisibilityField:
             yield slice(0, total), empty if finish is None else finish(empty)
             return
         asked_points = self.points if rows is None else self.points[rows]
-        frames = [(self.features, self.points, self.normals, cameras, directions)] + [
-            (e.features, e.points, e.normals, *e.views(cameras, directions)) for e in self.rotated]
+        frames = [(self.features, self.points, self.normals, cameras, directions, orthographic)] + [
+            (e.features, e.points, e.normals, *e.views(cameras, directions), orthographic)
+            for e in self.rotated]
         per_batch = max(1, self.chunk_size // n)
         batches = [slice(start, min(total, start + per_batch)) for start in range(0, total, per_batch)]
 

@@ -26,19 +26,27 @@ __all__ = ["NeuralVisibility", "fixed_rotations", "random_rotation"]
 
 _NORMALS_MODEL = "normals"
 _SCENE_MODEL = "scene"
-_FLAT_TOL = 1e-9
+_FLAT_TOL = 1e-6
+"""A cloud is flat along a direction when no point lies farther from its mean along it than this
+many bounding-box diagonals: below what the network's float32 coordinates (about 2^-23 of the box)
+resolve, so such a cloud is answered as the exactly flat one."""
 
 
 def _flat_hull(points: Tensor) -> tuple[Tensor, Tensor] | None:
     """Centre and orthonormal basis (rows) of the affine hull of a flat cloud; None for a 3-D one.
 
-    A cloud is flat when its third singular value (about its mean) is below ``_FLAT_TOL`` times
-    the first; the singular values come from the 3x3 R of a QR, so this is O(N) and accurate.
+    The cloud's principal directions come from the SVD of the 3x3 R of a QR of its centred points
+    (O(N) and accurate); along each, the points' largest distance from the mean decides whether the
+    cloud extends that way (see ``_FLAT_TOL``), relative to the cloud's size, so that a cloud a
+    hair off its plane is answered as the exactly flat one.
     """
     centre = points.mean(dim=0)
-    _, s, vt = torch.linalg.svd(torch.linalg.qr(points - centre, mode="r").R)
-    rank = int((s > _FLAT_TOL * s[0]).sum()) if s[0] > 0 else 0
-    return None if rank == 3 else (centre, vt[:rank])
+    offsets = points - centre
+    _, _, vt = torch.linalg.svd(torch.linalg.qr(offsets, mode="r").R)
+    extent = (offsets @ vt.T).abs().amax(dim=0)
+    lo, hi = points.amin(dim=0), points.amax(dim=0)
+    spans = extent > _FLAT_TOL * (hi - lo).norm()
+    return None if bool(spans.all()) else (centre, vt[spans])
 
 
 def _normalize(points: Tensor, bounds: tuple[Tensor, Tensor] | None = None

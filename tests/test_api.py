@@ -416,7 +416,6 @@ BAD_CAMERAS = [
     (np.array([True, False, True]), TypeError, "real numbers"),
     ("0,0,5", TypeError, "real numbers"),
     (torch.tensor([1j, 0, 5]), TypeError, "real numbers"),
-    ([0, 0, 1e300], ValueError, "too far"),
 ]
 
 

@@ -164,7 +164,8 @@ def test_views_answered_side_by_side_on_the_threads_as_one_at_a_time(scenes, mon
 
         calls = []
 
-        def fail(self, features, points, normals, cameras, directions, batch, rows, n, workers=1):
+        def fail(self, features, points, normals, cameras, directions, orthographic, batch, rows, n,
+                 workers=1):
             calls.append(batch.start)
             if batch.start == 0:
                 raise RuntimeError("a worker failed")

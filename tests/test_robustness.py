@@ -47,6 +47,10 @@ GRID = np.stack(np.meshgrid(np.linspace(0, 1, 12), np.linspace(0, 2, 12)), axis=
 PLANE = np.c_[GRID, np.zeros(len(GRID))]
 LINE = np.c_[np.linspace(0, 1, 30), np.zeros(30), np.zeros(30)]
 SPHERE32 = (100 * SPHERE + OFFSET).astype(np.float32)
+HAIR_OFF_PLANE = PLANE + np.c_[np.zeros((len(PLANE), 2)), 1e-9 * np.random.default_rng(0).normal(size=len(PLANE))]
+FAR, NEAR_FAR = 1e9 * np.array([0.3, -0.4, 0.5]), 1e4 * np.array([0.3, -0.4, 0.5])
+"""A camera 10^9 away from the unit sphere, and one 10^4 away in the same direction: both the
+orthographic view in that direction."""
 
 
 FAR_TRIANGLE = (np.array([[-9.0, -9.0, -9.0], [-8.0, -9.0, -9.0], [-9.0, -8.0, -9.0]]), np.array([[0, 1, 2]]))
@@ -104,6 +108,8 @@ CASES: dict[str, Case] = {
     "one point 10 times": Case(np.repeat([[0.5, -0.5, 2.0]], 10, axis=0), truth="all"),
     "cloud listed twice": Case(np.r_[SPHERE, SPHERE], CAMERA, truth="pairs"),
     "planar": Case(PLANE, truth="all"),
+    "a hair off planar (1e-9)": Case(HAIR_OFF_PLANE, truth="all"),
+    "camera 1e9 away": Case(SPHERE, FAR, truth="same", base=(SPHERE, NEAR_FAR, np.zeros(3))),
     "collinear": Case(LINE, truth="all"),
     "offset 1e6 float64": Case(SPHERE + OFFSET, CAMERA + OFFSET, truth="same", base=(SPHERE, CAMERA, OFFSET)),
     "offset 1e6 float32": Case(SPHERE32, 100 * CAMERA + OFFSET, truth="same",
@@ -303,8 +309,10 @@ _TEST_API = frozenset({"empty cloud", "NaN point", "Inf point", "NaN camera", "I
                        "camera of 2 numbers", "camera as a string"})
 _TEST_BASELINES = frozenset({"empty cloud", "NaN point", "1 point", "2 points", "3 points",
                              "one point 10 times", "cloud listed twice", "planar", "collinear",
+                             "a hair off planar (1e-9)", "camera 1e9 away",
                              "camera at a point", "points of shape (N, 2)"})
 _IMAGE = (24, 32)
+_FAR_PICTURE = {"camera 1e9 away": "valid"}  # framed anew at each distance (tests/test_view_limits.py)
 
 FUNCS: dict[str, Func] = {
     "select_visible": Func(
@@ -323,19 +331,19 @@ FUNCS: dict[str, Func] = {
         "any", lambda c, cam, m: ~o3dvis.points_in_shadow(c, cam, m), lambda r, p, o: _mask_answer(r, len(p))),
     "shadow_map": Func(
         "any", lambda c, cam, m: o3dvis.shadow_map(c, cam, 32, m),
-        lambda r, p, o: _image_answer(r, (32, 32), np.float32), risky=True),
+        lambda r, p, o: _image_answer(r, (32, 32), np.float32), risky=True, truths=_FAR_PICTURE),
     "depth_image": Func(
         "any", lambda c, cam, m: o3dvis.depth_image(c, cam, width=32, height=24, model=m),
-        lambda r, p, o: _image_answer(r, _IMAGE, np.float32)),
+        lambda r, p, o: _image_answer(r, _IMAGE, np.float32), truths=_FAR_PICTURE),
     "render_points": Func(
         "pcd", lambda c, cam, m: o3dvis.render_points(c, cam, True, 32, 24, m),
-        lambda r, p, o: _image_answer(r, (*_IMAGE, 3), np.uint8)),
+        lambda r, p, o: _image_answer(r, (*_IMAGE, 3), np.uint8), truths=_FAR_PICTURE),
     "render_with_shadows": Func(
         "pcd", lambda c, cam, m: o3dvis.render_with_shadows(c, cam, cam, 32, 24, m),
-        lambda r, p, o: _image_answer(r, (*_IMAGE, 3), np.uint8)),
+        lambda r, p, o: _image_answer(r, (*_IMAGE, 3), np.uint8), truths=_FAR_PICTURE),
     "reconstruct_view_dependent": Func(
         "pcd", lambda c, cam, m: o3dvis.reconstruct_view_dependent(c, cam, m),
-        lambda r, p, o: _mesh_answer(r, o), risky=True),
+        lambda r, p, o: _mesh_answer(r, o), risky=True, truths=_FAR_PICTURE),
     "estimate_normals_neural": Func(
         "pcd", lambda c, cam, m: o3dvis.estimate_normals_neural(c, num_views=6, model=m, refine_views=4),
         lambda r, p, o: _normals_answer(r, len(p)), camera=False, risky=True, canonical=_axes,
@@ -350,7 +358,7 @@ FUNCS: dict[str, Func] = {
         lambda r, p, o: {"vertices": _mesh_answer(r, o)["vertices"]}, camera=False, risky=True,
         same=_same_surface, errors={"1 point": _NO_VOLUME, "one point 10 times": _NO_VOLUME, "2 points": _TOO_FEW,
                 "3 points": _TOO_FEW, "collinear": _TOO_FEW},
-        truths={"planar": "valid"}),  # an open sheet has no inside: its two sides give any surface
+        truths={"planar": "valid", "a hair off planar (1e-9)": "valid"}),  # an open sheet has no inside
     "best_view": Func(
         "any", lambda c, cam, m: o3dvis.best_view(c, steps=3, model=m, starts=2),
         lambda r, p, o: _best_view_answer(r, p, o), camera=False, method=False,
@@ -486,6 +494,9 @@ def run_case(func_name: str, case_name: str, vis) -> None:
         half = len(points) // 2
         np.testing.assert_array_equal(answer["visible"][:half], answer["visible"][half:])
         assert 0 < answer["visible"].mean() < 1
+    elif truth == "pairs" and "normals" in answer:
+        half = len(points) // 2
+        np.testing.assert_array_equal(answer["normals"][:half], answer["normals"][half:])
 
 
 def _cells(risky: bool) -> list:

@@ -8,6 +8,7 @@ Main entry points::
     mask = field.query(cameras)                      # (V, N) bool
     prob = field.probabilities(cameras)              # (V, N) torch, differentiable in the cameras
     visible = o3dvis.select_visible(pcd, camera)     # a PointCloud with colours and normals
+    o3dvis.set_num_threads(1)                        # fixed CPU threads (default: see o3dvis.threads)
 
 Naming: a function that stands in for an Open3D method is named after it with ``_neural``
 appended (``hidden_point_removal_neural``, ``estimate_normals_neural``,
@@ -28,6 +29,7 @@ _EXPORTS = {
     "hidden_point_removal_neural": "dropins", "select_visible": "dropins", "register": "dropins",
     "load_model": "models", "available_models": "models", "visibility_from_mesh": "groundtruth",
     "hidden_point_removal_mask": "baselines", "exponential_hpr_mask": "baselines",
+    "set_num_threads": "threads", "get_num_threads": "threads",
     **dict.fromkeys(["estimate_normals_neural", "orient_normals_neural", "reconstruct_view_dependent",
                      "reconstruct_poisson", "shadow_map", "points_in_shadow", "render_with_shadows", "best_view",
                      "render_points", "depth_image"], "apps"),

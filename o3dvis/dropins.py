@@ -11,6 +11,7 @@ import numpy as np
 import open3d as o3d
 import torch
 
+from . import encodings
 from .cameras import as_camera_location, as_views
 from .clouds import cloud_arrays, cloud_device
 from .field import checked_range
@@ -34,7 +35,7 @@ def _visible_indices(pcd, cameras, direction, threshold: float, model, device, n
     model = resolve_model(model, device)
     camera = None if views.positions is None else views.positions[0]
     if max_range is None:
-        field = model._encode(pcd, normals, camera)
+        field = encodings.encode(model, pcd, normals, camera)
         return np.flatnonzero(field.query(views, threshold=threshold)[0]).astype(np.int64)
     if views.positions is None:
         raise ValueError("max_range needs a camera position, not a viewing direction")
@@ -72,6 +73,8 @@ def hidden_point_removal_neural(pcd, camera_location, radius: float | None = Non
     the local point spacing, ordered counter-clockwise as seen from the camera
     (none when fewer than 3 points are visible or they project onto a line). Unlike Open3D, ``pt_map`` is sorted. Point
     normals are used when the cloud has them and a normals model is installed.
+    Called again with the same, unchanged cloud (another camera), it reuses the
+    cloud's encoding (see :mod:`o3dvis.encodings`) and costs a query only.
 
     Args:
         pcd: ``o3d.geometry.PointCloud`` or ``o3d.t.geometry.PointCloud``.
@@ -125,7 +128,9 @@ def select_visible(pcd, camera=None, *, direction=None, threshold: float = 0.5, 
                    device=None, normals=None, frustum: bool = True, max_range: float | None = None):
     """The points of a cloud that one camera sees, as a point cloud.
 
-    Colours, normals and every other per-point attribute are kept.
+    Colours, normals and every other per-point attribute are kept. Like
+    :func:`hidden_point_removal_neural`, it reuses the encoding of the same,
+    unchanged cloud asked again.
 
     Args:
         pcd: ``o3d.geometry.PointCloud``, ``o3d.t.geometry.PointCloud``, or an

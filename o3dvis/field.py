@@ -26,7 +26,7 @@ from torch import Tensor
 from .cameras import Views, as_views
 from .nn import native
 from .nn.network import VisibilityNetwork
-from .threads import threaded_map
+from .threads import plan_threads, threaded_map, torch_threads
 
 __all__ = ["VisibilityField", "RotatedEncoding", "DEFAULT_CHUNK", "checked_range", "inside_box"]
 
@@ -96,7 +96,8 @@ class RotatedEncoding(NamedTuple):
 class VisibilityField:
     """Per-point features of one cloud, answering visibility queries for any views.
 
-    Made by :meth:`NeuralVisibility.encode`. The features are computed once
+    Made by :meth:`NeuralVisibility.encode`. On the CPU, queries run on the
+    threads that :mod:`o3dvis.threads` plans. The features are computed once
     (without autograd); each query runs the per-view predictor only, in
     batches of views and chunks of points of at most ``chunk_size`` rows.
     For a flat cloud (``hull``: centre and basis of its plane or line, in the
@@ -348,20 +349,22 @@ class VisibilityField:
         # the C kernels (o3dvis.nn.native) run on one thread each. Without the kernels, a view of at
         # most one chunk of points is a few large torch ops that split well over the threads, and
         # is left to them. A single batch of views has its chunks side by side instead.
-        threads = torch.get_num_threads()
-        free = threads > 1 and self.device.type == "cpu" and not torch.is_grad_enabled()
-        if free and len(batches) == 1 and n > self.chunk_size:
-            torch.set_num_threads(1)  # no OpenMP team of the caller's to spin beside the workers
-            try:
+        cpu = self.device.type == "cpu"
+        threads = plan_threads(n * total, self.chunk_size) if cpu else 1
+        side_by_side = cpu and not torch.is_grad_enabled()
+        if side_by_side and threads > 1 and len(batches) == 1 and n > self.chunk_size:
+            with torch_threads(1):  # no OpenMP team of the caller's to spin beside the workers
                 result = probabilities_of(batches[0], threads)
-            finally:
-                torch.set_num_threads(threads)
             yield batches[0], result
             return
         workers = min(threads, len(batches))
-        parallel = free and workers > 1 and (n > self.chunk_size or native.usable(self.features))
-        yield from zip(batches, threaded_map(probabilities_of, batches, workers) if parallel
-                       else map(probabilities_of, batches))
+        if side_by_side and workers > 1 and (n > self.chunk_size or native.usable(self.features)):
+            yield from zip(batches, threaded_map(probabilities_of, batches, workers))
+            return
+        for batch in batches:  # one at a time, the ops split over the threads planned
+            with torch_threads(threads) if cpu else contextlib.nullcontext():
+                result = probabilities_of(batch)
+            yield batch, result
 
     def probabilities(self, cameras=None, direction=None, *, frustum: bool = True,
                       indices=None, max_range: float | None = None) -> Tensor:

@@ -21,11 +21,15 @@ from .nn.calibration import calibration_terms
 from .nn.network import VisibilityNetwork
 from .nn.octree import bounding_box, morton_order, normalize_points
 from .nn.predictor import resolve_precision
+from .threads import plan_threads, torch_threads
 
 __all__ = ["NeuralVisibility", "fixed_rotations", "random_rotation"]
 
 _NORMALS_MODEL = "normals"
 _SCENE_MODEL = "scene"
+PARALLEL_ENCODE_POINTS = 1 << 12
+"""Clouds of fewer points are encoded on one CPU thread (see :mod:`o3dvis.threads`): most of
+their octree's ops are too small to gain from splitting."""
 _FLAT_TOL = 1e-6
 """A cloud is flat along a direction when no point lies farther from its mean along it than this
 many bounding-box diagonals: below what the network's float32 coordinates (about 2^-23 of the box)
@@ -220,6 +224,9 @@ class NeuralVisibility:
     def encode(self, pcd, normals=None) -> VisibilityField:
         """Runs the U-Net once over a cloud.
 
+        On the CPU, its ops split over the threads that :mod:`o3dvis.threads`
+        plans (one for small clouds or a busy machine).
+
         Args:
             pcd: ``o3d.geometry.PointCloud``, ``o3d.t.geometry.PointCloud``, or
                 an (N, 3) numpy array / torch tensor of points.
@@ -242,6 +249,14 @@ class NeuralVisibility:
         cloud's bounding box with a scene network gets the scene model's field alone."""
         points, cloud_normals = cloud_arrays(pcd)
         network, unit = self._network_and_normals(cloud_normals, normals, points.shape[0])
+        if self.device.type != "cpu":
+            return self._encode_points(network, unit, points, camera)
+        with torch_threads(plan_threads(points.shape[0], PARALLEL_ENCODE_POINTS)):
+            return self._encode_points(network, unit, points, camera)
+
+    def _encode_points(self, network: VisibilityNetwork, unit: Tensor | None, points: Tensor,
+                       camera: Tensor | None) -> VisibilityField:
+        """:meth:`_encode` of checked points and unit normals (or None) with ``network``."""
         points = points.to(self.device)
         lo, hi = bounding_box(points)
         normalized, center, scale = _normalize(points, (lo, hi))

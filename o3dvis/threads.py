@@ -1,13 +1,192 @@
-"""Running many small torch tasks side by side on the CPU's threads."""
+"""How many CPU threads o3dvis runs on, and running many small torch tasks side by side.
+
+o3dvis uses two kinds of threads: torch's intra-op threads (an OpenMP team that
+splits each op, used while encoding a cloud) and its own worker threads (views or
+chunks of points answered side by side, each worker on one torch thread). One
+task uses one kind at a time, so the threads it runs on are what
+:func:`plan_threads` gives, never more than the cores this process may use.
+
+The policy (``"auto"``, the default) for a task of ``work`` points or rows:
+
+- one thread below ``min_work`` (a split op then costs more than it saves);
+- one thread while tasks have been waiting for a CPU in more than a tenth of
+  the last ten seconds (:func:`cpu_pressure`, Linux);
+- otherwise torch's thread count (:func:`torch.get_num_threads`), at most the
+  cores of the process's CPU affinity (and of its cgroup CPU quota), minus the
+  cores that other processes keep busy right now (their runnable tasks, read
+  from ``/proc/loadavg`` on Linux, without this process's own).
+
+The load rules matter: an OpenMP team waits at the end of every op for its
+slowest thread, and a thread that shares its core with a busy process is
+descheduled for whole time slices, so two threads on two busy cores run many
+times slower than one, while one thread on a free machine is at most as many
+times slower as there are threads. Hence two signals: the runnable tasks of
+right now catch a load that has just started, the pressure of the last seconds
+one that pauses now and then. :func:`set_num_threads` (or
+``O3DVIS_NUM_THREADS`` in the environment) fixes the count instead, whatever
+the load and the size.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import math
+import os
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 
 import torch
 
-__all__ = ["threaded_map"]
+__all__ = ["set_num_threads", "get_num_threads", "usable_cores", "busy_cores", "plan_threads", "torch_threads",
+           "threaded_map", "cpu_pressure", "ENV_VAR", "MAX_PRESSURE"]
+
+ENV_VAR = "O3DVIS_NUM_THREADS"
+"""Environment variable fixing the thread count (a positive int; ``auto`` or unset: the policy)."""
+
+MAX_PRESSURE = 0.1
+"""Above this :func:`cpu_pressure`, the automatic policy runs on one thread."""
+
+_fixed: int | None = None  # set by set_num_threads; None: the environment variable, else automatic
+
+
+def _count(value, source: str) -> int | None:
+    """A thread count from ``value``: None (or ``"auto"``) for the policy, else a positive int."""
+    if value is None or (isinstance(value, str) and value.strip().lower() in ("", "auto")):
+        return None
+    if isinstance(value, int) and not isinstance(value, bool):
+        count = value
+    elif isinstance(value, str) and value.strip().isdigit():
+        count = int(value)
+    else:
+        count = 0
+    if count < 1:
+        raise ValueError(f"{source} must be a positive int or 'auto', got {value!r}")
+    return count
+
+
+def set_num_threads(count: int | str | None) -> None:
+    """Fixes the CPU threads o3dvis runs on, or goes back to the automatic policy.
+
+    Args:
+        count: a positive int (at most :func:`usable_cores` are used), or None
+            or ``"auto"`` for the policy of this module (then ``O3DVIS_NUM_THREADS``
+            applies again, when set).
+
+    Raises:
+        ValueError: ``count`` is not a positive int, None or ``"auto"``.
+    """
+    global _fixed
+    _fixed = _count(count, "count")
+
+
+def get_num_threads() -> int | None:
+    """The fixed thread count (:func:`set_num_threads`, else ``O3DVIS_NUM_THREADS``); None: automatic.
+
+    Raises:
+        ValueError: ``O3DVIS_NUM_THREADS`` holds something else than a positive int or ``auto``.
+    """
+    return _fixed if _fixed is not None else _count(os.environ.get(ENV_VAR), ENV_VAR)
+
+
+def _quota() -> int | None:
+    """Cores of the cgroup (v2) CPU quota of this process, None without one."""
+    try:
+        with open("/sys/fs/cgroup/cpu.max") as f:
+            quota, period = f.read().split()[:2]
+        return None if quota == "max" else max(1, math.ceil(int(quota) / int(period)))
+    except (OSError, ValueError):
+        return None
+
+
+def usable_cores() -> int:
+    """The CPU cores this process may run on: its affinity, capped by its cgroup CPU quota."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    quota = _quota()
+    return max(1, min(cores, quota) if quota else cores)
+
+
+def _own_running() -> int:
+    """This process's threads that are running or runnable now (Linux; 1 elsewhere)."""
+    try:
+        tasks = os.listdir("/proc/self/task")
+    except OSError:
+        return 1
+    running = 0
+    for tid in tasks:
+        try:
+            with open(f"/proc/self/task/{tid}/stat", "rb") as f:
+                stat = f.read()
+        except OSError:  # the thread ended meanwhile
+            continue
+        running += stat[stat.rfind(b")") + 2:][:1] == b"R"
+    return max(1, running)
+
+
+def busy_cores() -> int:
+    """How many of this process's :func:`usable_cores` other processes keep busy right now.
+
+    The runnable tasks of the machine (``/proc/loadavg``) without this process's
+    own, scaled to the share of the machine's CPUs this process may use; 0 where
+    ``/proc/loadavg`` does not exist.
+    """
+    try:
+        with open("/proc/loadavg", "rb") as f:
+            running = int(f.read().split()[3].split(b"/")[0])
+    except (OSError, ValueError, IndexError):
+        return 0
+    others, cores = max(0, running - _own_running()), usable_cores()
+    return min(cores, round(others * cores / max(cores, os.cpu_count() or 1)))
+
+
+def cpu_pressure() -> float | None:
+    """The share of the last ten seconds in which some task waited for a CPU (Linux pressure stall
+    information: of this process's cgroup where it has its own, else of the machine), in [0, 1];
+    None where unknown."""
+    for path in ("/sys/fs/cgroup/cpu.pressure", "/proc/pressure/cpu"):
+        try:
+            with open(path, "rb") as f:
+                some = f.readline().split()
+            return float(some[1].split(b"=")[1]) / 100
+        except (OSError, ValueError, IndexError):
+            continue
+    return None
+
+
+def plan_threads(work: int, min_work: int) -> int:
+    """The threads a CPU task of ``work`` points (or rows) runs on (see the module's policy).
+
+    Args:
+        work: the size of the task.
+        min_work: below this size one thread does it (ignored with a fixed count).
+
+    Returns:
+        A count in [1, :func:`usable_cores`].
+    """
+    fixed = get_num_threads()
+    cores = usable_cores()
+    if fixed is not None:
+        return min(fixed, cores)
+    limit = min(torch.get_num_threads(), cores)
+    if limit <= 1 or work < min_work or (cpu_pressure() or 0.0) > MAX_PRESSURE:
+        return 1
+    return max(1, min(limit, cores - busy_cores()))
+
+
+@contextlib.contextmanager
+def torch_threads(count: int) -> Iterator[None]:
+    """Runs the block with ``count`` torch intra-op threads on the calling thread, then restores its count."""
+    before = torch.get_num_threads()
+    if count == before:
+        yield
+        return
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def threaded_map(fn: Callable, items: Iterable, workers: int) -> Iterator:

@@ -17,9 +17,11 @@ import pytest
 import torch
 
 import o3dvis
+from o3dvis.threads import usable_cores
 from o3dvis.training.data import random_shape
 
 CLOUDS = 6
+two_cores = pytest.mark.skipif(usable_cores() < 2, reason="needs two usable cores")
 POINTS = 1200
 
 
@@ -125,9 +127,10 @@ def test_the_same_call_twice_gives_the_same_bits(vis, scenes):
     np.testing.assert_array_equal(vis.encode(pcd).query(cameras_all), a.numpy() > 0.5)
 
 
+@two_cores
 def test_views_answered_side_by_side_on_the_threads_as_one_at_a_time(scenes, monkeypatch):
     """A cloud of more than one chunk is answered a view per worker thread (each on one torch
-    thread) when the caller has several: the same answers as one view at a time on the caller's
+    thread) when o3dvis runs on several: the same answers as one view at a time on the caller's
     thread; the caller keeps its thread count; a worker's error reaches the caller; gradients stay
     on the caller's thread."""
     pcd = scenes[0][0]
@@ -145,18 +148,19 @@ def test_views_answered_side_by_side_on_the_threads_as_one_at_a_time(scenes, mon
     threads = torch.get_num_threads()
     try:
         torch.set_num_threads(2)
+        o3dvis.set_num_threads(2)
         side_by_side = field.probabilities(views)
         assert len(ran_on) == 5 and threading.current_thread() not in ran_on
         assert all(t.name.startswith("o3dvis-views") for t in ran_on)
         assert torch.get_num_threads() == 2
         ran_on.clear()
-        torch.set_num_threads(1)
+        o3dvis.set_num_threads(1)
         one_at_a_time = field.probabilities(views)
         assert ran_on == [threading.current_thread()] * 5
         torch.testing.assert_close(side_by_side, one_at_a_time, atol=1e-6, rtol=0)
         np.testing.assert_array_equal(field.query(views), one_at_a_time.numpy() > 0.5)
 
-        torch.set_num_threads(2)
+        o3dvis.set_num_threads(2)
         ran_on.clear()
         cameras = torch.tensor(views, requires_grad=True)
         field.probabilities(cameras).sum().backward()
@@ -178,12 +182,14 @@ def test_views_answered_side_by_side_on_the_threads_as_one_at_a_time(scenes, mon
         assert len(calls) < 10  # the views not yet started when the first failed were dropped
         assert torch.get_num_threads() == 2
     finally:
+        o3dvis.set_num_threads(None)
         torch.set_num_threads(threads)
 
 
+@two_cores
 def test_one_view_answered_in_chunks_side_by_side(scenes, monkeypatch):
     """A single view of a cloud of several chunks has its chunks answered on the worker threads
-    when the caller has several: the same answers as on the caller's thread alone."""
+    when o3dvis runs on several: the same answers as on the caller's thread alone."""
     pcd = scenes[0][0]
     view = _camera(pcd, 7)
     field = o3dvis.NeuralVisibility.pretrained(precision="float32").encode(pcd)
@@ -199,13 +205,15 @@ def test_one_view_answered_in_chunks_side_by_side(scenes, monkeypatch):
     threads = torch.get_num_threads()
     try:
         torch.set_num_threads(2)
+        o3dvis.set_num_threads(2)
         side_by_side = field.probabilities(view)
         assert len(ran_on) == 4 and all(t.name.startswith("o3dvis-views") for t in ran_on)
         assert torch.get_num_threads() == 2
         ran_on.clear()
-        torch.set_num_threads(1)
+        o3dvis.set_num_threads(1)
         alone = field.probabilities(view)
         assert ran_on == [threading.current_thread()] * 4
         torch.testing.assert_close(side_by_side, alone, atol=0, rtol=0)
     finally:
+        o3dvis.set_num_threads(None)
         torch.set_num_threads(threads)

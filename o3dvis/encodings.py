@@ -1,0 +1,113 @@
+"""The drop-ins' memory of the last cloud they encoded, for callers that loop over cameras.
+
+Open3D users call ``hidden_point_removal`` once per camera with the same cloud; the
+drop-ins (:mod:`o3dvis.dropins`) then run the U-Net once and each further camera
+costs a query only. An encoding is reused when the same cloud object is asked
+again, with the same model, unchanged (its settings, and its networks' weights
+changed in place by no one, an optimiser included), the same ``normals`` choice,
+and its points (and normals) still equal, value for value, to those encoded: a
+cloud changed in place, or a new cloud at the address of a freed one, is encoded
+anew. A model with a scene network, and a crop (``max_range``), are encoded on
+every call. One encoding is kept (of at most :data:`MAX_POINTS` points), with a copy of
+its points; :func:`clear` frees it.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import TYPE_CHECKING, NamedTuple
+
+import torch
+from torch import Tensor
+
+from .clouds import cloud_arrays
+
+if TYPE_CHECKING:  # type hints only: o3dvis.neural and o3dvis.field stay unloaded until used
+    from .field import VisibilityField
+    from .neural import NeuralVisibility
+
+__all__ = ["MAX_POINTS", "encode", "clear"]
+
+MAX_POINTS = 1 << 20
+"""Larger clouds are not kept: their encoding would hold hundreds of MB after the call."""
+
+
+class _Entry(NamedTuple):
+    cloud: int  # id() of the cloud object
+    model: "NeuralVisibility"  # held, so that no other model takes its id
+    settings: tuple
+    tensors: list[tuple[Tensor, int, int]]  # each tensor of the networks, its version and address then
+    points: Tensor  # copies of what was encoded
+    normals: Tensor | None
+    field: "VisibilityField"
+
+
+_last: _Entry | None = None
+_lock = threading.Lock()
+
+
+def _settings(model: "NeuralVisibility", normals) -> tuple:
+    """What an encoding depends on besides the cloud and the networks' weights."""
+    return normals, str(model.device), model.precision, model.chunk_size, len(model.rotations)
+
+
+def _tensors(model: "NeuralVisibility") -> list[tuple[Tensor, int, int]]:
+    """Each parameter and buffer of the networks of ``model``, with its version (bumped by every
+    in-place change, an optimiser's step included) and its storage's address."""
+    return [(t, t._version, t.data_ptr()) for net in (model.network, model.normals_network) if net is not None
+            for t in (*net.parameters(), *net.buffers())]
+
+
+def _same(a: Tensor | None, b: Tensor | None) -> bool:
+    return (a is None) == (b is None) and (a is None or (a.shape == b.shape and bool(torch.equal(a, b))))
+
+
+def _holds(entry: _Entry | None, model: "NeuralVisibility", pcd, settings: tuple, points: Tensor,
+           normals: Tensor | None) -> bool:
+    """Whether ``entry`` is the encoding of this cloud, as it is now, by ``model`` as it is now."""
+    return (entry is not None and entry.cloud == id(pcd) and entry.model is model and entry.settings == settings
+            and all(t._version == version and t.data_ptr() == address for t, version, address in entry.tensors)
+            and _same(entry.points, points) and _same(entry.normals, normals))
+
+
+def encode(model: "NeuralVisibility", pcd, normals=None, camera: Tensor | None = None) -> "VisibilityField":
+    """The field the drop-ins query for one view: the one kept from the last call when it holds.
+
+    Args:
+        model: the network to encode with.
+        pcd: a cloud, as :meth:`NeuralVisibility.encode` takes it.
+        normals: None, True or False are kept with the encoding; explicit normals
+            (an array) are encoded every time.
+        camera: the (3,) camera of the view to come, or None (a direction). A
+            model with a scene network encodes every time: its field depends on
+            where the camera is.
+
+    Returns:
+        The cloud's :class:`VisibilityField` (the kept one is shared: do not change it).
+
+    Raises:
+        As :meth:`NeuralVisibility.encode`.
+    """
+    global _last
+    if model.scene_network is not None or (normals is not None and not isinstance(normals, bool)):
+        return model._encode(pcd, normals, camera)
+    points, cloud_normals = cloud_arrays(pcd)
+    settings = _settings(model, normals)
+    with _lock:
+        last = _last
+    if _holds(last, model, pcd, settings, points, cloud_normals):
+        return last.field
+    field = model._encode(pcd, normals, camera)
+    if len(points) <= MAX_POINTS:
+        entry = _Entry(id(pcd), model, settings, _tensors(model), points.clone(),
+                       None if cloud_normals is None else cloud_normals.clone(), field)
+        with _lock:
+            _last = entry
+    return field
+
+
+def clear() -> None:
+    """Forgets the kept encoding (and frees its memory)."""
+    global _last
+    with _lock:
+        _last = None

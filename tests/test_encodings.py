@@ -1,0 +1,116 @@
+"""The drop-ins reuse the encoding of the same, unchanged cloud asked again, and only then."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import pytest
+import torch
+
+import o3dvis
+from o3dvis import encodings
+from o3dvis.neural import NeuralVisibility
+from o3dvis.training.speed import bench_cloud
+
+
+@pytest.fixture
+def counted(monkeypatch):
+    """The number of clouds encoded so far (every NeuralVisibility), starting from a cleared memory."""
+    encodings.clear()
+    calls = []
+    encode = NeuralVisibility._encode
+
+    def spy(self, *args, **kwargs):
+        calls.append(self)
+        return encode(self, *args, **kwargs)
+
+    monkeypatch.setattr(NeuralVisibility, "_encode", spy)
+    yield calls
+    encodings.clear()
+
+
+@pytest.fixture(scope="module")
+def scene():
+    cloud = bench_cloud(3000, 4)
+    return cloud.points, cloud.cameras
+
+
+def _fresh(points: np.ndarray, camera: np.ndarray, model=None) -> list[int]:
+    """The drop-in's answer with nothing kept."""
+    encodings.clear()
+    _, pt_map = o3dvis.hidden_point_removal_neural(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)),
+                                                   camera, model=model)
+    encodings.clear()
+    return pt_map
+
+
+def test_a_loop_over_cameras_encodes_once_and_answers_as_fresh_calls(scene, counted):
+    points, cameras = scene
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    answers = [o3dvis.hidden_point_removal_neural(pcd, c)[1] for c in cameras]
+    visible = o3dvis.select_visible(pcd, cameras[0])
+    assert len(counted) == 1
+    assert [np.asarray(visible.points).tolist()] == [points[answers[0]].tolist()]
+    fresh = [_fresh(points, c) for c in cameras]
+    assert answers == fresh and len({len(a) for a in answers}) > 1
+
+
+def test_a_cloud_changed_in_place_is_encoded_anew(scene, counted):
+    points, cameras = scene
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    before = o3dvis.hidden_point_removal_neural(pcd, cameras[0])[1]
+    moved = points.copy()
+    moved[: len(points) // 2] *= 0.5  # half the cloud shrinks towards the origin
+    np.asarray(pcd.points)[:] = moved  # in place: the same object, the same buffer
+    after = o3dvis.hidden_point_removal_neural(pcd, cameras[0])[1]
+    assert len(counted) == 2
+    assert after == _fresh(moved, cameras[0]) and after != before
+    np.asarray(pcd.points)[7, 0] += 1e-9  # one coordinate, by a hair
+    o3dvis.hidden_point_removal_neural(pcd, cameras[0])
+    assert len(counted) == 4  # the _fresh call above encoded too
+
+
+def test_tensor_clouds_normals_and_points_added_are_encoded_anew(scene, counted):
+    points, cameras = scene
+    pcd = o3d.t.geometry.PointCloud(o3d.core.Tensor(points))
+    o3dvis.hidden_point_removal_neural(pcd, cameras[0])
+    o3dvis.hidden_point_removal_neural(pcd, cameras[1])
+    assert len(counted) == 1
+    pcd.point.positions = o3d.core.Tensor(points[:-10])
+    _, pt_map = o3dvis.hidden_point_removal_neural(pcd, cameras[1])
+    assert len(counted) == 2 and int(pt_map.max().item()) < len(points) - 10
+    legacy = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    o3dvis.select_visible(legacy, cameras[0])
+    legacy.normals = o3d.utility.Vector3dVector(np.tile([0.0, 0.0, 1.0], (len(points), 1)))
+    o3dvis.select_visible(legacy, cameras[0])
+    o3dvis.select_visible(legacy, cameras[0], normals=False)
+    o3dvis.select_visible(legacy, cameras[0], normals=np.asarray(legacy.normals))
+    o3dvis.select_visible(legacy, cameras[0], normals=np.asarray(legacy.normals))
+    assert len(counted) == 7  # explicit normals are never kept
+
+
+def test_another_model_or_changed_weights_are_encoded_anew(scene, counted):
+    points, cameras = scene
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    mine = NeuralVisibility.pretrained(precision="float32")
+    o3dvis.hidden_point_removal_neural(pcd, cameras[0], model=mine)
+    o3dvis.hidden_point_removal_neural(pcd, cameras[0])  # the shared default model
+    o3dvis.hidden_point_removal_neural(pcd, cameras[0], model=mine)
+    o3dvis.hidden_point_removal_neural(pcd, cameras[1], model=mine)
+    assert [m is mine for m in counted] == [True, False, True]
+    with torch.no_grad():
+        mine.network.unet.head.bias.add_(5.0)  # as an optimiser's step would
+    _, changed = o3dvis.hidden_point_removal_neural(pcd, cameras[1], model=mine)
+    assert len(counted) == 4
+    mine.chunk_size = 1000
+    o3dvis.hidden_point_removal_neural(pcd, cameras[1], model=mine)
+    assert len(counted) == 5
+
+
+def test_large_clouds_are_not_kept(scene, counted, monkeypatch):
+    points, cameras = scene
+    monkeypatch.setattr(encodings, "MAX_POINTS", len(points) - 1)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    o3dvis.hidden_point_removal_neural(pcd, cameras[0])
+    o3dvis.hidden_point_removal_neural(pcd, cameras[1])
+    assert len(counted) == 2 and encodings._last is None

@@ -1,0 +1,161 @@
+"""The CPU thread policy (o3dvis.threads): never more threads than cores, one for small work or
+when other processes keep the cores busy, overridable by a call or the environment."""
+
+from __future__ import annotations
+
+import multiprocessing
+import threading
+import time
+
+import numpy as np
+import pytest
+import torch
+
+import o3dvis
+from o3dvis import threads
+from o3dvis.training.speed import bench_cloud
+
+
+@pytest.fixture(autouse=True)
+def automatic(monkeypatch):
+    """Each test starts (and the others go on) with the automatic policy and torch's count kept."""
+    monkeypatch.delenv(threads.ENV_VAR, raising=False)
+    before = torch.get_num_threads()
+    o3dvis.set_num_threads(None)
+    yield
+    o3dvis.set_num_threads(None)
+    torch.set_num_threads(before)
+
+
+def _spin(stop) -> None:
+    while not stop.is_set():
+        pass
+
+
+def test_a_fixed_count_is_used_up_to_the_cores(monkeypatch):
+    monkeypatch.setattr(threads, "usable_cores", lambda: 3)
+    o3dvis.set_num_threads(2)
+    assert o3dvis.get_num_threads() == 2 and threads.plan_threads(1, 10**9) == 2  # fixed: size ignored
+    o3dvis.set_num_threads(8)
+    assert threads.plan_threads(10**9, 1) == 3
+    o3dvis.set_num_threads("auto")
+    assert o3dvis.get_num_threads() is None
+    monkeypatch.setenv(threads.ENV_VAR, "1")
+    assert o3dvis.get_num_threads() == 1 and threads.plan_threads(10**9, 1) == 1
+    o3dvis.set_num_threads(2)  # a call wins over the environment
+    assert threads.plan_threads(10**9, 1) == 2
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, "two", True, "2.0"])
+def test_bad_counts_raise(bad, monkeypatch):
+    with pytest.raises(ValueError, match="positive int"):
+        o3dvis.set_num_threads(bad)
+    monkeypatch.setenv(threads.ENV_VAR, str(bad))
+    with pytest.raises(ValueError, match=threads.ENV_VAR):
+        threads.plan_threads(10**9, 1)
+
+
+def test_automatic_count_takes_small_work_torch_count_cores_and_load(monkeypatch):
+    monkeypatch.setattr(threads, "usable_cores", lambda: 4)
+    monkeypatch.setattr(threads, "busy_cores", lambda: 0)
+    monkeypatch.setattr(threads, "cpu_pressure", lambda: None)
+    torch.set_num_threads(8)
+    assert threads.plan_threads(100, 1000) == 1
+    assert threads.plan_threads(1000, 1000) == 4
+    torch.set_num_threads(3)
+    assert threads.plan_threads(1000, 1000) == 3
+    torch.set_num_threads(8)
+    monkeypatch.setattr(threads, "busy_cores", lambda: 3)
+    assert threads.plan_threads(1000, 1000) == 1
+    monkeypatch.setattr(threads, "busy_cores", lambda: 4)
+    assert threads.plan_threads(1000, 1000) == 1
+    monkeypatch.setattr(threads, "busy_cores", lambda: 0)
+    monkeypatch.setattr(threads, "cpu_pressure", lambda: threads.MAX_PRESSURE + 0.01)
+    assert threads.plan_threads(1000, 1000) == 1
+    monkeypatch.setattr(threads, "cpu_pressure", lambda: threads.MAX_PRESSURE)
+    assert threads.plan_threads(1000, 1000) == 4
+
+
+def test_busy_processes_on_every_core_are_seen():
+    cores = threads.usable_cores()
+    context = multiprocessing.get_context("fork")
+    stop = context.Event()
+    workers = [context.Process(target=_spin, args=(stop,), daemon=True) for _ in range(cores)]
+    for w in workers:
+        w.start()
+    try:
+        time.sleep(1.0)
+        seen = [threads.busy_cores() for _ in range(20)]
+        assert max(seen) <= cores and np.median(seen) >= cores - 0.5
+        assert threads.plan_threads(10**9, 1) == 1
+        pressure = threads.cpu_pressure()
+        assert pressure is None or 0 <= pressure <= 1
+    finally:
+        stop.set()
+        for w in workers:
+            w.join(5)
+            if w.is_alive():
+                w.terminate()
+
+
+def test_own_busy_threads_are_counted_as_own():
+    """Threads of this process busy in torch (the interpreter lock released) are this process's
+    running tasks, which :func:`busy_cores` leaves out of the other processes' load."""
+    stop = threading.Event()
+    matrix = torch.rand(256, 256)
+
+    def work():
+        while not stop.is_set():
+            matrix @ matrix
+
+    mine = [threading.Thread(target=work, daemon=True) for _ in range(2)]
+    for t in mine:
+        t.start()
+    try:
+        assert max(threads._own_running() for _ in range(20)) >= 3
+    finally:
+        stop.set()
+        for t in mine:
+            t.join()
+
+
+def test_encode_and_query_run_on_the_planned_threads_and_restore_torch(monkeypatch):
+    """With one usable core, nothing runs on two threads (torch's or o3dvis's); with a fixed count
+    of two, the encode's ops split over two and a query's chunks go side by side; the caller's torch
+    count is back after each, and the answers are the same."""
+    if threads.usable_cores() < 2:
+        pytest.skip("needs two usable cores")
+    vis = o3dvis.NeuralVisibility.pretrained(precision="float32")
+    cloud = bench_cloud(20_000, 3)
+    seen, ran_on = [], []
+    encode, margin = vis.network.encode, vis.network.view_margin
+
+    def spy_encode(*args, **kwargs):
+        seen.append(torch.get_num_threads())
+        return encode(*args, **kwargs)
+
+    def spy_margin(*args, **kwargs):
+        ran_on.append(threading.current_thread())
+        return margin(*args, **kwargs)
+
+    monkeypatch.setattr(vis.network, "encode", spy_encode)
+    monkeypatch.setattr(vis.network, "view_margin", spy_margin)
+    torch.set_num_threads(2)
+    monkeypatch.setattr(threads, "usable_cores", lambda: 1)
+    field = vis.encode(cloud.points)
+    field.chunk_size = 4096
+    one = field.probabilities(cloud.cameras)
+    assert seen == [1] and set(ran_on) == {threading.current_thread()}
+    assert torch.get_num_threads() == 2
+    monkeypatch.undo()
+    monkeypatch.setattr(vis.network, "encode", spy_encode)
+    monkeypatch.setattr(vis.network, "view_margin", spy_margin)
+    seen.clear(), ran_on.clear()
+    torch.set_num_threads(1)
+    o3dvis.set_num_threads(2)
+    field = vis.encode(cloud.points)
+    field.chunk_size = 4096
+    two = field.probabilities(cloud.cameras[0])
+    assert seen == [2] and threading.current_thread() not in ran_on and len(ran_on) == 5
+    assert torch.get_num_threads() == 1
+    torch.testing.assert_close(two, one[:1], atol=1e-5, rtol=0)

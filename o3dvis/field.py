@@ -184,7 +184,8 @@ class VisibilityField:
         """The field answering cameras inside the bounding box, encoded on first use (thread-safe)."""
         with self._scene_lock:
             if self._scene is None:
-                self._scene = self._scene_factory()
+                with torch.inference_mode(False):  # features a later query may differentiate through
+                    self._scene = self._scene_factory()
             return self._scene
 
     def _parts(self, views: Views) -> list[tuple["VisibilityField", np.ndarray | None, Views]]:

@@ -12,10 +12,10 @@ from o3dvis.apps import (best_view, depth_image, estimate_normals_neural, fibona
                          ground_truth_method, make_view, orient_normals_neural, points_in_shadow,
                          reconstruct_poisson, reconstruct_view_dependent, render_points,
                          render_with_shadows, shadow_map)
-from o3dvis.apps.normals import (_fit_planes, _smallest_eigenvectors, _vote, covisible_normals,
-                                 multiview_normals, neighbourhoods)
+from o3dvis.apps.normals import covisible_normals, multiview_normals, neighbourhoods
 from o3dvis.cli import build_parser
 from o3dvis.cli._common import split_vectors, visibility_method
+from o3dvis.orientation import fit_planes, smallest_eigenvectors, vote
 from o3dvis.training.data.prepare import sample_surface
 
 
@@ -190,7 +190,7 @@ def test_covisible_weights_count_every_shared_view_past_255():
     visibility = np.concatenate([np.ones((256, len(points)), bool), np.repeat(upper[None], 44, axis=0)])
     padded = np.concatenate([visibility, np.zeros((300, 1), bool)], axis=1)
     shared = (visibility[:, :, None] & padded[:, neighbours]).sum(axis=0)
-    expected = _fit_planes(points, neighbours, shared / visibility.sum(axis=0)[:, None])
+    expected = fit_planes(points, neighbours, shared / visibility.sum(axis=0)[:, None])
     normals, fitted = covisible_normals(points, visibility, neighbours)
     assert fitted.all() and np.allclose(np.abs(np.einsum("ij,ij->i", normals, expected[0])), 1)
 
@@ -216,7 +216,7 @@ def test_closed_form_eigenvectors_match_eigh(scale):
     extents = np.concatenate([np.ones((1000, 3)), [[1, 1, 1e-3]] * 500, [[1, 0.3, 1e-6]] * 500,
                               [[1, 1e-3, 1e-9]] * 500, [[1, 0.999, 0.998]] * 500])
     matrices = _scatters(rng.normal(size=(3000, 16, 3)) * extents[:, None] @ rotation) * scale
-    vectors, planar = _smallest_eigenvectors(matrices)
+    vectors, planar = smallest_eigenvectors(matrices)
     values, reference = np.linalg.eigh(matrices)
     assert np.allclose(np.linalg.norm(vectors, axis=1), 1)
     separated = (values[:, 1] - values[:, 0]) > 1e-8 * values[:, 2]
@@ -231,7 +231,7 @@ def test_closed_form_eigenvectors_of_degenerate_matrices():
     line = rng.normal(size=(1, 16, 1)) * np.array([0.6, 0.0, 0.8]) + 5.0
     matrices = np.concatenate([np.zeros((1, 3, 3)), _scatters(line), np.eye(3)[None],
                                np.diag([2.0, 2.0, 1.0])[None], np.diag([2.0, 1.0, 1.0])[None]])
-    vectors, planar = _smallest_eigenvectors(matrices)
+    vectors, planar = smallest_eigenvectors(matrices)
     assert np.isfinite(vectors).all() and np.allclose(np.linalg.norm(vectors, axis=1), 1)
     assert planar.tolist() == [False, False, True, True, True]  # a line or a point has no plane
     assert abs(vectors[1] @ [0.6, 0.0, 0.8]) < 1e-9  # any normal of a line is across it
@@ -244,7 +244,7 @@ def test_chunked_fit_and_vote_match_plain_formulas_across_chunks():
     points = rng.normal(size=(9000, 3)) * [1.0, 1.0, 0.05]  # more rows than one chunk
     neighbours = neighbourhoods(points, o3d.geometry.KDTreeSearchParamKNN(10))
     weight = rng.random(neighbours.shape)
-    normals, fitted = _fit_planes(points, neighbours, weight)
+    normals, fitted = fit_planes(points, neighbours, weight)
     near = points[neighbours]
     centre = np.einsum("nk,nki->ni", weight, near) / weight.sum(axis=1, keepdims=True)
     offset = near - centre[:, None]
@@ -257,7 +257,7 @@ def test_chunked_fit_and_vote_match_plain_formulas_across_chunks():
     visibility = rng.random((5, len(points))) < 0.5
     towards = cameras[:, None] - points[None]
     cos = np.einsum("vni,ni->vn", towards, normals) / np.linalg.norm(towards, axis=2)
-    assert np.allclose(_vote(points, normals, cameras, visibility), (cos * visibility).sum(axis=0))
+    assert np.allclose(vote(points, normals, cameras, visibility), (cos * visibility).sum(axis=0))
 
 
 def test_plane_fit_far_from_the_origin_is_exact():

@@ -14,29 +14,24 @@ see the point then orient it. No triangulation, so faster (``docs/results.md``).
 
 from __future__ import annotations
 
-import functools
 import os
-from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import open3d as o3d
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
 from ..baselines import distinct_points
 from ..cameras import viewpoints_around
 from ..clouds import cloud_normals, cloud_points, set_cloud_normals
 from ..methods import accepts_method_keyword, resolve_method
+from ..orientation import complete_orientation, fit_planes, orient_by_vote, row_chunks, vote
 from .triangulation import DEFAULT_EDGE_FACTOR, facing_triangles, local_spacing
 
 __all__ = ["estimate_normals_neural", "orient_normals_neural", "multiview_normals",
            "covisible_normals", "neighbourhoods"]
 
 _FIT_NEIGHBOURS = 16  # neighbours of the plane fitted where no triangle gives a normal
-_GRAPH_NEIGHBOURS = 10  # neighbours of a point in the graph that propagates orientation
-_CHUNK = 4096  # rows of neighbourhoods handled at once
 _BIT_COUNT = np.array([bin(byte).count("1") for byte in range(256)], dtype=np.uint8)
 
 
@@ -113,7 +108,7 @@ def covisible_normals(points: np.ndarray, visibility: np.ndarray, neighbours: np
     views = visibility.sum(axis=0)
     real = neighbours < len(points)
     weight = np.empty(neighbours.shape)
-    for rows in _chunks(len(neighbours)):
+    for rows in row_chunks(len(neighbours)):
         shared = np.zeros(weight[rows].shape, dtype=np.int32)  # uint8 would wrap past 255 views
         for byte in codes:
             shared += _BIT_COUNT[byte[neighbours[rows]] & byte[rows, None]]
@@ -121,94 +116,7 @@ def covisible_normals(points: np.ndarray, visibility: np.ndarray, neighbours: np
                                 real[rows])
     # no weight at all only where a seen point's search returned none of its views' points (> K
     # duplicates of it, unseen): the fit counts as undefined
-    return _fit_planes(points, neighbours, weight)
-
-
-def _chunks(count: int, size: int = _CHUNK) -> list[slice]:
-    """Slices of ``size`` rows covering ``count``: per-neighbour temporaries of a chunk stay in cache."""
-    return [slice(start, min(start + size, count)) for start in range(0, count, size)]
-
-
-def _fit_planes(points: np.ndarray, neighbours: np.ndarray, weight: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normals (M, 3) of weighted least-squares planes through rows of neighbours (M, K), and
-    (M,) whether each is defined: three neighbours of positive weight, not all on one line."""
-    # homogeneous coordinates, so that one product per neighbourhood gives the weighted sums of
-    # the offsets, of their outer products and of the weights: [[S, s], [s^T, w]]; components
-    # first, so that elementwise passes run along the neighbours
-    padded = np.zeros((4, len(points) + 1))
-    padded[:3, :-1], padded[3, :-1] = points.T, 1
-    normals, planar = np.empty((len(neighbours), 3)), np.empty(len(neighbours), dtype=bool)
-    for rows in _chunks(len(neighbours)):
-        near = padded[:, neighbours[rows]]  # (4, rows, K)
-        near[:3] -= near[:3, :, :1].copy()  # offsets from one of the neighbours: no cancellation
-        sums = np.matmul((near * weight[rows]).transpose(1, 0, 2), near.transpose(1, 2, 0))
-        total, mass = sums[:, :3, 3], np.maximum(sums[:, 3, 3], 1e-300)
-        scatter = sums[:, :3, :3] - total[:, :, None] * total[:, None, :] / mass[:, None, None]
-        normals[rows], planar[rows] = _smallest_eigenvectors(scatter)
-    return normals, (np.count_nonzero(weight > 0, axis=1) >= 3) & planar
-
-
-def _smallest_eigenvectors(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit eigenvectors of the smallest eigenvalues of symmetric 3x3 matrices, in closed form.
-
-    Faster than ``np.linalg.eigh`` on many small matrices. The eigenvalues come from the trigonometric solution of the characteristic
-    cubic. Of the largest and the smallest, the one farther from the middle
-    eigenvalue is well separated, so its eigenvector is found accurately as
-    the longest cross product of two rows of ``A - lambda I``; the other two
-    eigenvectors are those of the 2x2 restriction of ``A`` to its orthogonal
-    complement, solved by an angle (stable however close the two are).
-
-    Args:
-        matrices: (M, 3, 3) symmetric.
-
-    Returns:
-        (M, 3) unit vectors (arbitrary where the smallest eigenvalue is not
-        simple) and (M,) bool: whether the middle eigenvalue exceeds 1e-12
-        times the largest (for a scatter matrix: the points are not all on one line).
-    """
-    scale = np.abs(matrices).max(axis=(1, 2))
-    # the six distinct entries as arrays of their own: elementwise passes over (M,) arrays are
-    # what numpy does fast, not reductions over axes of 3
-    xx, xy, xz, yy, yz, zz = (matrices[:, i, j] / np.where(scale > 0, scale, 1)
-                              for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)))
-    third = (xx + yy + zz) / 3
-    dx, dy, dz = xx - third, yy - third, zz - third
-    spread = np.sqrt((dx * dx + dy * dy + dz * dz + 2 * (xy * xy + xz * xz + yz * yz)) / 6)
-    det = dx * (dy * dz - yz * yz) - xy * (xy * dz - yz * xz) + xz * (xy * yz - dy * xz)
-    half_det = np.clip(det / (2 * np.where(spread > 0, spread, 1) ** 3), -1, 1)
-    angle = np.arccos(half_det) / 3
-    largest = third + 2 * spread * np.cos(angle)
-    low = half_det < 0  # then the smallest eigenvalue is the one far from the middle
-    far = np.where(low, third + 2 * spread * np.cos(angle + 2 * np.pi / 3), largest)
-    rows = ((xx - far, xy, xz), (xy, yy - far, yz), (xz, yz, zz - far))
-    crosses = np.stack([_cross(rows[i], rows[j]) for i, j in ((0, 1), (0, 2), (1, 2))])  # (3, 3, M)
-    length = np.sqrt((crosses ** 2).sum(axis=1))
-    best = np.take_along_axis(crosses, length.argmax(axis=0)[None, None], axis=0)[0]
-    longest = np.sqrt((best ** 2).sum(axis=0))
-    axis = best / np.where(longest > 0, longest, 1)
-    axis[2, longest == 0] = 1  # every eigenvalue equal: any direction
-    # an orthonormal basis (u, v) of the plane normal to that axis, and the matrix on it
-    tilted = np.abs(axis[0]) < 0.9
-    u = np.stack(_cross(axis, (tilted, ~tilted, np.zeros_like(tilted))))
-    u /= np.sqrt((u ** 2).sum(axis=0))
-    v = np.stack(_cross(axis, u))
-
-    def form(p: np.ndarray, q: np.ndarray) -> np.ndarray:  # p^T A q, (M,)
-        return (p[0] * (xx * q[0] + xy * q[1] + xz * q[2]) + p[1] * (xy * q[0] + yy * q[1] + yz * q[2])
-                + p[2] * (xz * q[0] + yz * q[1] + zz * q[2]))
-
-    uu, uv, vv = form(u, u), form(u, v), form(v, v)
-    turn = np.arctan2(2 * uv, uu - vv) / 2  # the major axis in the plane is cos(turn) u + sin(turn) v
-    minor = np.cos(turn) * v - np.sin(turn) * u
-    mean, radius = (uu + vv) / 2, np.hypot((uu - vv) / 2, uv)
-    middle = np.where(low, mean - radius, mean + radius)
-    return np.where(low, axis, minor).T, middle > 1e-12 * largest
-
-
-def _cross(p, q) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Cross product of vectors given as three component arrays each (np.cross is slow on these)."""
-    return p[1] * q[2] - p[2] * q[1], p[2] * q[0] - p[0] * q[2], p[0] * q[1] - p[1] * q[0]
+    return fit_planes(points, neighbours, weight)
 
 
 def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_views: int = 0,
@@ -285,8 +193,8 @@ def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_vi
     if len(loose):  # a plane through the nearest points, its side taken from the triangulated ones
         _, neighbours = tree.query(points[loose], k=min(_FIT_NEIGHBOURS, len(points)), workers=-1)
         neighbours = neighbours.reshape(len(loose), -1)
-        normals[loose], defined[loose] = _fit_planes(points, neighbours, np.ones(neighbours.shape))
-    return _complete_orientation(points, normals, known, defined, tree)
+        normals[loose], defined[loose] = fit_planes(points, neighbours, np.ones(neighbours.shape))
+    return complete_orientation(points, normals, known, defined, tree)
 
 
 def _covisible_path(points: np.ndarray, method, cameras: np.ndarray, refine_views: int, search_param,
@@ -367,19 +275,6 @@ def _check_views(num_views: int, refine_views: int) -> None:
                          f"{num_views} and {refine_views}")
 
 
-def _vote(points: np.ndarray, normals: np.ndarray, cameras: np.ndarray, visibility: np.ndarray
-          ) -> np.ndarray:
-    """Sum over the cameras that see each point of cos(normal, direction to the camera), (N,)."""
-    vote = np.empty(len(points))
-    for rows in _chunks(len(points)):  # (points, views) products, no per-view pass
-        p, n = points[rows], normals[rows]
-        reach = n @ cameras.T - np.einsum("ij,ij->i", n, p)[:, None]  # n . (camera - p)
-        distance = np.sqrt(np.maximum((cameras ** 2).sum(axis=1) - 2 * p @ cameras.T
-                                      + (p ** 2).sum(axis=1)[:, None], 1e-300))
-        vote[rows] = (visibility[:, rows].T * (reach / distance)).sum(axis=1)
-    return vote
-
-
 @accepts_method_keyword
 def orient_normals_neural(pcd, num_views: int = 26, model=None, *, refine_views: int = 0):
     """Flips the normals a cloud already has to face the cameras that see their points.
@@ -418,90 +313,13 @@ def _orient(points: np.ndarray, normals: np.ndarray, defined: np.ndarray, method
     """``normals`` flipped to face the cameras that see their points, (N, 3).
 
     ``refine_views`` more cameras vote on the points the first ones do not see;
-    the side of the others is propagated from them (:func:`_complete_orientation`). Where
+    the side of the others is propagated from them (:func:`complete_orientation`). Where
     ``defined`` is False the normal is replaced by the nearest voted defined point's.
     """
-    vote = _vote(points, normals, cameras, visibility)
-    if refine_views and (vote == 0).any():
-        unseen = vote == 0
+    votes = vote(points, normals, cameras, visibility)
+    if refine_views and (votes == 0).any():
+        unseen = votes == 0
         cameras = viewpoints_around(points, refine_views)
-        vote[unseen] = _vote(points[unseen], normals[unseen], cameras,
+        votes[unseen] = vote(points[unseen], normals[unseen], cameras,
                              method(points, cameras, np.flatnonzero(unseen)))
-    normals = np.where(vote[:, None] < 0, -normals, normals)
-    return _complete_orientation(points, normals, (vote != 0) & defined, defined, tree)
-
-
-def _complete_orientation(points: np.ndarray, normals: np.ndarray, oriented: np.ndarray, defined: np.ndarray,
-                          tree: cKDTree | None) -> np.ndarray:
-    """``normals`` completed from the ``oriented`` ones, (N, 3).
-
-    Rows neither oriented nor ``defined`` take the nearest oriented point's normal;
-    the defined ones keep their own, turned to the side :func:`_propagate` gives,
-    or, with no path to an oriented point, to the side of the nearest oriented one.
-    """
-    nearest = _nearest_among(points, oriented)
-    normals = normals.copy()
-    filled = ~oriented & ~defined
-    normals[filled] = normals[nearest(filled)]
-    normals, unreached = _propagate(points, normals, oriented | ~defined, tree)
-    away = np.einsum("ij,ij->i", normals[unreached], normals[nearest(unreached)]) < 0
-    normals[np.flatnonzero(unreached)[away]] *= -1
-    return normals
-
-
-def _nearest_among(points: np.ndarray, chosen: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
-    """A lookup of the nearest ``chosen`` point (its index) of each row a boolean mask selects.
-
-    The k-d tree of the chosen points is built at the first lookup of any row, so
-    clouds with nothing to look up never pay for it. With none chosen, each row is its own.
-    """
-    index = np.flatnonzero(chosen)
-    tree = functools.cache(lambda: cKDTree(points[index], balanced_tree=False))
-
-    def nearest(rows: np.ndarray) -> np.ndarray:
-        if not rows.any() or not len(index):
-            return np.flatnonzero(rows)
-        return index[tree().query(points[rows], workers=-1)[1]]
-
-    return nearest
-
-
-def _propagate(points: np.ndarray, normals: np.ndarray, oriented: np.ndarray, tree: cKDTree | None
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """``normals`` with the rows not ``oriented`` flipped to agree with the oriented ones, (N, 3),
-    and which of those rows have no path to an oriented one (left as they were), (N,) bool.
-
-    The propagation of Open3D's ``orient_normals_consistent_tangent_plane``,
-    seeded: a minimum spanning tree of the nearest-neighbour graph of the
-    loose points (an edge costs ``1 - |n_i . n_j|``, low along a smooth surface)
-    is rooted at all oriented points at once, and each loose point takes the
-    side of its parent. A surface seen nowhere thus takes its side from where
-    it joins a seen one, not from the nearest seen point, which may lie across
-    a gap and face the other way. ``tree``: a ``cKDTree`` of ``points`` (None:
-    built here when there is something to propagate).
-    """
-    loose = np.flatnonzero(~oriented)
-    count = len(points)
-    if not len(loose) or len(loose) == count:
-        return normals, np.zeros(count, dtype=bool)
-    k = min(_GRAPH_NEIGHBOURS + 1, count)
-    _, near = (cKDTree(points) if tree is None else tree).query(points[loose], k=k, workers=-1)
-    a, b = np.repeat(loose, k), near.reshape(len(loose), k).ravel()
-    pairs = np.sort(np.minimum(a, b) * count + np.maximum(a, b))  # np.unique is 20x slower here
-    a, b = np.divmod(pairs[np.append(True, pairs[1:] != pairs[:-1])], count)
-    a, b = a[a != b], b[a != b]  # no loops (a point is its own nearest neighbour)
-    cost = 1 + 1e-6 - np.abs(np.einsum("ij,ij->i", normals[a], normals[b]))
-    joined = np.zeros(count, dtype=bool)
-    joined[a] = joined[b] = True
-    seeds = np.flatnonzero(joined & oriented)  # each joined to a root past the points, at (almost) no cost
-    graph = coo_matrix((np.concatenate([cost, np.full(len(seeds), 1e-9)]),
-                        (np.concatenate([a, seeds]), np.concatenate([b, np.full(len(seeds), count)]))),
-                       shape=(count + 1, count + 1))
-    _, parent = breadth_first_order(minimum_spanning_tree(graph), count, directed=False)
-    parent = parent[:count]
-    top = (parent < 0) | (parent == count)  # not reached, or oriented
-    parent = np.where(top, np.arange(count), parent)
-    side = np.where(top | (np.einsum("ij,ij->i", normals, normals[parent]) >= 0), 1, -1)
-    while (parent[parent] != parent).any():  # products of the sides along each path to its top
-        side, parent = side * side[parent], parent[parent]
-    return normals * side[:, None], top & ~oriented
+    return orient_by_vote(points, normals, defined, votes, tree)

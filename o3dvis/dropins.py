@@ -40,12 +40,14 @@ def _visible_indices(pcd, cameras, direction, threshold: float, model, device, n
     if views.positions is None:
         raise ValueError("max_range needs a camera position, not a viewing direction")
     points, cloud_normals = cloud_arrays(pcd)
-    _, unit = model._network_and_normals(cloud_normals, normals, points.shape[0])
+    estimate = isinstance(normals, str)  # "estimate": estimated on the crop (encode checks the value)
+    _, unit = model._network_and_normals(cloud_normals, False if estimate else normals, points.shape[0])
     camera = camera.detach().to(points.device)
     near = torch.nonzero((points - camera).square().sum(dim=1) <= max_range ** 2)[:, 0]
     if len(near) == 0:
         return np.zeros(0, dtype=np.int64)
-    field = model._encode(points[near], False if unit is None else unit[near.to(unit.device)], camera)
+    cropped = normals if estimate else False if unit is None else unit[near.to(unit.device)]
+    field = model._encode(points[near], cropped, camera)
     return near.cpu().numpy()[np.flatnonzero(field.query(views, threshold=threshold)[0])].astype(np.int64)
 
 
@@ -59,7 +61,7 @@ def _surface_triangles(vertices: np.ndarray, camera: np.ndarray) -> np.ndarray:
 
 def hidden_point_removal_neural(pcd, camera_location, radius: float | None = None, *,
                                 threshold: float = 0.5, model=None, device=None, triangulate: bool = False,
-                                max_range: float | None = None):
+                                max_range: float | None = None, normals=None):
     """Removes hidden points with the neural network: a drop-in for ``hidden_point_removal``.
 
     Returns what Open3D's ``PointCloud.hidden_point_removal`` returns, so
@@ -71,8 +73,10 @@ def hidden_point_removal_neural(pcd, camera_location, radius: float | None = Non
     are the surface the camera sees: a Delaunay triangulation of those points
     in the image plane without the triangles whose edges are much longer than
     the local point spacing, ordered counter-clockwise as seen from the camera
-    (none when fewer than 3 points are visible or they project onto a line). Unlike Open3D, ``pt_map`` is sorted. Point
-    normals are used when the cloud has them and a normals model is installed.
+    (none when fewer than 3 points are visible or they project onto a line). Unlike Open3D, ``pt_map`` is sorted.
+    With the shipped models, point normals are used when the cloud has them;
+    ``normals="estimate"`` estimates oriented normals in a first pass instead
+    (more accurate on dense, clean clouds; see :meth:`NeuralVisibility.encode`).
     Called again with the same, unchanged cloud (another camera), it reuses the
     cloud's encoding (see :mod:`o3dvis.encodings`) and costs a query only.
 
@@ -90,6 +94,10 @@ def hidden_point_removal_neural(pcd, camera_location, radius: float | None = Non
         max_range: only the points within this distance of the camera are
             considered (as a LiDAR's range): the others are not visible and hide
             nothing; None: all points.
+        normals: as in :meth:`NeuralVisibility.encode`: None (default) uses
+            the cloud's normals if it has them; ``"estimate"`` estimates
+            oriented normals in a first pass where that is more accurate;
+            False ignores normals.
 
     Returns:
         ``(mesh, pt_map)``: for a legacy cloud an ``o3d.geometry.TriangleMesh``
@@ -105,7 +113,7 @@ def hidden_point_removal_neural(pcd, camera_location, radius: float | None = Non
     if not isinstance(pcd, (o3d.geometry.PointCloud, o3d.t.geometry.PointCloud)):
         raise TypeError(f"pcd must be an Open3D PointCloud (legacy or tensor), got {type(pcd).__name__}")
     eye = as_camera_location(camera_location)
-    index = _visible_indices(pcd, eye, None, threshold, model, device, None, max_range=max_range)
+    index = _visible_indices(pcd, eye, None, threshold, model, device, normals, max_range=max_range)
     if isinstance(pcd, o3d.geometry.PointCloud):
         vertices = np.asarray(pcd.points)[index]
         mesh = o3d.geometry.TriangleMesh()

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .cameras import viewpoints_around
 from .clouds import cloud_arrays, unit_normals
 from .field import DEFAULT_CHUNK, RotatedEncoding, VisibilityField, inside_box
 from .models import available_models, load_model, torch_device
@@ -21,6 +22,7 @@ from .nn.calibration import calibration_terms
 from .nn.network import VisibilityNetwork
 from .nn.octree import bounding_box, morton_order, normalize_points
 from .nn.predictor import resolve_precision
+from .orientation import voted_normals
 from .threads import plan_threads, torch_threads
 
 __all__ = ["NeuralVisibility", "fixed_rotations", "random_rotation"]
@@ -34,6 +36,14 @@ _FLAT_TOL = 1e-6
 """A cloud is flat along a direction when no point lies farther from its mean along it than this
 many bounding-box diagonals: below what the network's float32 coordinates (about 2^-23 of the box)
 resolve, so such a cloud is answered as the exactly flat one."""
+# the two-pass encoding: cameras whose first-pass answers orient the normals, points per plane fit
+_ORIENTING_VIEWS = 14
+_PLANE_NEIGHBOURS = 8
+# where normals="estimate" takes two passes: at least this many points (below, a plane through 8
+# neighbours spans sharp features and thin parts too often) and a noise cue below this many point
+# spacings (noise tilts the fitted planes; see o3dvis.nn.noise)
+_ESTIMATE_MIN_POINTS = 20_000
+_ESTIMATE_MAX_NOISE = 0.2
 
 
 def _flat_hull(points: Tensor) -> tuple[Tensor, Tensor] | None:
@@ -222,7 +232,19 @@ class NeuralVisibility:
         return takes_normals, unit_normals(normals, num_points)
 
     def encode(self, pcd, normals=None) -> VisibilityField:
-        """Runs the U-Net once over a cloud.
+        """Runs the U-Net over a cloud: once, or twice to estimate oriented normals first.
+
+        With ``normals="estimate"``, a dense clean cloud is encoded in two
+        passes: the network without normals answers for 14 cameras around the
+        cloud; each point's normal is the plane through its 8 nearest points,
+        turned to face the cameras that see the point
+        (:func:`o3dvis.orientation.voted_normals`); the normals model then
+        encodes the cloud with those normals. That is more accurate on clouds
+        of at least 20 000 points with little noise, and costs a second
+        encoding, 14 views and the plane fits; on sparser or noisier clouds
+        (the network's noise cue, see :mod:`o3dvis.nn.noise`), where estimated
+        normals measured less accurate than none, and on flat clouds, it is one
+        pass without normals.
 
         On the CPU, its ops split over the threads that :mod:`o3dvis.threads`
         plans (one for small clouds or a busy machine).
@@ -231,15 +253,20 @@ class NeuralVisibility:
             pcd: ``o3d.geometry.PointCloud``, ``o3d.t.geometry.PointCloud``, or
                 an (N, 3) numpy array / torch tensor of points.
             normals: None uses the cloud's normals when it has them and a model
-                taking normals is loaded; False ignores normals; True requires
-                the cloud's normals; an (N, 3) array gives them explicitly.
+                taking normals is loaded; ``"estimate"`` estimates them as above
+                (the cloud's own are ignored; a normals model is needed); False
+                ignores normals; True requires the cloud's normals; an (N, 3)
+                array gives them explicitly.
 
         Returns:
-            A :class:`VisibilityField` to query with cameras.
+            A :class:`VisibilityField` to query with cameras; its ``normals`` are
+            the unit normals the network used (estimated ones included), in its
+            row order.
 
         Raises:
             ValueError: an empty cloud, NaN/Inf coordinates, wrong shapes, or
-                normals that the loaded models cannot use.
+                normals that the loaded models cannot use (``"estimate"``
+                without a normals model).
             TypeError: unsupported input types or dtypes.
         """
         return self._encode(pcd, normals)
@@ -248,15 +275,23 @@ class NeuralVisibility:
         """:meth:`encode`; given the (3,) ``camera`` of the only view to come, a camera inside the
         cloud's bounding box with a scene network gets the scene model's field alone."""
         points, cloud_normals = cloud_arrays(pcd)
-        network, unit = self._network_and_normals(cloud_normals, normals, points.shape[0])
+        estimate = isinstance(normals, str)
+        if estimate and normals != "estimate":
+            raise ValueError(f"normals must be None, True, False, 'estimate' or an (N, 3) array, got {normals!r}")
+        if estimate and self.normals_network is None:
+            raise ValueError("normals='estimate' needs a normals model (NeuralVisibility.pretrained() "
+                             "loads the shipped one)")
+        network, unit = (self.network, None) if estimate else self._network_and_normals(
+            cloud_normals, normals, points.shape[0])
         if self.device.type != "cpu":
-            return self._encode_points(network, unit, points, camera)
+            return self._encode_points(network, unit, points, camera, estimate)
         with torch_threads(plan_threads(points.shape[0], PARALLEL_ENCODE_POINTS)):
-            return self._encode_points(network, unit, points, camera)
+            return self._encode_points(network, unit, points, camera, estimate)
 
     def _encode_points(self, network: VisibilityNetwork, unit: Tensor | None, points: Tensor,
-                       camera: Tensor | None) -> VisibilityField:
-        """:meth:`_encode` of checked points and unit normals (or None) with ``network``."""
+                       camera: Tensor | None, estimate: bool = False) -> VisibilityField:
+        """:meth:`_encode` of checked points and unit normals (or None) with ``network``; ``estimate``:
+        normals estimated in a first pass where that pays (see :meth:`encode`)."""
         points = points.to(self.device)
         lo, hi = bounding_box(points)
         normalized, center, scale = _normalize(points, (lo, hi))
@@ -274,6 +309,13 @@ class NeuralVisibility:
         if self.scene_network is not None:
             def scene() -> VisibilityField:
                 return self._field(self.scene_network, None, *frame)
+        # a flat cloud hides nothing from off its plane: one pass is exact there
+        if (estimate and hull is None and len(normalized) >= _ESTIMATE_MIN_POINTS
+                and float(VisibilityNetwork.cloud_noise(normalized, ordered=True)[0, 0]) < _ESTIMATE_MAX_NOISE):
+            normals = self._oriented_normals(self._field(network, None, *frame),
+                                             points.detach().cpu().double().numpy())
+            unit = torch.from_numpy(normals).to(self.device).index_select(0, order).float()
+            network = self.normals_network
         return self._field(network, unit, *frame, scene=scene)
 
     def _field(self, network: VisibilityNetwork, unit: Tensor | None, normalized: Tensor, center: Tensor,
@@ -290,6 +332,12 @@ class NeuralVisibility:
         return VisibilityField(network, features, normalized, unit, center, scale, bounds, self.chunk_size,
                                hull, rank, rotated, calibration, resolve_precision(self.precision, self.device),
                                scene)
+
+    @staticmethod
+    def _oriented_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray:
+        """(N, 3) unit normals of ``points`` (the cloud's order), oriented by what ``field`` sees."""
+        cameras = viewpoints_around(points, _ORIENTING_VIEWS)
+        return voted_normals(points, cameras, field.query(cameras), _PLANE_NEIGHBOURS)
 
     @staticmethod
     def _rotated(network: VisibilityNetwork, normalized: Tensor, normals: Tensor | None,

@@ -12,12 +12,13 @@ import torch
 
 import o3dvis
 from o3dvis import models
-from o3dvis.cameras import as_views
+from o3dvis.cameras import as_views, viewpoints_around
 from o3dvis.cli import build_parser
 from o3dvis.cli._common import split_vectors
 from o3dvis.models import file_sha256
 from o3dvis.neural import fixed_rotations
 from o3dvis.nn import NetworkConfig, VisibilityNetwork
+from o3dvis.orientation import voted_normals
 from o3dvis.pretrained import shared_pretrained
 from o3dvis.training.data import random_shape
 
@@ -576,6 +577,36 @@ def test_normals_are_used_automatically_when_a_normals_model_exists(network, poi
     b = paired.encode(points, normals=-2 * np.asarray(cloud.normals)).probabilities(camera)
     assert not torch.allclose(a, b)  # the given normals reach the network
 
+
+def test_normals_estimated_in_a_first_pass_for_dense_clean_clouds(network):
+    torch.manual_seed(5)
+    normals_net = VisibilityNetwork(NetworkConfig(**SMALL, use_normals=True))
+    paired = o3dvis.NeuralVisibility(network, normals_net)
+    rng = np.random.default_rng(0)
+    sphere = rng.normal(size=(20_000, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    field = paired.encode(sphere, normals="estimate")
+    assert field.network is normals_net
+    cameras = viewpoints_around(sphere, 14)  # the first pass's answers orient the normals
+    expected = voted_normals(sphere, cameras, paired.encode(sphere, normals=False).query(cameras))
+    np.testing.assert_allclose(field.normals[field.rank].numpy(), expected, atol=1e-6)
+    assert paired.encode(sphere).network is network  # by default: one pass for a cloud without normals
+    noisy = sphere * (1 + 0.05 * rng.uniform(-1, 1, (len(sphere), 1)))
+    assert paired.encode(noisy, normals="estimate").network is network  # noise tilts the planes
+    assert paired.encode(sphere[:5000], normals="estimate").network is network  # too sparse
+    plane = sphere * [1, 1, 0]
+    assert paired.encode(plane, normals="estimate").network is network  # flat: one pass is exact
+    with pytest.raises(ValueError, match="needs a normals model"):
+        o3dvis.NeuralVisibility(network).encode(sphere, normals="estimate")
+    with pytest.raises(ValueError, match="got 'estimated'"):
+        paired.encode(sphere, normals="estimated")
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sphere))
+    camera = _camera(sphere)
+    _, two = o3dvis.hidden_point_removal_neural(cloud, camera, model=paired, normals="estimate")
+    assert two == np.flatnonzero(field.query(camera)[0]).tolist()
+    assert len(o3dvis.select_visible(cloud, camera, model=paired, normals="estimate").points) == len(two)
+    _, cropped = o3dvis.hidden_point_removal_neural(cloud, camera, model=paired, normals="estimate", max_range=10.0)
+    assert cropped == two  # a range that keeps every point changes nothing
 
 def test_register_attaches_the_method(vis, pcd, points):
     o3dvis.register()

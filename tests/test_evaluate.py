@@ -191,7 +191,8 @@ def test_neural_names_take_a_number_of_rotations_and_a_precision(tmp_path):
     ckpt = tmp_path / "tiny.safetensors"
     VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 8), feature_channels=8, hidden=(8,))).save(ckpt)
     methods, absent = resolve_methods(["neural", "neural-x3", "neural-normals-x2", "neural-float32",
-                                       "neural-x2-bfloat16"], ckpt)
+                                       "neural-x2-bfloat16", "neural-estimate"], ckpt)
+    assert "neural-estimate" in absent and "no normals model" in absent["neural-estimate"]
     assert len(methods["neural"][""].visibility.rotations) == 1
     assert len(methods["neural-x3"][""].visibility.rotations) == 3
     assert "3 rotations" in methods["neural-x3"][""].__name__
@@ -355,3 +356,19 @@ def test_a_scene_file_without_a_camera_inside_counts_nothing(scenes):
     assert eval_cloud(outside, 3000, 0.01, inside=True).cameras.shape == (0, 3)
     counts = evaluate_sample(outside, {"hpr": {"k=2": hpr_method(2.0)}}, [3000], [0.0], inside=True)
     assert counts["hpr"]["k=2"]["3000"]["0"] == [0, 0, 0, 0]
+
+
+def test_neural_estimate_encodes_with_normals_estimated_first(monkeypatch):
+    pytest.importorskip("o3dvis.neural")
+    from o3dvis.training.methods import resolve_methods
+
+    methods, absent = resolve_methods(["neural-estimate", "neural"])
+    if absent:
+        pytest.skip(f"no shipped weights: {absent}")
+    asked = []
+    for name in methods:
+        monkeypatch.setattr(methods[name][""].visibility, "encode", lambda points, normals=None: asked.append(normals))
+    methods["neural-estimate"][""].encode(np.zeros((4, 3)))
+    methods["neural"][""].encode(np.zeros((4, 3)))
+    assert asked[0] == "estimate" and asked[1] is False
+    assert "estimated normals" in methods["neural-estimate"][""].__name__

@@ -1,4 +1,10 @@
-"""The benchmark's named visibility methods: ``hpr``, ``hpr-exp``, ``neural``, ``neural-normals``.
+"""The benchmark's named visibility methods: ``hpr``, ``hpr-exp``, ``neural``, ``neural-normals``,
+``neural-estimate``.
+
+``neural`` is one pass without normals; ``neural-normals`` gives the normals
+model the cloud's normals; ``neural-estimate`` estimates oriented normals in a
+first pass where that is more accurate and answers with the normals model
+(``NeuralVisibility.encode(normals="estimate")``).
 
 :func:`resolve_methods` turns names into parameter sweeps ``{label: method}`` (a
 network method with ``needs_normals = True`` also takes ``normals=``;
@@ -22,8 +28,8 @@ from ..baselines import SWEEPS, Method, sweep
 
 __all__ = ["NeuralMethod", "neural_method", "resolve_methods", "METHOD_NAMES"]
 
-METHOD_NAMES = (*SWEEPS, "neural", "neural-normals")
-_NETWORK_VARIANT = re.compile(r"(neural(?:-normals)?)(?:-x([1-9][0-9]*))?(?:-(float32|bfloat16))?")
+METHOD_NAMES = (*SWEEPS, "neural", "neural-normals", "neural-estimate")
+_NETWORK_VARIANT = re.compile(r"(neural(?:-normals|-estimate)?)(?:-x([1-9][0-9]*))?(?:-(float32|bfloat16))?")
 
 
 class NeuralMethod:
@@ -34,14 +40,18 @@ class NeuralMethod:
         identity: text naming the weights (for reports).
         use_normals: feed the cloud's normals to the network; the method is
             then called ``method(points, cameras, normals=normals)``.
+        estimate: otherwise, ``encode(normals="estimate")``: normals estimated
+            in a first pass (see ``NeuralVisibility.encode``).
     """
 
-    def __init__(self, visibility, identity: str, use_normals: bool = False):
+    def __init__(self, visibility, identity: str, use_normals: bool = False, estimate: bool = False):
         self.visibility = visibility
         self.identity = identity
         self.needs_normals = use_normals
+        self.estimate = estimate
         turns, precision = len(visibility.rotations), visibility.precision
-        self.__name__ = (f"neural({identity}{', normals' if use_normals else ''}"
+        mode = ", normals" if use_normals else ", estimated normals" if estimate else ""
+        self.__name__ = (f"neural({identity}{mode}"
                          f"{f', {turns} rotations' if turns > 1 else ''}"
                          f"{f', {precision}' if precision != 'auto' else ''})")
 
@@ -50,7 +60,8 @@ class NeuralMethod:
         if self.needs_normals and normals is None:
             raise ValueError(f"{self.__name__} needs the cloud's normals")
         return self.visibility.encode(np.asarray(points, dtype=np.float64),
-                                      normals=np.asarray(normals, dtype=np.float64) if self.needs_normals else False)
+                                      normals=np.asarray(normals, dtype=np.float64) if self.needs_normals
+                                      else "estimate" if self.estimate else False)
 
     def build_octree(self, points: np.ndarray):
         """The octree that encoding builds for ``points`` (timed alone by the bench)."""
@@ -66,7 +77,8 @@ class NeuralMethod:
 
 
 def neural_method(checkpoint: str | Path | None = None, device: str | None = None,
-                  use_normals: bool = False, num_rotations: int = 1, precision: str = "auto") -> NeuralMethod:
+                  use_normals: bool = False, num_rotations: int = 1, precision: str = "auto",
+                  estimate: bool = False) -> NeuralMethod:
     """The neural method from a checkpoint file or the shipped weights.
 
     Args:
@@ -75,6 +87,7 @@ def neural_method(checkpoint: str | Path | None = None, device: str | None = Non
         device: torch device (default: the API's choice).
         use_normals: give the network the cloud's normals (a model that takes them is needed).
         num_rotations, precision: see ``NeuralVisibility``.
+        estimate: see :class:`NeuralMethod`.
 
     Returns:
         A :class:`NeuralMethod`.
@@ -108,7 +121,9 @@ def neural_method(checkpoint: str | Path | None = None, device: str | None = Non
         raise LookupError(f"the weights ({identity}) take no normals")
     if needs and not use_normals:
         raise LookupError(f"the weights ({identity}) need normals: use the method neural-normals")
-    return NeuralMethod(visibility, identity, use_normals)
+    if estimate and not use_normals and visibility.normals_network is None:
+        raise LookupError(f"the weights ({identity}) come with no normals model to estimate normals for")
+    return NeuralMethod(visibility, identity, use_normals, estimate)
 
 
 def resolve_methods(names, checkpoint: str | Path | None = None,
@@ -143,7 +158,8 @@ def resolve_methods(names, checkpoint: str | Path | None = None,
         if base.startswith("neural"):
             try:
                 methods[name] = {"": neural_method(checkpoint, use_normals=base == "neural-normals",
-                                                   num_rotations=turns, precision=precision)}
+                                                   num_rotations=turns, precision=precision,
+                                                   estimate=base == "neural-estimate")}
             except LookupError as e:
                 absent[name] = str(e)
         else:

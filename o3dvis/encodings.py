@@ -7,8 +7,9 @@ again, with the same model, unchanged (its settings, and its networks' weights
 changed in place by no one, an optimiser included), the same ``normals`` choice,
 and its points (and normals) still equal, value for value, to those encoded: a
 cloud changed in place, or a new cloud at the address of a freed one, is encoded
-anew. A model with a scene network, and a crop (``max_range``), are encoded on
-every call. One encoding is kept (of at most :data:`MAX_POINTS` points), with a copy of
+anew. With a scene network, a camera inside the cloud's bounding box and one
+outside it are answered by different networks: which side the camera is on is
+part of what is kept. A crop (``max_range``) is encoded on every call. One encoding is kept (of at most :data:`MAX_POINTS` points), with a copy of
 its points; :func:`clear` frees it.
 """
 
@@ -21,6 +22,8 @@ import torch
 from torch import Tensor
 
 from .clouds import cloud_arrays
+from .field import inside_box
+from .nn.octree import bounding_box
 
 if TYPE_CHECKING:  # type hints only: o3dvis.neural and o3dvis.field stay unloaded until used
     from .field import VisibilityField
@@ -46,9 +49,12 @@ _last: _Entry | None = None
 _lock = threading.Lock()
 
 
-def _settings(model: "NeuralVisibility", normals) -> tuple:
-    """What an encoding depends on besides the cloud and the networks' weights."""
-    return normals, str(model.device), model.precision, model.chunk_size, len(model.rotations)
+def _settings(model: "NeuralVisibility", normals, points: Tensor, camera: Tensor | None) -> tuple:
+    """What an encoding depends on besides the cloud and the networks' weights: with a scene
+    network, whether the camera is inside the cloud's bounding box too."""
+    inside = (model.scene_network is not None and camera is not None
+              and bool(inside_box(camera.detach().to(points)[None], bounding_box(points))[0]))
+    return normals, str(model.device), model.precision, model.chunk_size, len(model.rotations), inside
 
 
 def _tensors(model: "NeuralVisibility") -> list[tuple[Tensor, int, int]]:
@@ -78,9 +84,9 @@ def encode(model: "NeuralVisibility", pcd, normals=None, camera: Tensor | None =
         pcd: a cloud, as :meth:`NeuralVisibility.encode` takes it.
         normals: None, True or False are kept with the encoding; explicit normals
             (an array) are encoded every time.
-        camera: the (3,) camera of the view to come, or None (a direction). A
-            model with a scene network encodes every time: its field depends on
-            where the camera is.
+        camera: the (3,) camera of the view to come, or None (a direction): with
+            a scene network, a camera inside the cloud's bounding box gets the
+            scene model's field.
 
     Returns:
         The cloud's :class:`VisibilityField` (the kept one is shared: do not change it).
@@ -89,10 +95,10 @@ def encode(model: "NeuralVisibility", pcd, normals=None, camera: Tensor | None =
         As :meth:`NeuralVisibility.encode`.
     """
     global _last
-    if model.scene_network is not None or (normals is not None and not isinstance(normals, bool)):
+    if normals is not None and not isinstance(normals, bool):
         return model._encode(pcd, normals, camera)
     points, cloud_normals = cloud_arrays(pcd)
-    settings = _settings(model, normals)
+    settings = _settings(model, normals, points, camera)
     with _lock:
         last = _last
     if _holds(last, model, pcd, settings, points, cloud_normals):

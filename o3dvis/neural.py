@@ -7,6 +7,7 @@ runs the U-Net once (and once per extra rotation of an ensemble) and returns the
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from pathlib import Path
 
@@ -304,11 +305,10 @@ class NeuralVisibility:
         unit = None if unit is None else unit.to(self.device).index_select(0, order).float()
         frame = (normalized, center, scale, (lo, hi), hull, rank)
         scene = None
-        if self.scene_network is not None and camera is not None and inside_box(camera.to(lo)[None], (lo, hi))[0]:
-            return self._field(self.scene_network, None, *frame)
         if self.scene_network is not None:
-            def scene() -> VisibilityField:
+            if camera is not None and inside_box(camera.to(lo)[None], (lo, hi))[0]:
                 return self._field(self.scene_network, None, *frame)
+            scene = functools.partial(self._field, self.scene_network, None, *frame)
         # a flat cloud hides nothing from off its plane: one pass is exact there
         if (estimate and hull is None and len(normalized) >= _ESTIMATE_MIN_POINTS
                 and float(VisibilityNetwork.cloud_noise(normalized, ordered=True)[0, 0]) < _ESTIMATE_MAX_NOISE):

@@ -114,3 +114,22 @@ def test_large_clouds_are_not_kept(scene, counted, monkeypatch):
     o3dvis.hidden_point_removal_neural(pcd, cameras[0])
     o3dvis.hidden_point_removal_neural(pcd, cameras[1])
     assert len(counted) == 2 and encodings._last is None
+
+
+def test_cameras_inside_and_outside_are_kept_apart(counted):
+    """With the shipped scene model, a loop of cameras inside a room encodes once, and a camera on the
+    other side of the bounding box gets its own network's field, as a fresh call does."""
+    rng = np.random.default_rng(3)
+    room = rng.uniform(-1, 1, (4000, 3))
+    room[np.arange(4000), rng.integers(0, 3, 4000)] = rng.choice([-1.0, 1.0], 4000)  # on the walls
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(room))
+    model = o3dvis.NeuralVisibility.pretrained()
+    if model.scene_network is None:
+        pytest.skip("no scene model installed")
+    inside, outside = np.array([[0.1, 0.2, -0.3], [-0.4, 0.1, 0.2]]), np.array([[3.0, 0.5, 0.2]])
+    answers = [o3dvis.hidden_point_removal_neural(pcd, c, model=model)[1] for c in inside]
+    assert len(counted) == 1
+    far = o3dvis.hidden_point_removal_neural(pcd, outside[0], model=model)[1]
+    again = o3dvis.hidden_point_removal_neural(pcd, inside[0], model=model)[1]
+    assert len(counted) == 3
+    assert answers + [far, again] == [_fresh(room, c, model) for c in [*inside, outside[0], inside[0]]]

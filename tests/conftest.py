@@ -13,3 +13,17 @@ def torch_ops(monkeypatch):
     from o3dvis.nn import native
 
     monkeypatch.setattr(native, "usable", lambda *tensors: False)
+
+
+@pytest.fixture(scope="module")
+def vis():
+    """The shipped model, loaded once per test module, with one intra-op thread (two OpenMP threads
+    on two busy cores are many times slower than one)."""
+    import torch
+
+    import o3dvis
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield o3dvis.NeuralVisibility.pretrained()
+    torch.set_num_threads(threads)

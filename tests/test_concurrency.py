@@ -39,16 +39,6 @@ def _camera(pcd: o3d.geometry.PointCloud, i: int) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def vis() -> o3dvis.NeuralVisibility:
-    """The shipped model, loaded once; one intra-op thread per caller (the machine is shared, and
-    two OpenMP threads on two busy cores are 30x slower than one)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield o3dvis.NeuralVisibility.pretrained()
-    torch.set_num_threads(threads)
-
-
-@pytest.fixture(scope="module")
 def scenes():
     clouds = [_cloud(i) for i in range(CLOUDS)]
     return clouds, [_camera(c, i) for i, c in enumerate(clouds)]

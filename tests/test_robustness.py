@@ -512,15 +512,6 @@ def _camera_case(name: str) -> bool:
     return "camera" in name
 
 
-@pytest.fixture(scope="module")
-def vis() -> o3dvis.NeuralVisibility:
-    """The shipped model, loaded once; one torch thread (the machine is shared)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield o3dvis.NeuralVisibility.pretrained()
-    torch.set_num_threads(threads)
-
-
 @pytest.mark.parametrize("func_name, case_name", _cells(risky=False))
 def test_bad_input(vis, func_name, case_name):
     run_case(func_name, case_name, vis)

@@ -13,14 +13,6 @@ from o3dvis.training.data.prepare import sample_surface
 
 
 @pytest.fixture(scope="module")
-def vis() -> o3dvis.NeuralVisibility:
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield o3dvis.NeuralVisibility.pretrained()
-    torch.set_num_threads(threads)
-
-
-@pytest.fixture(scope="module")
 def torus():
     mesh = o3d.geometry.TriangleMesh.create_torus()
     points, _ = sample_surface(np.asarray(mesh.vertices), np.asarray(mesh.triangles), 5000,

@@ -84,10 +84,19 @@ def test_busy_processes_on_every_core_are_seen():
     for w in workers:
         w.start()
     try:
-        time.sleep(1.0)
-        seen = [threads.busy_cores() for _ in range(20)]
-        assert max(seen) <= cores and np.median(seen) >= cores - 0.5
-        assert threads.plan_threads(10**9, 1) == 1
+        # windows of 20 samples, up to 6 s: the forked spinners take a moment to be scheduled, and one
+        # window can fall while this process's own threads hold the cores
+        windows, plans = [], []
+        deadline = time.monotonic() + 6.0
+        while time.monotonic() < deadline:
+            time.sleep(0.25)
+            windows.append([threads.busy_cores() for _ in range(20)])
+            plans.append(threads.plan_threads(10**9, 1))
+            if np.median(windows[-1]) >= cores - 0.5 and plans[-1] == 1:
+                break
+        assert max(max(w) for w in windows) <= cores
+        assert np.median(windows[-1]) >= cores - 0.5, windows
+        assert plans[-1] == 1, plans
         pressure = threads.cpu_pressure()
         assert pressure is None or 0 <= pressure <= 1
     finally:

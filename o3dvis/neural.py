@@ -47,20 +47,26 @@ _ESTIMATE_MIN_POINTS = 20_000
 _ESTIMATE_MAX_NOISE = 0.2
 
 
-def _flat_hull(points: Tensor) -> tuple[Tensor, Tensor] | None:
+def _flat_hull(points: Tensor, diagonal: Tensor) -> tuple[Tensor, Tensor] | None:
     """Centre and orthonormal basis (rows) of the affine hull of a flat cloud; None for a 3-D one.
 
-    The cloud's principal directions come from the SVD of the 3x3 R of a QR of its centred points
-    (O(N) and accurate); along each, the points' largest distance from the mean decides whether the
-    cloud extends that way (see ``_FLAT_TOL``), relative to the cloud's size, so that a cloud a
-    hair off its plane is answered as the exactly flat one.
+    A cloud extends along a direction when some point lies farther than ``_FLAT_TOL`` x
+    ``diagonal`` (its bounding box's) from the mean along it. Most clouds are told 3-D by the
+    3x3 scatter matrix alone: when the root-mean-square spread along its least direction,
+    less the matrix's rounding, exceeds that, so does every direction's largest one. The others'
+    principal directions come from the SVD of the 3x3 R of a QR of the centred points (O(N) and
+    accurate), and the largest distances along them decide, so that a cloud a hair off its
+    plane is answered as the exactly flat one.
     """
     centre = points.mean(dim=0)
     offsets = points - centre
+    scatter = offsets.T @ offsets
+    least, largest = torch.linalg.eigvalsh(scatter)[[0, 2]]
+    bound = _FLAT_TOL * diagonal
+    if least - 1e3 * torch.finfo(points.dtype).eps * largest > bound * bound * len(points):
+        return None
     _, _, vt = torch.linalg.svd(torch.linalg.qr(offsets, mode="r").R)
-    extent = (offsets @ vt.T).abs().amax(dim=0)
-    lo, hi = points.amin(dim=0), points.amax(dim=0)
-    spans = extent > _FLAT_TOL * (hi - lo).norm()
+    spans = (offsets @ vt.T).abs().max(dim=0).values > bound
     return None if bool(spans.all()) else (centre, vt[spans])
 
 
@@ -296,7 +302,7 @@ class NeuralVisibility:
         points = points.to(self.device)
         lo, hi = bounding_box(points)
         normalized, center, scale = _normalize(points, (lo, hi))
-        hull = _flat_hull(normalized)  # in float64, where a flat cloud is flat to the last bits
+        hull = _flat_hull(normalized, ((hi - lo) / scale).norm())  # float64: flat to the last bits
         normalized = normalized.float()
         order = morton_order(normalized)
         rank = torch.empty_like(order)

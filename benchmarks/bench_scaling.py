@@ -2,8 +2,13 @@
 
     python3 benchmarks/bench_scaling.py --points 2048,8192,32768,200000,1000000,3000000,10000000 \\
         --out benchmarks/results/scaling.md
+    python3 benchmarks/bench_scaling.py --scene rooms --points 200000,1000000,10000000 \\
+        --out benchmarks/results/scaling_inside.md
 
-For each size, one procedural cloud and one camera (as ``o3dvis bench``), and
+For each size, one procedural cloud and one camera (as ``o3dvis bench``), or with ``--scene``
+a procedural scene (furnished rooms or a street, sampled uniformly, fixed seed) and a camera
+inside it, whose drop-in answers with the ``scene`` model (and ``encode``/``query`` are that
+model's); and
 interleaved rounds of ``o3dvis.hidden_point_removal_neural`` (its kept encoding
 cleared first, so that it encodes), its two stages alone (``encode`` and one
 ``query``) and Open3D's ``hidden_point_removal``. The peak memory is what one call
@@ -42,10 +47,19 @@ def _mib(value: float | None) -> str:
     return "" if value is None else f"{value:.0f}"
 
 
-def _scene(points: int):
-    cloud = bench_cloud(points, 1)
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud.points))
-    return pcd, cloud.cameras[0], 100.0 * float(np.linalg.norm(np.ptp(cloud.points, axis=0)))
+def _scene(points: int, kind: str | None = None):
+    """A cloud of ``points``, a camera (inside a procedural scene of ``kind`` if given) and
+    Open3D's documented HPR radius (diameter x 100)."""
+    if kind is None:
+        cloud = bench_cloud(points, 1)
+        xyz, camera = cloud.points, cloud.cameras[0]
+    else:
+        from o3dvis.training.data.scenes import free_positions, random_scene, sample_uniform
+        rng = np.random.default_rng(0)
+        scene = random_scene(kind, rng)
+        xyz, camera = sample_uniform(scene, points, rng)[0], free_positions(scene, 1, rng)[0]
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
+    return pcd, camera, 100.0 * float(np.linalg.norm(np.ptp(xyz, axis=0)))
 
 
 def _status_kib(field: str) -> int:
@@ -53,11 +67,11 @@ def _status_kib(field: str) -> int:
         return next(int(line.split()[1]) for line in f if line.startswith(field + ":"))
 
 
-def child_peak_mib(way: str, points: int) -> None:
+def child_peak_mib(way: str, points: int, kind: str | None) -> None:
     """Prints the peak resident memory (MiB) one call of ``way`` adds to this fresh process, above its
     level with the cloud built and the model loaded and run once on a small cloud (Linux)."""
-    pcd, camera, radius = _scene(points)
-    small, small_camera, _ = _scene(2048)
+    pcd, camera, radius = _scene(points, kind)
+    small, small_camera, _ = _scene(2048, kind)
     o3dvis.hidden_point_removal_neural(small, small_camera)
     encodings.clear()
     with open("/proc/self/clear_refs", "w") as f:  # resets the peak (VmHWM) to the current level
@@ -70,18 +84,19 @@ def child_peak_mib(way: str, points: int) -> None:
     print((_status_kib("VmHWM") - before) / 1024)
 
 
-def _peak_mib(way: str, points: int) -> float | None:
+def _peak_mib(way: str, points: int, kind: str | None) -> float | None:
     """:func:`child_peak_mib` in a fresh process; None where it cannot tell."""
-    run = subprocess.run([sys.executable, __file__, "--child", way, str(points)], capture_output=True, text=True)
+    run = subprocess.run([sys.executable, __file__, "--child", way, str(points)]
+                         + (["--scene", kind] if kind else []), capture_output=True, text=True)
     try:
         return float(run.stdout.strip().splitlines()[-1])
     except (ValueError, IndexError):
         return None
 
 
-def measure(points: int, rounds: int) -> dict:
-    pcd, camera, radius = _scene(points)
-    vis = shared_pretrained()
+def measure(points: int, rounds: int, kind: str | None = None) -> dict:
+    pcd, camera, radius = _scene(points, kind)
+    vis = shared_pretrained("scene" if kind else "default")
 
     def dropin():
         encodings.clear()
@@ -99,7 +114,7 @@ def measure(points: int, rounds: int) -> dict:
     encodings.clear()
     medians = {name: statistics.median(t) for name, t in times.items()}
     return {"points": points, "rounds": rounds, "median_s": medians,
-            "peak_mib": {way: _peak_mib(way, points) for way in ("drop-in", "Open3D HPR")},
+            "peak_mib": {way: _peak_mib(way, points, kind) for way in ("drop-in", "Open3D HPR")},
             "speedup_vs_hpr": medians["Open3D HPR"] / medians["drop-in"],
             "threads_planned": plan_threads(points, 1), "cpu_pressure": cpu_pressure()}
 
@@ -109,15 +124,16 @@ def main() -> int:
     parser.add_argument("--points", default="2048,8192,32768,200000,1000000,3000000,10000000")
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--few-above", type=int, default=1_000_000)
+    parser.add_argument("--scene", choices=("rooms", "street"), help="a procedural scene, the camera inside")
     parser.add_argument("--out", type=Path)
     parser.add_argument("--child", nargs=2, metavar=("WAY", "POINTS"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        child_peak_mib(args.child[0], int(args.child[1]))
+        child_peak_mib(args.child[0], int(args.child[1]), args.scene)
         return 0
     rows = []
     for n in (int(p) for p in args.points.split(",")):
-        rows.append(measure(n, args.rounds if n <= args.few_above else 1))
+        rows.append(measure(n, args.rounds if n <= args.few_above else 1, args.scene))
         print(json.dumps(rows[-1]), flush=True)
     lines = ["| points | drop-in (ms) | encode (ms) | query, one view (ms) | drop-in peak memory (MiB) | "
              "Open3D HPR (ms) | HPR peak memory (MiB) | speed-up vs HPR |", "|---|---|---|---|---|---|---|---|"]
@@ -131,7 +147,8 @@ def main() -> int:
     crossover = ("never faster than HPR here" if not faster else f"faster than HPR from {min(faster):,} points"
                  + (f" (slower at {max(slower):,})" if slower else ""))
     pressure = [r["cpu_pressure"] for r in rows if r["cpu_pressure"] is not None]
-    lines = [f"`python3 benchmarks/bench_scaling.py --points {args.points}`: medians of {args.rounds} interleaved "
+    scene = f" --scene {args.scene}" if args.scene else ""
+    lines = [f"`python3 benchmarks/bench_scaling.py{scene} --points {args.points}`: medians of {args.rounds} interleaved "
              f"rounds (one above {args.few_above:,} points), o3dvis's automatic threads "
              f"(planned: {sorted({r['threads_planned'] for r in rows})}"
              + (f", CPU pressure {min(pressure):.2f}-{max(pressure):.2f}" if pressure else "")

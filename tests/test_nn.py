@@ -129,6 +129,29 @@ def test_conv_gradcheck():
         lambda a, w: torch.func.functional_call(conv, {"weight": w}, (a, o, 3)), (x, w))
 
 
+def test_conv_products_in_bfloat16_without_grad_only():
+    """products_in(bfloat16) rounds the products' inputs (float32 out, close to the float32
+    answer), not with autograd on, not outside the block, and follows in-place weight changes."""
+    from o3dvis.nn.conv import products_in
+
+    torch.manual_seed(0)
+    o, _ = _full_grid_octree(3)
+    conv = OctreeConv(8, 8)
+    x = torch.randn(o.num_nodes(3), 8)
+    exact = conv(x, o, 3)
+    with torch.no_grad(), products_in(torch.bfloat16):
+        reduced = conv(x, o, 3)
+    assert reduced.dtype == torch.float32 and not torch.equal(reduced, exact)
+    torch.testing.assert_close(reduced, exact, rtol=0.05, atol=0.05)
+    with products_in(torch.bfloat16):
+        assert torch.equal(conv(x, o, 3), exact)  # autograd on: float32
+    with torch.no_grad():
+        assert torch.equal(conv(x, o, 3), exact)  # outside the block: float32
+        conv.weight.mul_(2)
+        with products_in(torch.bfloat16):
+            torch.testing.assert_close(conv(x, o, 3), 2 * exact, rtol=0.05, atol=0.1)
+
+
 @pytest.mark.parametrize("frequencies", [0, 1, 6])
 @pytest.mark.parametrize("grad", [False, True])
 def test_embedding_matches_direct_sinusoids(frequencies, grad):

@@ -6,14 +6,33 @@ runs one dense matmul, so the cost is linear in the number of nodes.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import threading
+from collections.abc import Iterator
 
 import torch
 from torch import Tensor, nn
 
 from .octree import Octree
 
-__all__ = ["OctreeConv", "OctreeDownsample", "OctreeUpsample", "ConvBnRelu", "ResBlock", "gather_rows"]
+__all__ = ["OctreeConv", "OctreeDownsample", "OctreeUpsample", "ConvBnRelu", "ResBlock", "gather_rows",
+           "products_in"]
+
+_PRODUCTS = threading.local()
+
+
+@contextlib.contextmanager
+def products_in(dtype: torch.dtype) -> Iterator[None]:
+    """Runs the convolutions' matrix products of this thread in ``dtype`` (e.g. ``torch.bfloat16``,
+    accumulated in float32 by the kernels) where no gradient is asked for; their outputs and
+    everything between them stay float32."""
+    previous = getattr(_PRODUCTS, "dtype", None)
+    _PRODUCTS.dtype = dtype
+    try:
+        yield
+    finally:
+        _PRODUCTS.dtype = previous
 
 
 def _pad(x: Tensor) -> Tensor:
@@ -43,10 +62,24 @@ class _GatherMatmul(nn.Module):
         nn.init.normal_(self.weight, std=math.sqrt(2.0 / (taps * in_channels)))
 
     def gather_matmul(self, x: Tensor, index: Tensor) -> Tensor:
-        """``x[index].reshape(n, -1) @ weight`` for an (n, taps) ``index``, in chunks of rows."""
+        """``x[index].reshape(n, -1) @ weight`` for an (n, taps) ``index``, in chunks of rows
+        (in the dtype of :func:`products_in`, where one is set and no gradient is asked for)."""
+        weight, dtype = self.weight, getattr(_PRODUCTS, "dtype", None)
+        reduced = dtype not in (None, x.dtype) and not torch.is_grad_enabled()
+        if reduced:
+            weight, x = self._weight_in(dtype), x.to(dtype)
         step = max(1, _CHUNK_ELEMENTS // (index.shape[1] * x.shape[1]))
-        parts = [gather_rows(x, index[a:a + step]).flatten(1) @ self.weight for a in range(0, len(index), step)]
-        return parts[0] if len(parts) == 1 else torch.cat(parts)
+        parts = [gather_rows(x, index[a:a + step]).flatten(1) @ weight for a in range(0, len(index), step)]
+        out = parts[0] if len(parts) == 1 else torch.cat(parts)
+        return out.to(self.weight.dtype) if reduced else out
+
+    def _weight_in(self, dtype: torch.dtype) -> Tensor:
+        """The weight in ``dtype``, converted once per change of the weight."""
+        key = (dtype, self.weight._version, self.weight.data_ptr())
+        cached = self.__dict__.get("_converted")
+        if cached is None or cached[0] != key:
+            cached = self.__dict__["_converted"] = (key, self.weight.detach().to(dtype))
+        return cached[1]
 
 
 class OctreeConv(_GatherMatmul):

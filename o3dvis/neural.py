@@ -22,6 +22,7 @@ from .models import available_models, load_model, torch_device
 from .nn.calibration import calibration_terms
 from .nn.network import VisibilityNetwork
 from .nn.octree import bounding_box, morton_order, normalize_points
+from .nn.conv import products_in
 from .nn.predictor import resolve_precision
 from .orientation import voted_normals
 from .threads import plan_threads, torch_threads
@@ -68,6 +69,22 @@ def _flat_hull(points: Tensor, diagonal: Tensor) -> tuple[Tensor, Tensor] | None
     _, _, vt = torch.linalg.svd(torch.linalg.qr(offsets, mode="r").R)
     spans = (offsets @ vt.T).abs().max(dim=0).values > bound
     return None if bool(spans.all()) else (centre, vt[spans])
+
+
+def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray:
+    """The normals ``normals="estimate"`` gives the normals model: a plane through each point's
+    nearest neighbours, oriented by a vote of what ``field`` (the first pass) sees from a few
+    cameras around the cloud (:func:`o3dvis.orientation.voted_normals`).
+
+    Args:
+        field: a points-only model's encoding of the cloud.
+        points: (N, 3) the cloud's points, in its order.
+
+    Returns:
+        (N, 3) unit normals.
+    """
+    cameras = viewpoints_around(points, _ORIENTING_VIEWS)
+    return voted_normals(points, cameras, field.query(cameras), _PLANE_NEIGHBOURS)
 
 
 def _normalize(points: Tensor, bounds: tuple[Tensor, Tensor] | None = None
@@ -118,12 +135,13 @@ class NeuralVisibility:
             first unturned: the pixels of the depth buffers fall differently in each
             frame, so the mean is more accurate, and as many times slower
             (docs/results.md); 1, the default, is the single pass.
-        precision: dtype of the per-view matrix products of queries without
-            gradients: ``"auto"`` (default) is ``"bfloat16"`` on CPUs with native
-            bfloat16 dot products (AVX512-BF16, AMX) and ``"float32"`` elsewhere,
-            where bfloat16 products are faster and change a few answers in a
-            hundred thousand (docs/results.md); probabilities differentiated
-            w.r.t. cameras always use float32.
+        precision: dtype of the matrix products of the encoding's convolutions
+            and of the per-view step of queries without gradients: ``"auto"``
+            (default) is ``"bfloat16"`` on CPUs with native bfloat16 dot products
+            (AVX512-BF16, AMX) and ``"float32"`` elsewhere, where bfloat16
+            products are faster and change about one answer in a thousand
+            (docs/results.md); probabilities differentiated w.r.t. cameras always
+            use float32 per-view products.
 
     Example:
         >>> vis = NeuralVisibility.pretrained()                     # doctest: +SKIP
@@ -318,8 +336,7 @@ class NeuralVisibility:
         # a flat cloud hides nothing from off its plane: one pass is exact there
         if (estimate and hull is None and len(normalized) >= _ESTIMATE_MIN_POINTS
                 and float(VisibilityNetwork.cloud_noise(normalized, ordered=True)[0, 0]) < _ESTIMATE_MAX_NOISE):
-            normals = self._oriented_normals(self._field(network, None, *frame),
-                                             points.detach().cpu().double().numpy())
+            normals = first_pass_normals(self._field(network, None, *frame), points.detach().cpu().double().numpy())
             unit = torch.from_numpy(normals).to(self.device).index_select(0, order).float()
             network = self.normals_network
         return self._field(network, unit, *frame, scene=scene)
@@ -329,21 +346,16 @@ class NeuralVisibility:
                scene: Callable[[], VisibilityField] | None = None) -> VisibilityField:
         """The field of ``network`` over the normalised, Morton-ordered points of :meth:`encode`."""
         calibrated = network.calibration is not None
-        with torch.no_grad():
+        precision = resolve_precision(self.precision, self.device)
+        with torch.no_grad(), products_in(precision):
             noise = network.cloud_noise(normalized, ordered=True) if network.config.noise_cues or calibrated else None
             features = network.encode(normalized, normals=unit, noise=noise)
             rotated = [self._rotated(network, normalized, unit, r) for r in self.rotations[1:]]
         calibration = (network.calibration.affine(calibration_terms(noise[0], len(normalized)))
                        if calibrated else None)
         return VisibilityField(network, features, normalized, unit, center, scale, bounds, self.chunk_size,
-                               hull, rank, rotated, calibration, resolve_precision(self.precision, self.device),
+                               hull, rank, rotated, calibration, precision,
                                scene)
-
-    @staticmethod
-    def _oriented_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray:
-        """(N, 3) unit normals of ``points`` (the cloud's order), oriented by what ``field`` sees."""
-        cameras = viewpoints_around(points, _ORIENTING_VIEWS)
-        return voted_normals(points, cameras, field.query(cameras), _PLANE_NEIGHBOURS)
 
     @staticmethod
     def _rotated(network: VisibilityNetwork, normalized: Tensor, normals: Tensor | None,

@@ -59,7 +59,8 @@ def _train(args) -> int:
         lr=args.lr, val_every=args.val_every, workers=args.workers, seed=args.seed, device=args.device,
         network=network, init=args.init,
         augmentation={"min_points": args.min_points, "max_points": args.max_points,
-                      "views": args.views, "noise": args.noise, "noise_prob": args.noise_prob})
+                      "views": args.views, "noise": args.noise, "noise_prob": args.noise_prob,
+                      "estimated_normals": args.estimated_normals})
     best = train(cfg)
     print(json.dumps({"checkpoint": str(best)}))
     return 0
@@ -74,7 +75,7 @@ def _calibrate(args) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     summary = calibrate(args.checkpoint, args.data, args.out, args.clouds, args.keep, args.seed,
-                        Augmentation(max_points=args.max_points))
+                        Augmentation(max_points=args.max_points, estimated_normals=args.estimated_normals))
     print(json.dumps({k: summary[k] for k in ("u", "w", "samples", "cross_entropy_before",
                                               "cross_entropy_after")}))
     return 0
@@ -144,6 +145,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--noise", type=float, default=0.02, help="largest noise level, share of the bbox diagonal")
     p.add_argument("--noise-prob", type=float, default=0.5, help="share of clouds that get noise (default 0.5)")
     p.add_argument("--normals", action="store_true", help="train a model that takes normals")
+    p.add_argument("--estimated-normals", type=float, default=0.0, metavar="SHARE",
+                   help="share of clouds given the normals normals='estimate' computes instead of exact ones")
     p.add_argument("--noise-cues", action="store_true",
                    help="the U-Net also reads two per-cloud noise statistics (o3dvis.nn.noise)")
     p.add_argument("--depth", type=int, help="octree depth (default: the network's)")
@@ -169,6 +172,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--keep", type=int, default=20000, help="(point, view) pairs kept per cloud (default 20000)")
     p.add_argument("--max-points", type=int, default=81920, help="largest cloud drawn (default 81920)")
     p.add_argument("--seed", type=int, default=1, help="seed of the draw (default 1)")
+    p.add_argument("--estimated-normals", type=float, default=0.0, metavar="SHARE",
+                   help="share of clouds given the normals normals='estimate' computes (as in train)")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
     p.set_defaults(func=_calibrate)
 

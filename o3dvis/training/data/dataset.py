@@ -11,7 +11,8 @@ from torch import Tensor
 
 from ...clouds import diagonal
 from ...nn.octree import normalize_points
-from ...neural import random_rotation
+from ...neural import first_pass_normals, random_rotation
+from ...pretrained import shared_pretrained
 from .perturb import add_noise
 from .prepare import Sample, load_sample
 
@@ -28,6 +29,11 @@ class Augmentation:
         noise: largest noise level, a fraction of the bounding-box diagonal (see ``add_noise``).
         noise_prob: share of clouds that get noise.
         rotate: apply a uniform random rotation.
+        estimated_normals: share of clouds whose normals are those that
+            ``normals="estimate"`` computes (the shipped default's first pass,
+            :func:`o3dvis.neural.first_pass_normals`), with their flips and angle
+            errors, instead of the exact ones: for a normals model that answers
+            on estimated normals.
     """
 
     min_points: int = 2048
@@ -36,6 +42,7 @@ class Augmentation:
     noise: float = 0.02
     noise_prob: float = 0.5
     rotate: bool = True
+    estimated_normals: float = 0.0
 
 
 @dataclass
@@ -110,6 +117,8 @@ class VisibilityDataset(torch.utils.data.Dataset):
             points, normals, cameras = points @ rot.T, normals @ rot.T, cameras @ rot.T
         if a.noise > 0 and rng.random() < a.noise_prob:
             points = add_noise(points, rng.uniform(0, a.noise), diagonal(points), rng)
+        if a.estimated_normals > 0 and rng.random() < a.estimated_normals:
+            normals = first_pass_normals(shared_pretrained().encode(points), points)
         pts, center, scale = normalize_points(torch.from_numpy(points))
         cams = (torch.from_numpy(cameras.astype(np.float64)) - center) / scale
         return (pts.float(), torch.from_numpy(np.ascontiguousarray(normals)).float(), cams.float(),

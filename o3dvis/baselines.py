@@ -28,7 +28,7 @@ import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
 from .cameras import real_array
-from .clouds import diagonal
+from .geometry import diagonal
 
 __all__ = ["hidden_point_removal_mask", "exponential_hpr_mask", "zbuffer_mask", "hpr_method",
            "exponential_method", "zbuffer_method", "SWEEPS", "sweep", "Method", "distinct_points"]

@@ -10,7 +10,7 @@ from torch import Tensor
 from .cameras import as_vectors
 
 __all__ = ["cloud_arrays", "cloud_points", "cloud_normals", "set_cloud_normals", "legacy_cloud",
-           "cloud_device", "unit_normals", "diagonal"]
+           "cloud_device", "unit_normals"]
 
 
 def cloud_arrays(pcd) -> tuple[Tensor, Tensor | None]:
@@ -116,8 +116,3 @@ def cloud_device(pcd) -> torch.device:
     if isinstance(tensor, o3d.core.Tensor) and tensor.device.get_type() == o3d.core.Device.DeviceType.CUDA:
         return torch.device("cuda", tensor.device.get_id())
     return torch.device("cpu")
-
-
-def diagonal(points: np.ndarray) -> float:
-    """Length of the diagonal of the axis-aligned bounding box."""
-    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))

@@ -17,6 +17,7 @@ from torch import Tensor
 
 from .cameras import viewpoints_around
 from .clouds import cloud_arrays, unit_normals
+from .geometry import fixed_rotations
 from .field import DEFAULT_CHUNK, RotatedEncoding, VisibilityField, inside_box
 from .models import available_models, load_model, torch_device
 from .nn.calibration import calibration_terms
@@ -94,25 +95,6 @@ def _normalize(points: Tensor, bounds: tuple[Tensor, Tensor] | None = None
     if (hi - lo).amax() > 0:
         return normalize_points(points, bounds=(lo, hi))
     return points - lo, lo, torch.ones((), dtype=points.dtype, device=points.device)
-
-
-def random_rotation(rng: np.random.Generator) -> np.ndarray:
-    """A uniformly distributed 3x3 rotation matrix."""
-    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
-    q *= np.sign(np.diag(r))
-    if np.linalg.det(q) < 0:
-        q[:, 0] *= -1
-    return q
-
-
-def fixed_rotations(count: int) -> Tensor:
-    """(count, 3, 3) float64 rotations: the identity, then uniformly random ones from fixed seeds.
-
-    The same on every machine and every call, so that an ensemble over them is
-    deterministic, and the first ``k`` of them are ``fixed_rotations(k)``.
-    """
-    turns = [np.eye(3)] + [random_rotation(np.random.default_rng([0, k])) for k in range(1, count)]
-    return torch.from_numpy(np.stack(turns))
 
 
 class NeuralVisibility:

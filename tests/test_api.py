@@ -16,7 +16,7 @@ from o3dvis.cameras import as_views, viewpoints_around
 from o3dvis.cli import build_parser
 from o3dvis.cli._common import split_vectors
 from o3dvis.models import file_sha256
-from o3dvis.neural import fixed_rotations
+from o3dvis.geometry import fixed_rotations
 from o3dvis.nn import NetworkConfig, VisibilityNetwork
 from o3dvis.orientation import voted_normals
 from o3dvis.pretrained import shared_pretrained

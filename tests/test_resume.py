@@ -171,3 +171,31 @@ def test_a_checkpoint_interrupted_while_written_does_not_stop_the_resume(prepare
     assert _steps(tmp_path / "run") == [2, 4, 6, 8]
     _assert_same_weights(_weights(tmp_path / "run" / "last.safetensors"),
                          _weights(reference_run / "last.safetensors"))
+
+
+_WITHOUT_OPEN3D = """
+import importlib.abc, runpy, sys
+class NoOpen3D(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path, target=None):
+        if name.split(".")[0] == "open3d":
+            raise ImportError("no Open3D here")
+sys.meta_path.insert(0, NoOpen3D())
+sys.argv = ["o3dvis"] + sys.argv[1:]
+runpy.run_module("o3dvis", run_name="__main__")
+"""
+
+
+def test_a_time_limited_run_without_open3d_stops_with_a_checkpoint_and_resumes(prepared, reference_run, tmp_path):
+    """What tools/device_train.sh relies on: training from prepared files imports no Open3D, and
+    --time-limit checkpoints and stops after the step it runs out in; run again, it goes on to
+    what a run never stopped computes."""
+    run = tmp_path / "run"
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    stopped = subprocess.run([sys.executable, "-c", _WITHOUT_OPEN3D, "train", str(prepared), "--out", str(run),
+                              *TRAIN, "--time-limit", "0"], cwd=REPO, env=env, capture_output=True, text=True,
+                             timeout=300)
+    assert stopped.returncode == 0, stopped.stdout[-2000:] + stopped.stderr[-2000:]
+    assert _steps(run) == [1] and (run / "last.safetensors").is_file()
+    _finish(_o3dvis("train", str(prepared), "--out", str(run), *TRAIN))
+    assert _steps(run) == [1, 2, 4, 6, 8]
+    _assert_same_weights(_weights(run / "last.safetensors"), _weights(reference_run / "last.safetensors"))

@@ -57,7 +57,7 @@ def _train(args) -> int:
     cfg = TrainConfig(
         data=args.data, out=args.out, val=args.val, steps=args.steps, batch_size=args.batch_size,
         lr=args.lr, val_every=args.val_every, workers=args.workers, seed=args.seed, device=args.device,
-        network=network, init=args.init,
+        network=network, init=args.init, time_limit=args.time_limit,
         augmentation={"min_points": args.min_points, "max_points": args.max_points,
                       "views": args.views, "noise": args.noise, "noise_prob": args.noise_prob,
                       "estimated_normals": args.estimated_normals})
@@ -157,6 +157,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default="cpu", help="torch device, e.g. cuda (default: cpu)")
     p.add_argument("--seed", type=int, default=0, help="seed of the network and the sampling (default 0)")
     p.add_argument("--init", help="start from this checkpoint (extra input channels start at zero)")
+    p.add_argument("--time-limit", type=float, metavar="SECONDS",
+                   help="checkpoint and stop after this many seconds of training (run again to resume)")
     p.set_defaults(func=_train)
 
     p = sub.add_parser("calibrate", help="fit a trained network's per-cloud calibration", formatter_class=fmt,

@@ -34,7 +34,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..baselines import Method
-from ..clouds import diagonal
+from ..geometry import diagonal
 from .data.perturb import add_noise
 from .data.prepare import Sample, load_sample
 

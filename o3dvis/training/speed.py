@@ -17,7 +17,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..baselines import Method
-from ..clouds import diagonal
+from ..geometry import diagonal
 from ..groundtruth import sample_viewpoints
 from .data.prepare import sample_surface
 from .data.shapes import random_shape

@@ -51,6 +51,7 @@ class TrainConfig:
     network: dict = field(default_factory=dict)
     augmentation: dict = field(default_factory=dict)
     init: str | None = None
+    time_limit: float | None = None  # seconds of this call, then a checkpoint and a stop (a resume goes on)
 
 
 def warm_start(net: VisibilityNetwork, state: dict[str, torch.Tensor]) -> None:
@@ -169,6 +170,18 @@ def _files(dirs: list[str]) -> list[Path]:
     return files
 
 
+def _out_of_time(limit: float | None, start: float, world: int, device: torch.device) -> bool:
+    """Whether ``limit`` seconds have passed since ``start`` (on any process, when there are several)."""
+    if limit is None:
+        return False
+    late = time.time() - start >= limit
+    if world > 1:
+        flag = torch.tensor([float(late)], device=device)
+        torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
+        late = bool(flag.item())
+    return late
+
+
 def train(cfg: TrainConfig, progress: bool = True) -> Path:
     """Runs (or resumes) a training run; returns the path of the best checkpoint."""
     from tqdm import tqdm
@@ -237,13 +250,16 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
         debias = 1 - 0.98 ** (step - start)  # running means start at zero
         bar.update(1)
         bar.set_postfix(loss=f"{run_loss / debias:.3f}", acc=f"{run_acc / debias:.3f}")
+        out_of_time = _out_of_time(cfg.time_limit, t0, world, device)
         if rank != 0:
+            if out_of_time:
+                break
             continue
         if step % cfg.log_every == 0:
             log.write(json.dumps({"step": step, "loss": loss.item(), "acc": acc,
                                   "lr": sched.get_last_lr()[0], "time": time.time() - t0}) + "\n")
             log.flush()
-        if step % cfg.val_every == 0 or step == cfg.steps:
+        if step % cfg.val_every == 0 or step == cfg.steps or out_of_time:
             record = {"step": step, "time": time.time() - t0}
             if val_files:
                 record["val_acc"] = validate(net, val_files, cfg.val_points, cfg.val_views)
@@ -257,6 +273,8 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
                 {"model": net.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
                  "step": step, "best": best}, tmp))
             bar.write(json.dumps(record))
+        if out_of_time:
+            break
     bar.close()
     if world > 1:
         torch.distributed.destroy_process_group()

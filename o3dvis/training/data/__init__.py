@@ -1,6 +1,17 @@
-"""Labelled data for training and evaluation: procedural shapes, prepared samples, datasets."""
+"""Labelled data for training and evaluation: procedural shapes, prepared samples, datasets.
+
+The shapes load on first use, so that training from prepared samples runs where Open3D (which
+making shapes and labelling meshes need) is not installed.
+"""
+
+from importlib import import_module
 
 from .prepare import Sample, label_mesh, load_sample, prepare
-from .shapes import random_shape, write_shapes
 
 __all__ = ["random_shape", "write_shapes", "label_mesh", "load_sample", "prepare", "Sample"]
+
+
+def __getattr__(name: str):
+    if name in ("random_shape", "write_shapes"):
+        return getattr(import_module(".shapes", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -9,10 +9,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ...clouds import diagonal
+from ...geometry import diagonal, random_rotation
 from ...nn.octree import normalize_points
-from ...neural import first_pass_normals, random_rotation
-from ...pretrained import shared_pretrained
 from .perturb import add_noise
 from .prepare import Sample, load_sample
 
@@ -118,6 +116,9 @@ class VisibilityDataset(torch.utils.data.Dataset):
         if a.noise > 0 and rng.random() < a.noise_prob:
             points = add_noise(points, rng.uniform(0, a.noise), diagonal(points), rng)
         if a.estimated_normals > 0 and rng.random() < a.estimated_normals:
+            from ...neural import first_pass_normals  # with the runtime, which needs Open3D
+            from ...pretrained import shared_pretrained
+
             normals = first_pass_normals(shared_pretrained().encode(points), points)
         pts, center, scale = normalize_points(torch.from_numpy(points))
         cams = (torch.from_numpy(cameras.astype(np.float64)) - center) / scale

@@ -1,0 +1,34 @@
+"""Small geometry helpers of numpy and torch alone (no Open3D): the bounding-box diagonal and
+rotations, shared by the runtime and by training where Open3D may be missing."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = ["diagonal", "random_rotation", "fixed_rotations"]
+
+
+def diagonal(points: np.ndarray) -> float:
+    """Length of the diagonal of the axis-aligned bounding box."""
+    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """A uniformly distributed 3x3 rotation matrix."""
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q *= np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] *= -1
+    return q
+
+
+def fixed_rotations(count: int) -> Tensor:
+    """(count, 3, 3) float64 rotations: the identity, then uniformly random ones from fixed seeds.
+
+    The same on every machine and every call, so that an ensemble over them is
+    deterministic, and the first ``k`` of them are ``fixed_rotations(k)``.
+    """
+    turns = [np.eye(3)] + [random_rotation(np.random.default_rng([0, k])) for k in range(1, count)]
+    return torch.from_numpy(np.stack(turns))

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import statistics
 import sys
 import time
@@ -26,6 +25,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from o3dvis.geometry import fibonacci_sphere  # noqa: E402
 from o3dvis.nn import VisibilityNetwork, morton_order, normalize_points  # noqa: E402
 from o3dvis.nn.conv import products_in  # noqa: E402
 
@@ -33,12 +33,8 @@ WEIGHTS = Path(__file__).resolve().parents[1] / "o3dvis" / "weights" / "default.
 
 
 def sphere(count: int, device: torch.device) -> torch.Tensor:
-    """``count`` points of a Fibonacci sphere of unit radius, normalised and Morton-ordered."""
-    i = torch.arange(count, dtype=torch.float64, device=device) + 0.5
-    z = 1 - 2 * i / count
-    r, phi = torch.sqrt(1 - z * z), math.pi * (3 - math.sqrt(5)) * i
-    points = torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=1)
-    normalised, _, _ = normalize_points(points)
+    """``count`` points of a Fibonacci sphere, normalised and Morton-ordered on ``device``."""
+    normalised, _, _ = normalize_points(torch.from_numpy(fibonacci_sphere(count)).to(device))
     normalised = normalised.float()
     return normalised[morton_order(normalised)]
 

@@ -25,6 +25,8 @@ import open3d as o3d
 import torch
 from torch import Tensor
 
+from .geometry import fibonacci_sphere
+
 __all__ = ["Frustum", "Views", "as_views", "as_vectors", "as_camera_location", "real_array", "frustum_from_pinhole", "intrinsic_matrix",
            "View", "make_view", "look_at", "fibonacci_sphere", "viewpoints_around", "camera_location_of"]
 
@@ -282,17 +284,6 @@ def as_views(cameras=None, direction=None, *, frustum: bool = True) -> Views:
     parsed = [frustum_from_pinhole(p) for p in pinholes]
     frustums = tuple(f if frustum else None for _, f in parsed)
     return Views(torch.stack([p for p, _ in parsed]), None, frustums)
-
-
-def fibonacci_sphere(count: int) -> np.ndarray:
-    """``count`` nearly evenly spread unit vectors (a Fibonacci lattice), (count, 3)."""
-    if count < 1:
-        raise ValueError(f"count must be at least 1, got {count}")
-    i = np.arange(count) + 0.5
-    z = 1 - 2 * i / count
-    phi = i * np.pi * (3 - np.sqrt(5))
-    r = np.sqrt(1 - z * z)
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
 def viewpoints_around(points: np.ndarray, count: int, distance: float | None = None) -> np.ndarray:

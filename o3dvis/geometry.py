@@ -1,5 +1,6 @@
-"""Small geometry helpers of numpy and torch alone (no Open3D): the bounding-box diagonal and
-rotations, shared by the runtime and by training where Open3D may be missing."""
+"""Small geometry helpers of numpy and torch alone (no Open3D): the bounding-box diagonal,
+rotations and the Fibonacci lattice, shared by the runtime and by what runs where Open3D may be
+missing (training, the GPU benchmark)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["diagonal", "random_rotation", "fixed_rotations"]
+__all__ = ["diagonal", "random_rotation", "fixed_rotations", "fibonacci_sphere"]
 
 
 def diagonal(points: np.ndarray) -> float:
@@ -32,3 +33,14 @@ def fixed_rotations(count: int) -> Tensor:
     """
     turns = [np.eye(3)] + [random_rotation(np.random.default_rng([0, k])) for k in range(1, count)]
     return torch.from_numpy(np.stack(turns))
+
+
+def fibonacci_sphere(count: int) -> np.ndarray:
+    """``count`` nearly evenly spread unit vectors (a Fibonacci lattice), (count, 3)."""
+    if count < 1:
+        raise ValueError(f"count must be at least 1, got {count}")
+    i = np.arange(count) + 0.5
+    z = 1 - 2 * i / count
+    phi = i * np.pi * (3 - np.sqrt(5))
+    r = np.sqrt(1 - z * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)

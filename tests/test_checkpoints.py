@@ -269,3 +269,17 @@ def test_non_finite_weights_are_refused(tmp_path, value):
     network.save(path)
     with pytest.raises(ValueError, match="non-finite.*predictor.mlp.0.weight"):
         load_model(path)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_load_builds_the_network_on_map_location(tmp_path):
+    from o3dvis.nn import morton_order, normalize_points
+
+    path = tmp_path / "net.safetensors"
+    _network(3).save(path)
+    gpu, cpu = VisibilityNetwork.load(path, "cuda").eval(), VisibilityNetwork.load(path).eval()
+    assert {t.device.type for t in gpu.state_dict().values()} == {"cuda"}
+    points = normalize_points(torch.rand(3000, 3, generator=torch.Generator().manual_seed(0)))[0].float()
+    points = points[morton_order(points)]
+    with torch.no_grad():
+        torch.testing.assert_close(gpu.encode(points.cuda()).cpu(), cpu.encode(points), atol=1e-4, rtol=1e-4)

@@ -252,7 +252,8 @@ class VisibilityNetwork(nn.Module):
 
     @classmethod
     def load(cls, path: str | Path, map_location: str | torch.device = "cpu") -> "VisibilityNetwork":
-        """Builds a network from a safetensors checkpoint written by :meth:`save`.
+        """Builds a network from a safetensors checkpoint written by :meth:`save`, on the device
+        ``map_location``.
 
         The config is checked against :meth:`NetworkConfig.check`'s bounds and
         every tensor's shape against the config before anything is allocated.
@@ -287,4 +288,4 @@ class VisibilityNetwork(nn.Module):
             raise ValueError(f"{path}: non-finite (NaN or Inf) weights in {', '.join(sorted(bad)[:3])}")
         net = cls(config)
         net.load_state_dict(state)
-        return net
+        return net.to(map_location)

@@ -57,6 +57,12 @@ def test_publish_writes_no_absolute_path(tmp_path):
     assert entry["training_commands"] == ["o3dvis train data/train data/proc --out runs/small"]
     assert entry["sha256"] == file_sha256(weights / "small.safetensors")
     load_model("small", weights_dir=weights)  # the card's digest matches the copied file
+    (root / "scenes.json").write_text(json.dumps({**report, "results": {"uniform": report["results"]}}))
+    other = run / "other.safetensors"
+    VisibilityNetwork(NetworkConfig(**SMALL)).save(other)
+    with pytest.raises(ValueError, match="--scenes"):  # before anything is copied
+        publish(other, "small", eval_json=root / "scenes.json", weights_dir=weights, root=root)
+    load_model("small", weights_dir=weights)
 
 
 def test_shipped_card_is_portable_and_complete():

@@ -77,7 +77,14 @@ def validation_table(report: dict, root: str | Path) -> dict:
 
     Returns:
         ``{"settings": ..., "results": [...]}`` without the per-file and per-category detail.
+
+    Raises:
+        ValueError: a report of ``o3dvis eval --scenes`` (results per sampling): the card's
+            table is the objects' one.
     """
+    if not isinstance(report.get("results"), list):
+        raise ValueError("the validation table is the objects' one (o3dvis eval without --scenes); this "
+                         "report holds no list of results (a --scenes report has them per sampling)")
     return {"settings": portable_paths(report["settings"], root),
             "results": [{k: row[k] for k in _VALIDATION_FIELDS} for row in report["results"]]}
 
@@ -115,6 +122,7 @@ def publish(checkpoint: str | Path, name: str, run: str | Path | None = None,
     """
     root = Path(os.getcwd() if root is None else root)
     net = load_model(Path(checkpoint))
+    validation = validation_table(json.loads(Path(eval_json).read_text()), root) if eval_json else None
     weights = Path(weights_dir or WEIGHTS_DIR)
     weights.mkdir(parents=True, exist_ok=True)
     target = weights / f"{name}.safetensors"
@@ -131,7 +139,7 @@ def publish(checkpoint: str | Path, name: str, run: str | Path | None = None,
     card_path = weights / CARD_NAME
     card = json.loads(card_path.read_text()) if card_path.exists() else {"models": {}}
     card["models"][name] = entry
-    if eval_json:
-        card["validation"] = validation_table(json.loads(Path(eval_json).read_text()), root)
+    if validation:
+        card["validation"] = validation
     card_path.write_text(json.dumps(card, indent=1) + "\n")
     return entry

@@ -139,6 +139,7 @@ class VisibilityField:
         self.matmul_dtype = matmul_dtype
         self._scene_factory, self._scene = scene, None
         self._scene_lock = threading.Lock()
+        self._surfels: dict[int, Tensor | None] = {}  # each frame's point surfels, by its points' storage
 
     @property
     def num_points(self) -> int:
@@ -280,14 +281,27 @@ class VisibilityField:
                              f"{int(rows.min())} .. {int(rows.max())}")
         return rows
 
+    def _surfels_of(self, points: Tensor) -> Tensor | None:
+        """The network's :meth:`~o3dvis.nn.network.VisibilityNetwork.surfels` of one frame's points,
+        computed on the first view and kept (None for a network that needs none)."""
+        if not self.network.config.footprints:
+            return None
+        key = points.data_ptr()
+        with self._scene_lock:
+            if key not in self._surfels:
+                self._surfels[key] = self.network.surfels(points)
+            return self._surfels[key]
+
     def _frame_probabilities(self, features: Tensor, points: Tensor, normals: Tensor | None,
                              cameras: Tensor | None, directions: Tensor, orthographic: list[bool],
                              batch: slice, rows: Tensor | None, n: int, workers: int = 1) -> Tensor:
         """(v, n) probabilities of the views ``batch`` in one frame (features, points and views
         of that frame, see :meth:`_normalised`), streaming the points ``rows`` (None: all n) in
         cache-sized chunks, on ``workers`` threads side by side."""
-        projections = [self.network.view(points, direction=directions[i]) if orthographic[i]
-                       else self.network.view(points, cameras[i]) for i in range(batch.start, batch.stop)]
+        surfels = self._surfels_of(points)
+        projections = [self.network.view(points, direction=directions[i], surfels=surfels) if orthographic[i]
+                       else self.network.view(points, cameras[i], surfels=surfels)
+                       for i in range(batch.start, batch.stop)]
         step = min(n, self.chunk_size)
 
         def chunk_margin(a: int) -> Tensor:

@@ -15,7 +15,7 @@ import torch
 import o3dvis
 from o3dvis import clib
 from o3dvis.nn import native
-from o3dvis.nn.cues import ViewProjection
+from o3dvis.nn.cues import ViewProjection, point_surfels
 
 _CAMERA = torch.tensor([2.0, 1.0, -0.5])
 _DIRECTION = torch.tensor([-0.3, 0.2, 1.0])
@@ -67,9 +67,15 @@ def test_every_variant_this_cpu_runs_is_built():
 
 @needs_kernels
 @pytest.mark.parametrize("view", [{"camera": _CAMERA}, {"direction": _DIRECTION}])
-def test_projection_equals_the_torch_one(view, variant):
+@pytest.mark.parametrize("footprints", [False, True])
+def test_projection_equals_the_torch_one(view, footprints, variant):
+    """The same buffers and cues (with ``footprints``, the splatted buffers too, which the torch
+    ops build after the kernel's projection, along the same pixel rays)."""
     points = _points()
+    if footprints:
+        view = {**view, "surfels": point_surfels(points)}
     fast, slow = _views(points, **view)
+    assert len(fast.sides) == (7 if footprints else 4)
     torch.testing.assert_close(fast.depth, slow.depth, atol=1e-6, rtol=1e-6)
     torch.testing.assert_close(fast.dirs, slow.dirs, atol=1e-6, rtol=0)
     assert fast.corners.dtype == torch.int32 and fast.inv_footprint is None  # the scales made on demand
@@ -80,9 +86,29 @@ def test_projection_equals_the_torch_one(view, variant):
     # direction is summed in double, atan2 is a polynomial): a few in ten thousand at most
     same = (pixels == slow.pixels).all(dim=1)
     assert same.float().mean() > 0.999
-    with torch.inference_mode():  # depths an ulp apart, times up to ~200 / pixel footprint
-        torch.testing.assert_close(fast.cues()[same], slow.cues()[same], atol=1e-4, rtol=0)
+    with torch.inference_mode():  # depths an ulp apart, times up to ~200 / pixel footprint (the splats'
+        # planes along rays of frames a float32 rounding apart: up to 1e-3)
+        torch.testing.assert_close(fast.cues()[same], slow.cues()[same], atol=1e-3 if footprints else 1e-4, rtol=0)
         assert (fast.cues() == -5.0).any()  # empty neighbours are marked
+
+
+@needs_kernels
+def test_surfels_equal_the_torch_ones():
+    """One pass of C for the points' spacings and planes: the same cells, spacings and normals (up
+    to their sign; sums in double where torch sums each cell's products about its first point)."""
+    from o3dvis.nn.cues import point_surfels
+
+    points = torch.cat([_points(), _points(3000) * 0.3 + 0.5])
+    with torch.inference_mode():
+        fast = point_surfels(points)
+    with torch.no_grad(), pytest.MonkeyPatch.context() as mp:
+        mp.setattr(native, "usable", lambda *tensors: False)
+        slow = point_surfels(points)
+    torch.testing.assert_close(fast[:, 0], slow[:, 0])
+    agree = (fast[:, 1:] * slow[:, 1:]).sum(dim=1).abs()
+    assert (agree > 0.999).float().mean() > 0.99  # cells of one or two points have no plane: any answer
+    with pytest.raises(ValueError, match="levels must lie"):
+        native.surfels(points, torch.zeros(len(points), dtype=torch.long), 7, 8, 8)
 
 
 @needs_kernels
@@ -116,7 +142,8 @@ def test_projection_rejects_what_the_kernel_cannot_take():
 
 @needs_kernels
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
-@pytest.mark.parametrize("config", [{}, {"use_normals": True}, {"num_frequencies": 2, "hidden": (24, 40, 17)}])
+@pytest.mark.parametrize("config", [{}, {"use_normals": True}, {"num_frequencies": 2, "hidden": (24, 40, 17)},
+                                    {"footprints": True}])
 @pytest.mark.parametrize("rows", [slice(None), slice(1000, 4321), "indices", "five"])
 def test_view_margin_equals_the_torch_one(config, rows, dtype, variant):
     """One pass of C for a view's margins against the torch reference on the same view: the
@@ -135,7 +162,8 @@ def test_view_margin_equals_the_torch_one(config, rows, dtype, variant):
         rows = torch.randperm(len(points), generator=torch.Generator().manual_seed(1))[:2500]
     elif rows == "five":  # less than a register of points, one of them twice
         rows = torch.tensor([3, 1, 4, 1, 5])
-    fast, _ = _views(points, camera=_CAMERA)
+    surfels = point_surfels(points) if config.get("footprints") else None
+    fast, _ = _views(points, camera=_CAMERA, surfels=surfels)
     predictor = network.predictor
     projected = torch.randn(predictor.embedding.dim, len(points)).T  # channels first, as encode() stores it
     n = len(points[rows])

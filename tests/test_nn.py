@@ -1,5 +1,7 @@
 """The torch core: octree tables, sparse convolutions, network invariances."""
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -8,7 +10,7 @@ import torch.nn.functional as F
 from o3dvis.nn import (NetworkConfig, Octree, OctreeConv, OctreeDownsample, OctreeUpsample,
                        VisibilityNetwork, ViewEmbedding, VisibilityPredictor, morton_decode, morton_encode,
                        morton_order, noise_cues, normalize_points, view_cues)
-from o3dvis.nn.cues import ViewProjection
+from o3dvis.nn.cues import ViewProjection, point_surfels
 from o3dvis.nn import octree as octree_module
 
 
@@ -242,6 +244,65 @@ def test_patch_table_rows_are_the_3x3_depth_neighbourhoods_of_the_pixels():
     for k in range(9):
         du, dv = divmod(k, 3)
         torch.testing.assert_close(view.patches[pixel, k], zbuf[iu + du, iv + dv], equal_nan=True)
+
+
+def _grid_plane(side: int, z: float, extent: float = 0.9) -> torch.Tensor:
+    """A side x side grid of points on the plane at ``z``, ``2 extent / (side - 1)`` apart."""
+    t = torch.linspace(-extent, extent, side)
+    u, v = torch.meshgrid(t, t, indexing="ij")
+    return torch.stack([u.flatten(), v.flatten(), torch.full((side * side,), z)], dim=1)
+
+
+@pytest.mark.parametrize("side", [40, 120])
+def test_point_surfels_of_a_grid(side):
+    """Cell counts give the distance between neighbours of a plane's grid within a factor of 1.5,
+    and a plane twice as dense gets half the spacing (one plane alone: the cube holds it); the
+    cells' planes give the plane's normal, up to its sign."""
+    points = _grid_plane(side, 0.1)
+    surfels = point_surfels(points)
+    spacing, normals = surfels[:, 0], surfels[:, 1:]
+    true = 1.8 / (side - 1)
+    assert surfels.shape == (side * side, 4)
+    assert true / 1.5 < spacing.median() < true * 1.5
+    assert point_surfels(_grid_plane(2 * side, 0.1))[:, 0].median() < 0.7 * spacing.median()
+    inner = points[:, :2].abs().amax(dim=1) < 0.75  # border cells may hold one row of points: no plane
+    torch.testing.assert_close(normals[inner, 2].abs(), torch.ones(int(inner.sum())), atol=1e-4, rtol=0)
+    order = torch.randperm(len(points), generator=torch.Generator().manual_seed(0))  # unsorted: sorted inside
+    shuffled = point_surfels(points[order])
+    torch.testing.assert_close(shuffled[:, 0], spacing[order])
+    torch.testing.assert_close((shuffled[:, 1:] * normals[order]).sum(dim=1).abs(), torch.ones(len(points)))
+
+
+def _slanted_plane(side: int, extent: float, slope: float) -> torch.Tensor:
+    """A side x side grid of points on the plane z = 0.5 + slope * x."""
+    points = _grid_plane(side, 0.5, extent)
+    points[:, 2] += slope * points[:, 0]
+    return points
+
+
+@pytest.mark.parametrize("slope", [0.0, 1.5])
+def test_footprints_close_the_holes_of_a_near_sparse_surface(slope, torch_ops):
+    """A sparse plane close to the camera in front of a dense far plane: in the finest buffer the
+    far plane shows through the gaps between the near points, so most far points see only their own
+    depth around them; in the splatted finest buffer the near plane covers them. The splat is the
+    near plane itself, so also when it is slanted its own points lie on it, not behind it. The
+    buffers of the other scales stay as they were."""
+    near, far = _slanted_plane(30, 0.3, slope), _grid_plane(150, -0.5, 0.3)
+    points = torch.cat([near, far])
+    camera = torch.tensor([0.0, 0.0, 0.9 + 0.3 * slope])
+    plain = ViewProjection(points, camera).cues()
+    view = ViewProjection(points, camera, surfels=point_surfels(points))
+    cues = view.cues()
+    assert plain.shape == (len(points), 36) and cues.shape == (len(points), 63)
+    torch.testing.assert_close(cues[:, :36], plain)
+    behind = far[:, 0].abs().lt(0.2) & far[:, 1].abs().lt(0.2)  # far points behind the near plane
+    centre = 4  # the point's own pixel in the 3x3 patch
+    own_plain, own_splat = plain[len(near):, centre][behind], cues[len(near):, 36 + centre][behind]
+    assert (own_plain.abs() < 0.1).float().mean() > 0.5  # the far point is the nearest in its pixel
+    assert (own_splat > 2.0).float().mean() > 0.95  # the near plane lies in front of it
+    # a near point's own pixel holds its own plane, within 1.5 pixel footprints (a splat at the
+    # point's own depth leaves 60 % of the slanted plane's points behind it by more)
+    assert cues[:len(near), 36 + centre].abs().max() < math.asinh(1.5)
 
 
 def test_view_cues_orthographic_direction():

@@ -47,7 +47,7 @@ def _train(args) -> int:
 
     if args.threads:
         torch.set_num_threads(args.threads)
-    network = {"use_normals": args.normals, "noise_cues": args.noise_cues}
+    network = {"use_normals": args.normals, "noise_cues": args.noise_cues, "footprints": args.footprints}
     if args.depth:
         network["depth"] = args.depth
     if args.channels:
@@ -149,6 +149,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="share of clouds given the normals normals='estimate' computes instead of exact ones")
     p.add_argument("--noise-cues", action="store_true",
                    help="the U-Net also reads two per-cloud noise statistics (o3dvis.nn.noise)")
+    p.add_argument("--footprints", action="store_true",
+                   help="also read depth buffers with each point splatted over its footprint as its plane "
+                        "(o3dvis.nn.cues)")
     p.add_argument("--depth", type=int, help="octree depth (default: the network's)")
     p.add_argument("--channels", type=positive_ints, help="comma-separated stage widths")
     p.add_argument("--frequencies", type=int, help="view-embedding frequencies (default: the network's)")

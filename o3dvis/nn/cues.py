@@ -13,15 +13,16 @@ points and has no parameter to tune.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from . import native
+from .octree import cell_keys
 
-__all__ = ["ViewProjection", "view_cues", "num_cues", "DEFAULT_SCALES"]
+__all__ = ["ViewProjection", "view_cues", "num_cues", "point_surfels", "DEFAULT_SCALES"]
 
 DEFAULT_SCALES = (1, 2, 4, 8)
 
@@ -47,15 +48,165 @@ def _asinh_(x: Tensor) -> Tensor:
     return torch.mul(a, a).add_(1).sqrt_().add_(a.sub_(1)).log1p_().copysign_(x)
 
 
-def num_cues(scales: Sequence[int] = DEFAULT_SCALES) -> int:
-    """The number of depth-buffer cues of a point: 3x3 residuals at each scale."""
-    return 9 * len(scales)
+def num_cues(scales: Sequence[int] = DEFAULT_SCALES, footprints: bool = False) -> int:
+    """The number of depth-buffer cues of a point: 3x3 residuals at each scale (and, with
+    ``footprints``, in the splatted buffer of each scale but the coarsest)."""
+    return 9 * (2 * len(scales) - 1 if footprints else len(scales))
 
 
 def _sides(num_points: int, scales: Sequence[int]) -> list[int]:
     """The depth buffers' resolutions: ``ceil(sqrt(N))`` pixels a side (at least 4) over each scale."""
     finest = max(4, math.ceil(math.sqrt(num_points)))
     return [max(2, math.ceil(finest / scale)) for scale in scales]
+
+
+def point_surfels(points: Tensor, levels: Sequence[int] = (4, 5, 6, 7), count: int = 8) -> Tensor:
+    """(N, 4) each point's spacing to its neighbours and the unit normal of the surface around it.
+
+    A surface that crosses a cell of side ``c`` holding ``n`` points has them about
+    ``c / sqrt(n)`` apart; each point takes the finest of the ``levels`` (cells of
+    ``2 / 2^level`` in the normalised cube) whose cell holds at least ``count``
+    points, else the coarsest, and the normal (unoriented) of the plane fitted
+    to the points of that same cell. The finest cells' Morton keys, sorted, give
+    every level's cells, and the finest cells' sums of the points' moments
+    theirs.
+
+    Args:
+        points: (N, 3) normalised points (in [-1, 1]^3).
+
+    Returns:
+        (N, 4): the spacing, then the normal.
+    """
+    finest = max(levels)
+    keys, order = cell_keys(points, finest), None
+    if not bool((keys[1:] >= keys[:-1]).all()):  # points stored along the Morton curve need no sort
+        keys, order = keys.sort()
+        points = points[order]
+    if native.usable(points):  # the same in one pass of C
+        surfels = native.surfels(points.contiguous(), keys, finest, min(levels), count)
+        return surfels if order is None else surfels.new_empty(surfels.shape).index_copy_(0, order, surfels)
+    keys, leaf, counts = torch.unique_consecutive(keys, return_inverse=True, return_counts=True)
+    # each finest cell's sums of its points and of their products (x, y, z, xx, yy, zz, xy, xz, yz),
+    # taken about the cell's first point in the points' precision (small local coordinates), then
+    # moved to the origin in double
+    first = points[torch.cumsum(counts, 0) - counts].double()
+    local = points - first.to(points.dtype)[leaf]
+    products = torch.empty(len(points), 9, dtype=points.dtype, device=points.device)
+    products[:, :3] = local
+    torch.mul(local, local, out=products[:, 3:6])
+    torch.mul(local[:, [0, 0, 1]], local[:, [1, 2, 2]], out=products[:, 6:])
+    sums = products.new_zeros(len(keys), 9).index_add_(0, leaf, products).double()
+    n = counts.double()[:, None]
+    shift = first[:, [0, 1, 2, 0, 1, 2, 0, 0, 1]] * sums[:, [0, 1, 2, 0, 1, 2, 1, 2, 2]] + \
+        first[:, [0, 1, 2, 0, 1, 2, 1, 2, 2]] * sums[:, [0, 1, 2, 0, 1, 2, 0, 0, 1]]
+    moments = sums + torch.cat([torch.zeros_like(first), shift[:, 3:]], dim=1)
+    moments[:, :3] += n * first
+    moments[:, 3:6] += n * first * first
+    moments[:, 6:] += n * first[:, [0, 0, 1]] * first[:, [1, 2, 2]]
+    chosen = None
+    for level in sorted(levels, reverse=True):  # fine to coarse: the finest cell with enough points
+        _, cell = torch.unique_consecutive(keys >> 3 * (finest - level), return_inverse=True)
+        total = torch.zeros(int(cell[-1]) + 1, dtype=counts.dtype, device=counts.device).index_add_(0, cell, counts)
+        mean = moments.new_zeros(len(total), 9).index_add_(0, cell, moments) / total[:, None]
+        here = torch.cat([((2.0 / (1 << level)) / total.double().sqrt())[:, None], mean], dim=1)[cell]
+        take = (total[cell] >= count) if level != min(levels) else torch.ones_like(cell, dtype=torch.bool)
+        chosen = here if chosen is None else torch.where((take & ~done)[:, None], here, chosen)
+        done = take if level == finest else done | take
+    mean, second = chosen[:, 1:4], chosen[:, 4:]
+    cross = second[:, 3:] - mean[:, [0, 0, 1]] * mean[:, [1, 2, 2]]
+    covariance = torch.diag_embed(second[:, :3] - mean * mean)
+    covariance[:, [0, 0, 1], [1, 2, 2]] = cross
+    covariance[:, [1, 2, 2], [0, 0, 1]] = cross
+    surfels = torch.cat([chosen[:, :1], _least_axis(covariance)], dim=1).to(points.dtype)[leaf]
+    return surfels if order is None else surfels.new_empty(surfels.shape).index_copy_(0, order, surfels)
+
+
+def _least_axis(a: Tensor) -> Tensor:
+    """(M, 3) unit eigenvectors of the smallest eigenvalues of symmetric (M, 3, 3) matrices, in
+    closed form (the trigonometric solution of the characteristic cubic, then the largest cross
+    product of two rows of ``a - lambda I``); any unit vector where that eigenvalue is not single."""
+    q = a.diagonal(dim1=1, dim2=2).sum(dim=1) / 3
+    off = a[:, 0, 1] ** 2 + a[:, 0, 2] ** 2 + a[:, 1, 2] ** 2
+    p = ((a.diagonal(dim1=1, dim2=2) - q[:, None]).pow(2).sum(dim=1) + 2 * off).div(6).sqrt()
+    eye = torch.eye(3, dtype=a.dtype, device=a.device)
+    b = (a - q[:, None, None] * eye) / p.clamp_min(1e-300)[:, None, None]
+    phi = torch.acos((torch.linalg.det(b) / 2).clamp(-1, 1)) / 3
+    smallest = q + 2 * p * torch.cos(phi + 2 * math.pi / 3)
+    rows = a - smallest[:, None, None] * eye
+    crosses = torch.stack([torch.linalg.cross(rows[:, 0], rows[:, 1]), torch.linalg.cross(rows[:, 0], rows[:, 2]),
+                           torch.linalg.cross(rows[:, 1], rows[:, 2])], dim=1)
+    norms = crosses.norm(dim=2)
+    best = norms.argmax(dim=1)
+    axis = crosses[torch.arange(len(a), device=a.device), best]
+    length = norms.gather(1, best[:, None])
+    return torch.where(length > 0, axis / length.clamp_min(1e-300), torch.tensor([0.0, 0.0, 1.0], dtype=a.dtype,
+                                                                                   device=a.device))
+
+
+_SPLAT = 1.5  # a point covers its pixel at the finest scale whose pixels are this many spacings wide
+_SLOPE = 3.0  # a splatted plane's depth differs from its point's by at most this times their lateral distance
+
+
+def _splat_footprints(grids: list[Tensor], indices: list[Tensor], pixel_sizes: list[Tensor], depth: Tensor,
+                      angular: Tensor, points: Tensor, normals: Tensor,
+                      rays: Callable[[int], tuple[Tensor, Tensor]]) -> list[Tensor]:
+    """The min-depth buffers of all scales but the coarsest with each point splatted over its footprint.
+
+    A point near the camera is farther from its neighbours in the image than a
+    pixel of the finest buffers, which then show holes through which hidden points
+    look visible. Each point is assigned the finest scale whose pixels are
+    ``_SPLAT`` times its image spacing ``angular``; the nearest point of each of
+    that scale's pixels then fills every pixel of the finer buffers that the
+    pixel covers with the depth of its plane along that pixel's centre ray, so
+    that a slanted surface does not hide its own points. That depth stays within
+    ``_SLOPE`` times the ray's lateral distance from the point (grazing planes).
+
+    Args:
+        grids: (R_s, R_s) min-depth buffer of each scale, empty pixels inf or NaN.
+        indices: (N,) each point's pixel (row * R_s + column) at each scale.
+        pixel_sizes: each scale's pixel size, in the units of ``angular``.
+        depth: (N,) the points' depths.
+        angular: (N,) each point's distance to its neighbours in the image.
+        points: (N, 3) the points.
+        normals: (N, 3) unit normals of their planes.
+        rays: ``rays(res)`` gives the origins ((3,) or (res * res, 3)) and unit
+            directions (res * res, 3) of the centre rays of a res-pixel image's
+            pixels (row * res + column).
+
+    Returns:
+        The splatted (R_s, R_s) buffers of all scales but the coarsest (empty: as in ``grids``).
+    """
+    level = sum((angular * _SPLAT > p).long() for p in pixel_sizes[:-1])
+    out = [g for g in grids[:-1]]
+    image_rays: dict[int, tuple[Tensor, Tensor]] = {}
+    for k in range(1, len(grids)):
+        mine = level == k
+        if not mine.any():
+            continue
+        res = grids[k].shape[0]
+        nearest = depth.new_full((res * res,), float("inf")).scatter_reduce(0, indices[k][mine], depth[mine], "amin")
+        nearest = mine & (depth == nearest[indices[k]])
+        owner = torch.full((res * res,), -1, dtype=torch.long, device=depth.device).scatter_reduce(
+            0, indices[k][nearest], torch.nonzero(nearest).flatten(), "amax").view(res, res)
+        for j in range(k):  # the scale-k pixel holding each scale-j pixel's centre (same image, res_j pixels)
+            fine = grids[j].shape[0]
+            coarse = (2 * torch.arange(fine, device=depth.device) + 1) * res // (2 * fine)
+            who = owner.index_select(0, coarse).index_select(1, coarse).flatten()
+            pixels = torch.nonzero(who >= 0).flatten()
+            if fine not in image_rays:
+                image_rays[fine] = rays(fine)
+            origins, directions = image_rays[fine]
+            who = who[pixels]
+            normal, near, ray = normals.index_select(0, who), depth.index_select(0, who), directions.index_select(0, pixels)
+            offset = points.index_select(0, who).sub_(origins.index_select(0, pixels) if origins.dim() == 2 else origins)
+            along = (offset * ray).sum(dim=1)
+            lateral = (offset - along[:, None] * ray).norm(dim=1).mul_(_SLOPE)
+            facing = (normal * ray).sum(dim=1)
+            facing = torch.where(facing.abs() < 1e-9, torch.full_like(facing, 1e-9), facing)
+            plane = torch.clamp((offset * normal).sum(dim=1) / facing, near - lateral, near + lateral)
+            splat = depth.new_full((fine * fine,), float("nan")).index_put_((pixels,), plane)
+            out[j] = torch.fmin(out[j], splat.view(fine, fine))
+    return out
 
 
 def _write_patches(padded: Tensor, rows: Tensor) -> None:
@@ -75,6 +226,25 @@ def _frame(forward: Tensor) -> tuple[Tensor, Tensor]:
     return right, torch.linalg.cross(forward, right)
 
 
+def _pixel_rays(forward: Tensor, right: Tensor, up: Tensor, half: Tensor, camera: Tensor | None,
+                dtype: torch.dtype) -> Callable[[int], tuple[Tensor, Tensor]]:
+    """The centre rays of the pixels of a view's images (see :func:`_splat_footprints`): from the
+    camera, or, for a viewing direction, from the pixel's place on the image plane through 0."""
+
+    forward, right, up, half = forward.to(dtype), right.to(dtype), up.to(dtype), half.to(dtype)
+
+    def rays(res: int) -> tuple[Tensor, Tensor]:
+        centre = ((torch.arange(res, dtype=dtype, device=forward.device) + 0.5) * (2 * half / res) - half)
+        u, v = centre[:, None, None], centre[None, :, None]  # rows along right, columns along up
+        if camera is None:
+            return (u * right + v * up).view(-1, 3), forward.expand(res * res, 3)
+        theta = (u * u + v * v).sqrt()
+        sinc = torch.where(theta > 1e-12, theta.sin() / theta.clamp_min(1e-12), torch.ones_like(theta))
+        return camera.to(dtype), (theta.cos() * forward + sinc * (u * right + v * up)).view(-1, 3)
+
+    return rays
+
+
 class ViewProjection:
     """One viewpoint's projection of a cloud: view directions and multi-scale depth buffers.
 
@@ -91,25 +261,31 @@ class ViewProjection:
         direction: (3,) viewing direction of an orthographic camera.
         scales: pixel sizes of the depth buffers, in multiples of the finest
             one, whose resolution is ``ceil(sqrt(N))`` pixels a side.
+        surfels: None, or the points' (N, 4) :func:`point_surfels`: the buffers
+            of all scales but the coarsest then follow, splatted over the points'
+            footprints (:func:`_splat_footprints`), as scales of their own.
 
     Attributes:
         dirs: (N, 3) unit vectors from the camera to the points.
     """
 
     def __init__(self, points: Tensor, camera: Tensor | None = None, direction: Tensor | None = None,
-                 scales: Sequence[int] = DEFAULT_SCALES):
+                 scales: Sequence[int] = DEFAULT_SCALES, surfels: Tensor | None = None):
         if (camera is None) == (direction is None):
             raise ValueError("give exactly one of camera and direction")
         sides = _sides(points.shape[0], scales)
-        self.native = 0 < points.shape[0] <= native.MAX_POINTS and native.usable(points, camera, direction)
+        self.native = (0 < points.shape[0] <= native.MAX_POINTS and native.usable(points, camera, direction)
+                       and (surfels is None or len(scales) <= 4))
         if self.native:  # the bordered buffers and each point's 3x3 corner in them; the tables on demand
             if direction is not None:
                 direction = direction / direction.norm()
-            dirs, self.depth, self.buffers, self.corners, self.rpix = native.project(
+            dirs, self.depth, self.buffers, self.corners, self.rpix, uv = native.project(
                 points.contiguous(), camera, direction, sides)
             self.dirs = dirs if direction is None else direction.expand_as(points)
             self.perspective = direction is None
             self.sides, self.patches, self.pixels, self.inv_footprint = sides, None, None, None
+            if surfels is not None:
+                self._splat_native(points, camera, surfels, uv)
             return
         if direction is None:
             offset = points - camera
@@ -123,28 +299,41 @@ class ViewProjection:
             k = torch.atan2(s, z) / s
             u, v = (a * k).detach(), (b * k).detach()
             footprint = depth
+            stretch = k.detach()
         else:
             forward = direction / direction.norm()
             right, up = _frame(forward)
             dirs = forward.expand_as(points)
             u, v, depth = (points @ right).detach(), (points @ up).detach(), points @ forward
             footprint = torch.ones_like(depth)
+            stretch = None
         half = torch.maximum(u.abs().amax(), v.abs().amax()) * (1 + 1e-6) + 1e-12
         self.dirs, self.depth = dirs, depth
-        # the 3x3 neighbourhoods of the pixels of all scales in one table, NaN where a pixel is
-        # empty or off the image; row pixels[i, s] of it is point i's at scale s. Each scale's
-        # patches are written into their rows in place (no concatenation of copies).
+        u, v = u + half, v + half  # image positions from the corner, computed once for all scales
+        pixel_sizes, indices, zbufs = [], [], []
+        for res in sides:
+            pixel = 2 * half / res
+            iu, iv = (u / pixel).long().clamp_(0, res - 1), (v / pixel).long().clamp_(0, res - 1)
+            index = iu.mul_(res).add_(iv)
+            pixel_sizes.append(pixel)
+            indices.append(index)
+            zbufs.append(depth.new_full((res * res,), float("inf")).scatter_reduce(0, index, depth, "amin"))
+        if surfels is not None:  # the splatted buffers of the finer scales follow as scales of their own
+            angular = surfels[:, 0] / footprint.detach()
+            if stretch is not None:
+                angular = angular * stretch
+            grids = [z.view(res, res) for z, res in zip(zbufs, sides)]
+            rays = _pixel_rays(forward.detach(), right.detach(), up.detach(), half.detach(),
+                               None if camera is None else camera.detach(), points.dtype)
+            zbufs += [z.flatten() for z in _splat_footprints(grids, indices, pixel_sizes, depth.detach(), angular,
+                                                             points.detach(), surfels[:, 1:], rays)]
+            sides, indices, pixel_sizes = sides + sides[:-1], indices + indices[:-1], pixel_sizes + pixel_sizes[:-1]
+        # the 3x3 neighbourhoods of the pixels of all buffers in one table, NaN where a pixel is
+        # empty or off the image; row pixels[i, s] of it is point i's in buffer s
         self.patches = depth.new_empty(sum(res * res for res in sides), 9)
         self.pixels = torch.empty(points.shape[0], len(sides), dtype=torch.long, device=points.device)
-        u, v = u + half, v + half  # image positions from the corner, computed once for all scales
-        pixel_sizes, start = [], 0
-        for s, res in enumerate(sides):
-            pixel = 2 * half / res
-            pixel_sizes.append(pixel)
-            fu, fv = u / pixel, v / pixel
-            iu, iv = fu.long().clamp_(0, res - 1), fv.long().clamp_(0, res - 1)
-            index = iu.mul_(res).add_(iv)
-            zbuf = depth.new_full((res * res,), float("inf")).scatter_reduce(0, index, depth, "amin")
+        start = 0
+        for s, (res, zbuf, index) in enumerate(zip(sides, zbufs, indices)):
             zbuf = torch.where(torch.isinf(zbuf), float("nan"), zbuf).view(res, res)
             _write_patches(F.pad(zbuf, (1, 1, 1, 1), value=float("nan")),
                            self.patches[start:start + res * res].view(res, res, 9))
@@ -152,6 +341,29 @@ class ViewProjection:
             start += res * res
         # -1 / (pixel size x footprint): the scale of a depth residual, (N, S, 1)
         self.inv_footprint = (-1 / (footprint[:, None] * torch.stack(pixel_sizes)))[:, :, None]
+
+    def _splat_native(self, points: Tensor, camera: Tensor | None, surfels: Tensor, uv: Tensor) -> None:
+        """Appends the splatted buffers (see :func:`_splat_footprints`; here the C kernel
+        :func:`o3dvis.nn.native.plane_splat`) to a native view's buffers as scales of their own, in
+        the kernels' bordered layout (its image axes are the torch path's: the frame of the mean
+        view direction, the image ``sides[0] / rpix[0]`` wide)."""
+        sides = self.sides
+        widths = [res + 2 for res in sides]
+        angular = surfels[:, 0] / self.depth if self.perspective else surfels[:, 0]
+        if self.perspective:  # the azimuthal-equidistant image stretches by theta / sin(theta) across the radius
+            theta = (uv - sides[0] / (2 * self.rpix[0])).norm(dim=1)
+            angular = angular * torch.where(theta > 1e-6, theta / theta.sin().clamp_min(1e-12), 1.0)
+        level = sum((angular * _SPLAT > 1 / rpix).to(torch.int8) for rpix in self.rpix[:-1])
+        forward = self.dirs[0].double() if not self.perspective else self.dirs.double().mean(dim=0)
+        forward = forward / forward.norm().clamp_min(1e-300)
+        frame = torch.stack([forward, *_frame(forward)]).float()
+        splatted = self.buffers[:sum(w * w for w in widths[:-1])].clone()
+        native.plane_splat(points, surfels.contiguous(), self.depth, level, sides, self.corners, frame,
+                           float(sides[0] / (2 * self.rpix[0].double())), camera, _SLOPE, splatted,
+                           [sum(w * w for w in widths[:s]) for s in range(len(sides) - 1)])
+        self.corners = torch.cat([self.corners, self.corners[:, :-1] + self.buffers.shape[0]], dim=1)
+        self.buffers = torch.cat([self.buffers, splatted])
+        self.sides, self.rpix = sides + sides[:-1], torch.cat([self.rpix, self.rpix[:-1]])
 
     def margin(self, rows: slice | Tensor, projected: Tensor, num_frequencies: int, normals: Tensor | None,
                mlp: native.PackedMLP, out: Tensor) -> None:

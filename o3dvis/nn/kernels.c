@@ -34,6 +34,7 @@
 
 #include <math.h>
 #include <stdint.h>
+#include <stdlib.h>
 #include <string.h>
 
 #define BLOCK 64          /* points per block: the block's buffers stay in L1 */
@@ -264,6 +265,166 @@ int o3dvis_project(int64_t n, const float *points, const float *camera, const fl
         }
         for (int64_t q = 0; q < w * w; q++) zbuf[q] = zbuf[q] == INFINITY ? NAN : zbuf[q];
         start += w * w;
+    }
+    return 0;
+}
+
+/* The unit eigenvector of the smallest eigenvalue of the symmetric 3x3 matrix a (row-major), as
+ * o3dvis/nn/cues.py's _least_axis finds it: the trigonometric solution of the characteristic
+ * cubic, then the longest cross product of two rows of a - lambda I; (0, 0, 1) where none. */
+static void least_axis(const double *a, double *axis) {
+    const double q = (a[0] + a[4] + a[8]) / 3.0;
+    const double off = a[1] * a[1] + a[2] * a[2] + a[5] * a[5];
+    const double p = sqrt(((a[0] - q) * (a[0] - q) + (a[4] - q) * (a[4] - q) + (a[8] - q) * (a[8] - q) + 2.0 * off) / 6.0);
+    const double pp = p > 1e-300 ? p : 1e-300;
+    double b[9];
+    for (int k = 0; k < 9; k++) b[k] = (a[k] - (k % 4 == 0 ? q : 0.0)) / pp;
+    double r = (b[0] * (b[4] * b[8] - b[5] * b[7]) - b[1] * (b[3] * b[8] - b[5] * b[6])
+                + b[2] * (b[3] * b[7] - b[4] * b[6])) / 2.0;
+    r = r < -1.0 ? -1.0 : (r > 1.0 ? 1.0 : r);
+    const double smallest = q + 2.0 * p * cos(acos(r) / 3.0 + 2.0943951023931954923);
+    double rows[9], best = 0.0;
+    for (int k = 0; k < 9; k++) rows[k] = a[k] - (k % 4 == 0 ? smallest : 0.0);
+    axis[0] = 0.0, axis[1] = 0.0, axis[2] = 1.0;
+    static const int pairs[3][2] = {{0, 1}, {0, 2}, {1, 2}};
+    for (int k = 0; k < 3; k++) {
+        double c[3];
+        cross(rows + 3 * pairs[k][0], rows + 3 * pairs[k][1], c);
+        const double len = sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2]);
+        if (len > best) best = len, axis[0] = c[0] / len, axis[1] = c[1] / len, axis[2] = c[2] / len;
+    }
+}
+
+/* Each point's spacing to its neighbours and the normal of the plane of its cell
+ * (o3dvis/nn/cues.py, point_surfels): points (n, 3) sorted by keys, their Morton keys at level
+ * finest; each point takes the finest cell of levels coarsest .. finest that holds at least count
+ * points, else its coarsest cell: spacing = cell side / sqrt(points in it), normal = the least
+ * axis of their covariance (sums in double). surfels: (n, 4). Returns -1 where its scratch
+ * memory could not be allocated, else 0. */
+int o3dvis_surfels(int64_t n, const float *points, const int64_t *keys, int32_t finest, int32_t coarsest,
+                   int64_t count, float *surfels) {
+    int64_t m = 0;
+    for (int64_t i = 0; i < n; i++) m += i == 0 || keys[i] != keys[i - 1];
+    int64_t *start = malloc((size_t)(m + 1) * sizeof(int64_t));
+    double *sums = malloc((size_t)m * 10 * sizeof(double)), *chosen = malloc((size_t)m * 11 * sizeof(double));
+    char *done = calloc((size_t)m, 1);
+    if (!start || !sums || !chosen || !done) { free(start); free(sums); free(chosen); free(done); return -1; }
+    for (int64_t i = 0, c = -1; i < n; i++) { /* per finest cell: count, x, y, z, xx, yy, zz, xy, xz, yz */
+        if (i == 0 || keys[i] != keys[i - 1]) start[++c] = i, memset(sums + 10 * c, 0, 10 * sizeof(double));
+        const double x = points[3 * i], y = points[3 * i + 1], z = points[3 * i + 2];
+        double *t = sums + 10 * c;
+        t[0] += 1.0, t[1] += x, t[2] += y, t[3] += z, t[4] += x * x, t[5] += y * y, t[6] += z * z;
+        t[7] += x * y, t[8] += x * z, t[9] += y * z;
+    }
+    start[m] = n;
+    for (int level = finest; level >= coarsest; level--) { /* fine to coarse: the finest that holds enough */
+        const int shift = 3 * (finest - level);
+        for (int64_t a = 0, b; a < m; a = b) {
+            double total[10] = {0};
+            for (b = a; b < m && (keys[start[b]] >> shift) == (keys[start[a]] >> shift); b++)
+                for (int k = 0; k < 10; k++) total[k] += sums[10 * b + k];
+            if (total[0] < (double)count && level != coarsest) continue;
+            for (int64_t c = a; c < b; c++) {
+                if (done[c]) continue;
+                done[c] = 1;
+                chosen[11 * c] = (2.0 / (double)(1 << level)) / sqrt(total[0]);
+                memcpy(chosen + 11 * c + 1, total, 10 * sizeof(double));
+            }
+        }
+    }
+    for (int64_t c = 0; c < m; c++) {
+        const double *t = chosen + 11 * c + 1, w = t[0];
+        const double mx = t[1] / w, my = t[2] / w, mz = t[3] / w;
+        const double xy = t[7] / w - mx * my, xz = t[8] / w - mx * mz, yz = t[9] / w - my * mz;
+        const double cov[9] = {t[4] / w - mx * mx, xy, xz, xy, t[5] / w - my * my, yz, xz, yz, t[6] / w - mz * mz};
+        double axis[3];
+        least_axis(cov, axis);
+        for (int64_t i = start[c]; i < start[c + 1]; i++) {
+            surfels[4 * i] = (float)chosen[11 * c];
+            for (int k = 0; k < 3; k++) surfels[4 * i + 1 + k] = (float)axis[k];
+        }
+    }
+    free(start), free(sums), free(chosen), free(done);
+    return 0;
+}
+
+/* Footprint splats of a view's points as their planes (o3dvis/nn/cues.py, _splat_footprints,
+ * whose torch ops this follows op for op): for each scale k >= 1, the nearest of the points
+ * assigned to it (level[i] == k; the last of equals) in each of its pixels; then every pixel of
+ * each finer scale j whose centre lies in such a pixel takes the smaller of its depth and the
+ * depth of that point's plane along the pixel's centre ray, kept within slope times the ray's
+ * distance from the point.
+ *
+ * points: (n, 3); surfels: (n, 4) the spacing (unused here) and unit normal of each point's
+ * plane; depth, corners (n, scales) and sides as o3dvis_project writes them, firsts: (scales,)
+ * each scale's first value in its buffers; level: (n,) each point's scale, 0 for none; out: the
+ * bordered buffers of scales 0 .. scales - 2 to splat into, scale s from out + out_firsts[s];
+ * frame: forward, right, up of the view's image; camera: (3,), or NULL for a viewing direction
+ * (rays from the image plane through the origin); half: half the image's width.
+ * Returns -1 where its scratch memory could not be allocated, else 0.
+ */
+int o3dvis_plane_splat(int64_t n, const float *points, const float *surfels, const float *depth,
+                       const int8_t *level, int32_t scales, const int64_t *sides, const int32_t *corners,
+                       const int64_t *firsts, const float *camera, const float *frame, float half, float slope,
+                       float *out, const int64_t *out_firsts) {
+    const float *f = frame, *rt = frame + 3, *up = frame + 6;
+    for (int k = 1; k < scales; k++) {
+        const int64_t res = sides[k], w = res + 2;
+        int64_t *owner = malloc((size_t)(res * res) * sizeof(int64_t));
+        float *nearest = malloc((size_t)(res * res) * sizeof(float));
+        if (!owner || !nearest) { free(owner); free(nearest); return -1; }
+        for (int64_t q = 0; q < res * res; q++) owner[q] = -1, nearest[q] = INFINITY;
+        for (int64_t i = 0; i < n; i++) {
+            if (level[i] != k) continue;
+            const int64_t rel = corners[i * scales + k] - firsts[k], pix = rel / w * res + rel % w;
+            if (depth[i] <= nearest[pix]) nearest[pix] = depth[i], owner[pix] = i;
+        }
+        for (int j = 0; j < k; j++) {
+            const int64_t fine = sides[j], fw = fine + 2;
+            const float size = 2.0f * half / (float)fine;
+            float *buf = out + out_firsts[j];
+            for (int64_t r = 0; r < fine; r++) {
+                const int64_t *row = owner + (2 * r + 1) * res / (2 * fine) * res;
+                const float u = ((float)r + 0.5f) * size - half;
+                for (int64_t c = 0; c < fine; c++) {
+                    const int64_t o = row[(2 * c + 1) * res / (2 * fine)];
+                    if (o < 0) continue;
+                    const float v = ((float)c + 0.5f) * size - half;
+                    float d[3], offset[3];
+                    if (camera) {
+                        const float theta = sqrtf(u * u + v * v);
+                        const float sinc = theta > 1e-12f ? sinf(theta) / theta : 1.0f, cs = cosf(theta);
+                        for (int a = 0; a < 3; a++) {
+                            d[a] = cs * f[a] + sinc * (u * rt[a] + v * up[a]);
+                            offset[a] = points[3 * o + a] - camera[a];
+                        }
+                    } else {
+                        for (int a = 0; a < 3; a++) {
+                            d[a] = f[a];
+                            offset[a] = points[3 * o + a] - (u * rt[a] + v * up[a]);
+                        }
+                    }
+                    const float *nrm = surfels + 4 * o + 1;
+                    const float along = offset[0] * d[0] + offset[1] * d[1] + offset[2] * d[2];
+                    float perp2 = 0.0f;
+                    for (int a = 0; a < 3; a++) {
+                        const float e = offset[a] - along * d[a];
+                        perp2 += e * e;
+                    }
+                    const float lateral = sqrtf(perp2) * slope;
+                    float facing = nrm[0] * d[0] + nrm[1] * d[1] + nrm[2] * d[2];
+                    facing = fabsf(facing) < 1e-9f ? 1e-9f : facing;
+                    float plane = (offset[0] * nrm[0] + offset[1] * nrm[1] + offset[2] * nrm[2]) / facing;
+                    const float lo = depth[o] - lateral, hi = depth[o] + lateral;
+                    plane = plane > lo ? plane : lo;
+                    plane = plane < hi ? plane : hi;
+                    float *z = buf + (r + 1) * fw + c + 1;
+                    *z = fminf(*z, plane);
+                }
+            }
+        }
+        free(owner);
+        free(nearest);
     }
     return 0;
 }

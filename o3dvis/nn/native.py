@@ -22,7 +22,7 @@ from torch import Tensor
 
 from .. import clib
 
-__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "project", "PackedMLP", "pack_mlp", "view_margin"]
+__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "project", "surfels", "plane_splat", "PackedMLP", "pack_mlp", "view_margin"]
 
 _I64, _I32, _PTR = ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
 
@@ -40,6 +40,9 @@ _VIEW = ctypes.POINTER(_View)
 _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_morton_keys": ([_I64, _PTR, _I32, _PTR], None),
     "o3dvis_project": ([_I64, _PTR, _PTR, _PTR, _I32, _PTR] + [_PTR] * 6, ctypes.c_int),
+    "o3dvis_plane_splat": ([_I64, _PTR, _PTR, _PTR, _PTR, _I32, _PTR, _PTR, _PTR, _PTR, _PTR, ctypes.c_float,
+                            ctypes.c_float, _PTR, _PTR], ctypes.c_int),
+    "o3dvis_surfels": ([_I64, _PTR, _PTR, _I32, _I32, _I64, _PTR], ctypes.c_int),
     "o3dvis_has_view_margin_bf16": ([], ctypes.c_int),
     "o3dvis_view_margin_bf16": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_view_margin_f32": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
@@ -82,7 +85,7 @@ def morton_keys(points: Tensor, depth: int) -> Tensor:
 
 
 def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,
-            sides: list[int]) -> tuple[Tensor | None, Tensor, Tensor, Tensor, Tensor]:
+            sides: list[int]) -> tuple[Tensor | None, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """One view's projection (see :class:`~o3dvis.nn.cues.ViewProjection`).
 
     Args:
@@ -97,7 +100,8 @@ def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,
         NaN where empty and on the border, ``corners`` (N, S) int32 the index in
         ``buffers`` of the top-left pixel of the 3x3 around each point's pixel,
         ``rpix`` (S,) 1 / pixel size (a residual's scale is -rpix / depth for a camera,
-        -rpix for a direction).
+        -rpix for a direction), ``uv`` (N, 2) each point's image position from the
+        image's corner (the image is ``sides[s] / rpix[s]`` wide).
     """
     n, scales = points.shape[0], len(sides)
     _check("points", points, (n, 3))
@@ -119,7 +123,67 @@ def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,
                                 dirs.data_ptr() if dirs is not None else None, depth.data_ptr(), uv.data_ptr(),
                                 buffers.data_ptr(), corners.data_ptr(), rpix.data_ptr()):
         raise ValueError(f"the C kernel takes at most 7 scales, got {scales}")
-    return dirs, depth, buffers, corners, rpix
+    return dirs, depth, buffers, corners, rpix, uv
+
+
+def surfels(points: Tensor, keys: Tensor, finest: int, coarsest: int, count: int) -> Tensor:
+    """(N, 4) :func:`o3dvis.nn.cues.point_surfels` of ``points`` (N, 3) float32 sorted by their
+    ``keys`` (N,) int64, the Morton keys of their cells at level ``finest``, in one pass.
+
+    Raises:
+        ValueError: tensors of the wrong shapes or types, or levels out of [1, 21].
+        MemoryError: no memory for the kernel's scratch buffers.
+    """
+    n = points.shape[0]
+    _check("points", points, (n, 3))
+    _check("keys", keys, (n,), torch.long)
+    if not 1 <= coarsest <= finest <= 21:
+        raise ValueError(f"levels must lie in [1, 21], coarsest first, got {coarsest}, {finest}")
+    out = points.new_empty(n, 4)
+    if n and _LIBRARY.o3dvis_surfels(n, points.data_ptr(), keys.data_ptr(), finest, coarsest, count, out.data_ptr()):
+        raise MemoryError("no memory for the surfels' scratch buffers")
+    return out
+
+
+def plane_splat(points: Tensor, surfels: Tensor, depth: Tensor, level: Tensor, sides: list[int], corners: Tensor,
+                frame: Tensor, half: float, camera: Tensor | None, slope: float, out: Tensor,
+                out_firsts: list[int]) -> None:
+    """Splats the points of a native view as their planes into the bordered buffers ``out``
+    (see :func:`o3dvis.nn.cues._splat_footprints`).
+
+    Args:
+        points: (N, 3) float32 points; surfels: (N, 4) their spacing and unit normal.
+        depth, corners: as :func:`project` gives them for the scales of ``sides``.
+        level: (N,) each point's splat scale, 0 for none.
+        frame: (3, 3) the image's forward, right and up vectors; half: half its width.
+        camera: (3,) the camera, or None for a viewing direction.
+        slope: the bound on a plane's depth, in lateral distances from its point.
+        out: the bordered buffers of all scales but the coarsest, scale s from ``out_firsts[s]``.
+
+    Raises:
+        ValueError: tensors of the wrong shapes or types.
+        MemoryError: no memory for the kernel's scratch buffers.
+    """
+    n, scales = corners.shape
+    _check("points", points, (n, 3))
+    _check("surfels", surfels, (n, 4))
+    _check("depth", depth, (n,))
+    _check("frame", frame, (3, 3))
+    if camera is not None:
+        _check("camera", camera, (3,))
+    if level.dtype != torch.int8 or level.shape != (n,) or corners.dtype != torch.int32 or len(sides) != scales:
+        raise ValueError("level must be (N,) int8, corners (N, scales) int32 and sides one per scale")
+    if out.dtype != torch.float32 or not out.is_contiguous() or len(out_firsts) != scales - 1:
+        raise ValueError("out must be contiguous float32 buffers, out_firsts one per scale but the coarsest")
+    widths = [res + 2 for res in sides]
+    firsts = torch.tensor([sum(w * w for w in widths[:s]) for s in range(scales)], dtype=torch.long)
+    sizes, starts = torch.tensor(sides, dtype=torch.long), torch.tensor(out_firsts, dtype=torch.long)
+    level, corners = level.contiguous(), corners.contiguous()
+    if _LIBRARY.o3dvis_plane_splat(n, points.data_ptr(), surfels.data_ptr(), depth.data_ptr(), level.data_ptr(),
+                                   scales, sizes.data_ptr(), corners.data_ptr(), firsts.data_ptr(),
+                                   camera.data_ptr() if camera is not None else None, frame.data_ptr(), half,
+                                   slope, out.data_ptr(), starts.data_ptr()):
+        raise MemoryError("no memory for the splat's scratch buffers")
 
 
 def has_view_margin(dtype: torch.dtype) -> bool:

@@ -12,7 +12,7 @@ from torch import Tensor, nn
 
 from .calibration import CloudCalibration
 from . import native
-from .cues import DEFAULT_SCALES, ViewProjection, num_cues
+from .cues import DEFAULT_SCALES, ViewProjection, num_cues, point_surfels
 from .noise import NUM_NOISE_CUES, noise_cues
 from .octree import Octree
 from .predictor import VisibilityPredictor
@@ -43,6 +43,7 @@ class NetworkConfig:
     cue_scales: tuple[int, ...] = DEFAULT_SCALES
     use_normals: bool = False
     noise_cues: bool = False
+    footprints: bool = False
     calibrated: bool = False
 
     def __post_init__(self):
@@ -76,7 +77,7 @@ class NetworkConfig:
         if not (self.full_depth < self.depth and len(self.channels) < self.depth):
             raise ValueError(f"network config: depth {self.depth} must exceed full_depth {self.full_depth} "
                              f"and the number of stages {len(self.channels)}")
-        for name in ("use_normals", "noise_cues", "calibrated"):
+        for name in ("use_normals", "noise_cues", "footprints", "calibrated"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"network config: {name} must be true or false, got {getattr(self, name)!r}")
 
@@ -121,7 +122,7 @@ class VisibilityNetwork(nn.Module):
         self.unet = OctreeUNet(in_channels, config.channels, config.blocks, config.feature_channels)
         self.predictor = VisibilityPredictor(
             config.feature_channels + 3, config.num_frequencies,
-            num_cues(config.cue_scales) + (1 if config.use_normals else 0), config.hidden)
+            num_cues(config.cue_scales, config.footprints) + (1 if config.use_normals else 0), config.hidden)
         # fitted after training (o3dvis calibrate); applied to the margins by o3dvis.VisibilityField
         self.calibration = CloudCalibration() if config.calibrated else None
 
@@ -180,10 +181,20 @@ class VisibilityNetwork(nn.Module):
 
         return self.predictor.project(leaf, points, carry)
 
-    def view(self, points: Tensor, camera: Tensor | None = None,
-             direction: Tensor | None = None) -> ViewProjection:
-        """The projection of one cloud for one camera position or viewing direction."""
-        return ViewProjection(points, camera, direction, self.config.cue_scales)
+    def view(self, points: Tensor, camera: Tensor | None = None, direction: Tensor | None = None,
+             surfels: Tensor | None = None) -> ViewProjection:
+        """The projection of one cloud for one camera position or viewing direction.
+
+        ``surfels``: the cloud's :meth:`surfels` when the caller keeps them for several views
+        (computed here when needed and not given)."""
+        if self.config.footprints and surfels is None:
+            surfels = self.surfels(points)
+        return ViewProjection(points, camera, direction, self.config.cue_scales, surfels)
+
+    def surfels(self, points: Tensor) -> Tensor | None:
+        """(N, 4) the points' :func:`~o3dvis.nn.cues.point_surfels` for a network whose depth
+        buffers splat each point over its footprint (``config.footprints``), else None."""
+        return point_surfels(points) if self.config.footprints else None
 
     def view_inputs(self, view: ViewProjection, rows: slice | Tensor = slice(None),
                     normals: Tensor | None = None) -> tuple[Tensor, Tensor]:

@@ -54,10 +54,11 @@ def _settings(examples: int):
 
 @lru_cache(maxsize=None)
 def tiny_model() -> o3dvis.NeuralVisibility:
-    """A randomly initialised small network (the properties hold for any weights)."""
+    """A randomly initialised small network (the properties hold for any weights), reading the
+    footprint-splatted buffers too, as the scene model does."""
     torch.manual_seed(0)
     network = VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 8, 8, 8), feature_channels=8,
-                                              num_frequencies=2, hidden=(16,)))
+                                              num_frequencies=2, hidden=(16,), footprints=True))
     return o3dvis.NeuralVisibility(network)
 
 

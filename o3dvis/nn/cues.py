@@ -354,7 +354,7 @@ class ViewProjection:
             theta = (uv - sides[0] / (2 * self.rpix[0])).norm(dim=1)
             angular = angular * torch.where(theta > 1e-6, theta / theta.sin().clamp_min(1e-12), 1.0)
         level = sum((angular * _SPLAT > 1 / rpix).to(torch.int8) for rpix in self.rpix[:-1])
-        forward = self.dirs[0].double() if not self.perspective else self.dirs.double().mean(dim=0)
+        forward = self.dirs[0].double() if not self.perspective else self.dirs.sum(dim=0, dtype=torch.float64)
         forward = forward / forward.norm().clamp_min(1e-300)
         frame = torch.stack([forward, *_frame(forward)]).float()
         splatted = self.buffers[:sum(w * w for w in widths[:-1])].clone()

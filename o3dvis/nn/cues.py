@@ -217,10 +217,11 @@ def _write_patches(padded: Tensor, rows: Tensor) -> None:
 
 
 def _frame(forward: Tensor) -> tuple[Tensor, Tensor]:
-    """Two unit vectors orthogonal to ``forward`` (differentiable)."""
-    helper = torch.tensor([0.0, 0.0, 1.0], dtype=forward.dtype, device=forward.device)
-    if forward.detach()[2].abs() > 0.9:
-        helper = torch.tensor([1.0, 0.0, 0.0], dtype=forward.dtype, device=forward.device)
+    """Two unit vectors orthogonal to ``forward`` (differentiable); with tensor ops only, so that
+    on a GPU nothing waits for the device."""
+    steep = (forward.detach()[2].abs() > 0.9).to(forward.dtype)
+    helper = torch.zeros_like(forward)
+    helper[0], helper[2] = steep, 1 - steep  # x for a forward near z, else z
     right = torch.linalg.cross(forward, helper)
     right = right / right.norm()
     return right, torch.linalg.cross(forward, right)

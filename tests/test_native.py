@@ -109,6 +109,17 @@ def test_surfels_equal_the_torch_ones():
     assert (agree > 0.999).float().mean() > 0.99  # cells of one or two points have no plane: any answer
     with pytest.raises(ValueError, match="levels must lie"):
         native.surfels(points, torch.zeros(len(points), dtype=torch.long), 7, 8, 8)
+    with torch.inference_mode():
+        view = ViewProjection(points, _CAMERA)
+        args = (points, fast, view.depth, torch.zeros(len(points), dtype=torch.int8), view.sides, view.corners,
+                torch.eye(3), 1.0, _CAMERA, 3.0, view.buffers.clone(),
+                [sum((res + 2) ** 2 for res in view.sides[:s]) for s in range(3)])
+        with pytest.raises(ValueError, match="level must be"):
+            native.plane_splat(*args[:3], args[3].long(), *args[4:])
+        with pytest.raises(ValueError, match="out_firsts one per scale"):
+            native.plane_splat(*args[:-1], [0])
+        native.plane_splat(*args)  # no point assigned a splat scale: the buffers stay as they were
+        torch.testing.assert_close(args[-2], view.buffers, equal_nan=True)
 
 
 @needs_kernels

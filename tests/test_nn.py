@@ -395,6 +395,30 @@ def test_training_smoke_loss_falls(tmp_path):
     assert len(losses) == 8 and np.mean(losses[-2:]) < 0.8 * np.mean(losses[:2])
 
 
+def test_training_with_footprints_finds_each_clouds_surfels_once(tmp_path, monkeypatch):
+    """Training and validation of a network with footprints run, and each cloud's surfels are
+    found once for all its views."""
+    from o3dvis.nn import network as network_module
+    from o3dvis.training.data.prepare import _save, label_mesh
+    from o3dvis.training.data.shapes import write_shapes
+    from o3dvis.training.train import TrainConfig, train
+
+    data = tmp_path / "data"
+    data.mkdir()
+    for m in write_shapes(str(tmp_path / "meshes"), 2, seed=3):
+        s = label_mesh(m, num_points=2000, num_views=4)
+        _save(s, data / f"{s.name}.npz")
+    found = []
+    monkeypatch.setattr(network_module, "point_surfels",
+                        lambda points, find=network_module.point_surfels: found.append(len(points)) or find(points))
+    cfg = TrainConfig(data=[str(data)], out=str(tmp_path / "run"), val=str(data), steps=2, batch_size=2,
+                      val_every=2, val_points=1000, val_views=3, network={"depth": 6, "footprints": True},
+                      augmentation={"min_points": 1000, "max_points": 2000, "views": 3, "noise": 0})
+    train(cfg, progress=False)
+    assert len(found) == 2 * 2 + 2  # two steps of two clouds, then two validation files
+    assert found[-2:] == [1000, 1000]
+
+
 @pytest.mark.parametrize("added", [{"use_normals": True}, {"noise_cues": True}])
 def test_warm_start_with_added_inputs_keeps_the_function(added, torch_ops):
     from o3dvis.training.train import warm_start

@@ -245,9 +245,12 @@ class VisibilityNetwork(nn.Module):
         return predictor.margin(projected[rows], dirs, cues, dtype)
 
     def predict(self, features: Tensor, points: Tensor, camera: Tensor | None = None,
-                direction: Tensor | None = None, normals: Tensor | None = None) -> Tensor:
-        """(N, 2) logits of one cloud for one camera position or viewing direction."""
-        return self.predictor(features, *self.view_inputs(self.view(points, camera, direction), normals=normals))
+                direction: Tensor | None = None, normals: Tensor | None = None,
+                surfels: Tensor | None = None) -> Tensor:
+        """(N, 2) logits of one cloud for one camera position or viewing direction (``surfels``:
+        as in :meth:`view`)."""
+        return self.predictor(features, *self.view_inputs(self.view(points, camera, direction, surfels),
+                                                          normals=normals))
 
     def num_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())

@@ -93,9 +93,10 @@ def batch_loss(net: torch.nn.Module, batch: Batch, use_normals: bool) -> tuple[t
     features = net(batch.points, batch.batch, normals, len(batch.sizes))
     losses, correct, total = [], 0, 0
     for i, sl in enumerate(batch.slices()):
+        surfels = module.surfels(batch.points[sl])  # once per cloud, for all its views
         for cam, label in zip(batch.cameras[i], batch.labels[i]):
             logits = module.predict(features[sl], batch.points[sl], cam,
-                                    normals=normals[sl] if use_normals else None)
+                                    normals=normals[sl] if use_normals else None, surfels=surfels)
             target = label.long()
             losses.append(F.cross_entropy(logits, target))
             correct += int((logits.argmax(dim=1) == target).sum())
@@ -118,10 +119,10 @@ def validate(net: VisibilityNetwork, files: list[Path], num_points: int = 8192, 
         pts, center, scale = normalize_points(torch.from_numpy(s.points[idx]).double())
         pts = pts.float().to(device)
         normals = torch.from_numpy(s.normals[idx]).to(device) if net.config.use_normals else None
-        features = net.encode(pts, normals=normals)
+        features, surfels = net.encode(pts, normals=normals), net.surfels(pts)
         for v in range(min(views, len(s.cameras))):
             cam = ((torch.from_numpy(s.cameras[v]).double() - center) / scale).float().to(device)
-            pred = net.predict(features, pts, cam, normals=normals).argmax(dim=1).cpu().numpy()
+            pred = net.predict(features, pts, cam, normals=normals, surfels=surfels).argmax(dim=1).cpu().numpy()
             correct += int((pred == s.visibility[v, idx]).sum())
             total += len(idx)
     net.train(was_training)
@@ -140,6 +141,9 @@ class _Encoder(torch.nn.Module):
 
     def predict(self, *args, **kwargs):
         return self.net.predict(*args, **kwargs)
+
+    def surfels(self, points):
+        return self.net.surfels(points)
 
 
 def _atomic(path: Path, write) -> None:

@@ -112,14 +112,13 @@ def test_surfels_equal_the_torch_ones():
     with torch.inference_mode():
         view = ViewProjection(points, _CAMERA)
         args = (points, fast, view.depth, torch.zeros(len(points), dtype=torch.int8), view.sides, view.corners,
-                torch.eye(3), 1.0, _CAMERA, 3.0, view.buffers.clone(),
-                [sum((res + 2) ** 2 for res in view.sides[:s]) for s in range(3)])
+                torch.eye(3), 1.0, _CAMERA, 3.0, view.buffers[:-(view.sides[-1] + 2) ** 2].clone())
         with pytest.raises(ValueError, match="level must be"):
             native.plane_splat(*args[:3], args[3].long(), *args[4:])
-        with pytest.raises(ValueError, match="out_firsts one per scale"):
-            native.plane_splat(*args[:-1], [0])
+        with pytest.raises(ValueError, match="out must be the contiguous float32 buffers"):
+            native.plane_splat(*args[:-1], view.buffers.clone())  # the coarsest scale too
         native.plane_splat(*args)  # no point assigned a splat scale: the buffers stay as they were
-        torch.testing.assert_close(args[-2], view.buffers, equal_nan=True)
+        torch.testing.assert_close(args[-1], view.buffers[:len(args[-1])], equal_nan=True)
 
 
 @needs_kernels

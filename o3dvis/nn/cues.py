@@ -69,7 +69,7 @@ def point_surfels(points: Tensor, levels: Sequence[int] = (4, 5, 6, 7), count: i
     points, else the coarsest, and the normal (unoriented) of the plane fitted
     to the points of that same cell. The finest cells' Morton keys, sorted, give
     every level's cells, and the finest cells' sums of the points' moments
-    theirs.
+    theirs (in double, as the C kernel sums them).
 
     Args:
         points: (N, 3) normalised points (in [-1, 1]^3).
@@ -86,23 +86,10 @@ def point_surfels(points: Tensor, levels: Sequence[int] = (4, 5, 6, 7), count: i
         surfels = native.surfels(points.contiguous(), keys, finest, min(levels), count)
         return surfels if order is None else surfels.new_empty(surfels.shape).index_copy_(0, order, surfels)
     keys, leaf, counts = torch.unique_consecutive(keys, return_inverse=True, return_counts=True)
-    # each finest cell's sums of its points and of their products (x, y, z, xx, yy, zz, xy, xz, yz),
-    # taken about the cell's first point in the points' precision (small local coordinates), then
-    # moved to the origin in double
-    first = points[torch.cumsum(counts, 0) - counts].double()
-    local = points - first.to(points.dtype)[leaf]
-    products = torch.empty(len(points), 9, dtype=points.dtype, device=points.device)
-    products[:, :3] = local
-    torch.mul(local, local, out=products[:, 3:6])
-    torch.mul(local[:, [0, 0, 1]], local[:, [1, 2, 2]], out=products[:, 6:])
-    sums = products.new_zeros(len(keys), 9).index_add_(0, leaf, products).double()
-    n = counts.double()[:, None]
-    shift = first[:, [0, 1, 2, 0, 1, 2, 0, 0, 1]] * sums[:, [0, 1, 2, 0, 1, 2, 1, 2, 2]] + \
-        first[:, [0, 1, 2, 0, 1, 2, 1, 2, 2]] * sums[:, [0, 1, 2, 0, 1, 2, 0, 0, 1]]
-    moments = sums + torch.cat([torch.zeros_like(first), shift[:, 3:]], dim=1)
-    moments[:, :3] += n * first
-    moments[:, 3:6] += n * first * first
-    moments[:, 6:] += n * first[:, [0, 0, 1]] * first[:, [1, 2, 2]]
+    # each finest cell's sums of its points and of their products (x, y, z, xx, yy, zz, xy, xz, yz), in double
+    x = points.double()
+    products = torch.cat([x, x * x, x[:, [0, 0, 1]] * x[:, [1, 2, 2]]], dim=1)
+    moments = products.new_zeros(len(keys), 9).index_add_(0, leaf, products)
     chosen = None
     for level in sorted(levels, reverse=True):  # fine to coarse: the finest cell with enough points
         _, cell = torch.unique_consecutive(keys >> 3 * (finest - level), return_inverse=True)
@@ -147,6 +134,12 @@ _SPLAT = 1.5  # a point covers its pixel at the finest scale whose pixels are th
 _SLOPE = 3.0  # a splatted plane's depth differs from its point's by at most this times their lateral distance
 
 
+def _splat_scales(angular: Tensor, pixel_sizes: Sequence[Tensor]) -> Tensor:
+    """(N,) int8 each point's splat scale: the number of scales but the coarsest whose pixels are
+    narrower than ``_SPLAT`` times its image spacing ``angular`` (0: no splat)."""
+    return sum((angular * _SPLAT > p).to(torch.int8) for p in pixel_sizes[:-1])
+
+
 def _splat_footprints(grids: list[Tensor], indices: list[Tensor], pixel_sizes: list[Tensor], depth: Tensor,
                       angular: Tensor, points: Tensor, normals: Tensor,
                       rays: Callable[[int], tuple[Tensor, Tensor]]) -> list[Tensor]:
@@ -176,7 +169,7 @@ def _splat_footprints(grids: list[Tensor], indices: list[Tensor], pixel_sizes: l
     Returns:
         The splatted (R_s, R_s) buffers of all scales but the coarsest (empty: as in ``grids``).
     """
-    level = sum((angular * _SPLAT > p).long() for p in pixel_sizes[:-1])
+    level = _splat_scales(angular, pixel_sizes)
     out = [g for g in grids[:-1]]
     image_rays: dict[int, tuple[Tensor, Tensor]] = {}
     for k in range(1, len(grids)):
@@ -349,19 +342,17 @@ class ViewProjection:
         the kernels' bordered layout (its image axes are the torch path's: the frame of the mean
         view direction, the image ``sides[0] / rpix[0]`` wide)."""
         sides = self.sides
-        widths = [res + 2 for res in sides]
         angular = surfels[:, 0] / self.depth if self.perspective else surfels[:, 0]
         if self.perspective:  # the azimuthal-equidistant image stretches by theta / sin(theta) across the radius
             theta = (uv - sides[0] / (2 * self.rpix[0])).norm(dim=1)
             angular = angular * torch.where(theta > 1e-6, theta / theta.sin().clamp_min(1e-12), 1.0)
-        level = sum((angular * _SPLAT > 1 / rpix).to(torch.int8) for rpix in self.rpix[:-1])
+        level = _splat_scales(angular, 1 / self.rpix)
         forward = self.dirs[0].double() if not self.perspective else self.dirs.sum(dim=0, dtype=torch.float64)
         forward = forward / forward.norm().clamp_min(1e-300)
         frame = torch.stack([forward, *_frame(forward)]).float()
-        splatted = self.buffers[:sum(w * w for w in widths[:-1])].clone()
+        splatted = self.buffers[:-(sides[-1] + 2) ** 2].clone()  # all scales but the coarsest
         native.plane_splat(points, surfels.contiguous(), self.depth, level, sides, self.corners, frame,
-                           float(sides[0] / (2 * self.rpix[0].double())), camera, _SLOPE, splatted,
-                           [sum(w * w for w in widths[:s]) for s in range(len(sides) - 1)])
+                           float(sides[0] / (2 * self.rpix[0].double())), camera, _SLOPE, splatted)
         self.corners = torch.cat([self.corners, self.corners[:, :-1] + self.buffers.shape[0]], dim=1)
         self.buffers = torch.cat([self.buffers, splatted])
         self.sides, self.rpix = sides + sides[:-1], torch.cat([self.rpix, self.rpix[:-1]])

@@ -358,7 +358,7 @@ int o3dvis_surfels(int64_t n, const float *points, const int64_t *keys, int32_t 
  * points: (n, 3); surfels: (n, 4) the spacing (unused here) and unit normal of each point's
  * plane; depth, corners (n, scales) and sides as o3dvis_project writes them, firsts: (scales,)
  * each scale's first value in its buffers; level: (n,) each point's scale, 0 for none; out: the
- * bordered buffers of scales 0 .. scales - 2 to splat into, scale s from out + out_firsts[s];
+ * bordered buffers of scales 0 .. scales - 2 to splat into, laid out as the plain ones (firsts);
  * frame: forward, right, up of the view's image; camera: (3,), or NULL for a viewing direction
  * (rays from the image plane through the origin); half: half the image's width.
  * Returns -1 where its scratch memory could not be allocated, else 0.
@@ -366,7 +366,7 @@ int o3dvis_surfels(int64_t n, const float *points, const int64_t *keys, int32_t 
 int o3dvis_plane_splat(int64_t n, const float *points, const float *surfels, const float *depth,
                        const int8_t *level, int32_t scales, const int64_t *sides, const int32_t *corners,
                        const int64_t *firsts, const float *camera, const float *frame, float half, float slope,
-                       float *out, const int64_t *out_firsts) {
+                       float *out) {
     const float *f = frame, *rt = frame + 3, *up = frame + 6;
     for (int k = 1; k < scales; k++) {
         const int64_t res = sides[k], w = res + 2;
@@ -382,7 +382,7 @@ int o3dvis_plane_splat(int64_t n, const float *points, const float *surfels, con
         for (int j = 0; j < k; j++) {
             const int64_t fine = sides[j], fw = fine + 2;
             const float size = 2.0f * half / (float)fine;
-            float *buf = out + out_firsts[j];
+            float *buf = out + firsts[j];
             for (int64_t r = 0; r < fine; r++) {
                 const int64_t *row = owner + (2 * r + 1) * res / (2 * fine) * res;
                 const float u = ((float)r + 0.5f) * size - half;

@@ -41,7 +41,7 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_morton_keys": ([_I64, _PTR, _I32, _PTR], None),
     "o3dvis_project": ([_I64, _PTR, _PTR, _PTR, _I32, _PTR] + [_PTR] * 6, ctypes.c_int),
     "o3dvis_plane_splat": ([_I64, _PTR, _PTR, _PTR, _PTR, _I32, _PTR, _PTR, _PTR, _PTR, _PTR, ctypes.c_float,
-                            ctypes.c_float, _PTR, _PTR], ctypes.c_int),
+                            ctypes.c_float, _PTR], ctypes.c_int),
     "o3dvis_surfels": ([_I64, _PTR, _PTR, _I32, _I32, _I64, _PTR], ctypes.c_int),
     "o3dvis_has_view_margin_bf16": ([], ctypes.c_int),
     "o3dvis_view_margin_bf16": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
@@ -146,8 +146,7 @@ def surfels(points: Tensor, keys: Tensor, finest: int, coarsest: int, count: int
 
 
 def plane_splat(points: Tensor, surfels: Tensor, depth: Tensor, level: Tensor, sides: list[int], corners: Tensor,
-                frame: Tensor, half: float, camera: Tensor | None, slope: float, out: Tensor,
-                out_firsts: list[int]) -> None:
+                frame: Tensor, half: float, camera: Tensor | None, slope: float, out: Tensor) -> None:
     """Splats the points of a native view as their planes into the bordered buffers ``out``
     (see :func:`o3dvis.nn.cues._splat_footprints`).
 
@@ -158,10 +157,11 @@ def plane_splat(points: Tensor, surfels: Tensor, depth: Tensor, level: Tensor, s
         frame: (3, 3) the image's forward, right and up vectors; half: half its width.
         camera: (3,) the camera, or None for a viewing direction.
         slope: the bound on a plane's depth, in lateral distances from its point.
-        out: the bordered buffers of all scales but the coarsest, scale s from ``out_firsts[s]``.
+        out: the bordered buffers of all scales but the coarsest, laid out as :func:`project`
+            lays out those scales (a copy of the start of its buffers).
 
     Raises:
-        ValueError: tensors of the wrong shapes or types.
+        ValueError: tensors of the wrong shapes, sizes or types.
         MemoryError: no memory for the kernel's scratch buffers.
     """
     n, scales = corners.shape
@@ -173,16 +173,16 @@ def plane_splat(points: Tensor, surfels: Tensor, depth: Tensor, level: Tensor, s
         _check("camera", camera, (3,))
     if level.dtype != torch.int8 or level.shape != (n,) or corners.dtype != torch.int32 or len(sides) != scales:
         raise ValueError("level must be (N,) int8, corners (N, scales) int32 and sides one per scale")
-    if out.dtype != torch.float32 or not out.is_contiguous() or len(out_firsts) != scales - 1:
-        raise ValueError("out must be contiguous float32 buffers, out_firsts one per scale but the coarsest")
-    widths = [res + 2 for res in sides]
-    firsts = torch.tensor([sum(w * w for w in widths[:s]) for s in range(scales)], dtype=torch.long)
-    sizes, starts = torch.tensor(sides, dtype=torch.long), torch.tensor(out_firsts, dtype=torch.long)
+    firsts = [sum((res + 2) ** 2 for res in sides[:s]) for s in range(scales)]
+    if out.dtype != torch.float32 or not out.is_contiguous() or out.shape != (firsts[-1],):
+        raise ValueError(f"out must be the contiguous float32 buffers of all scales but the coarsest, "
+                         f"({firsts[-1]},), got {tuple(out.shape)} {out.dtype}")
+    firsts, sizes = torch.tensor(firsts, dtype=torch.long), torch.tensor(sides, dtype=torch.long)
     level, corners = level.contiguous(), corners.contiguous()
     if _LIBRARY.o3dvis_plane_splat(n, points.data_ptr(), surfels.data_ptr(), depth.data_ptr(), level.data_ptr(),
                                    scales, sizes.data_ptr(), corners.data_ptr(), firsts.data_ptr(),
                                    camera.data_ptr() if camera is not None else None, frame.data_ptr(), half,
-                                   slope, out.data_ptr(), starts.data_ptr()):
+                                   slope, out.data_ptr()):
         raise MemoryError("no memory for the splat's scratch buffers")
 
 

@@ -4,11 +4,14 @@
         --out benchmarks/results/scaling.md
     python3 benchmarks/bench_scaling.py --scene rooms --points 200000,1000000,10000000 \\
         --out benchmarks/results/scaling_inside.md
+    python3 benchmarks/bench_scaling.py --scene rooms --points 200000,1000000 --rotations 4 \\
+        --out benchmarks/results/scaling_inside_x4.md
 
 For each size, one procedural cloud and one camera (as ``o3dvis bench``), or with ``--scene``
 a procedural scene (furnished rooms or a street, sampled uniformly, fixed seed) and a camera
 inside it, whose drop-in answers with the ``scene`` model (and ``encode``/``query`` are that
-model's); and
+model's); with ``--rotations K``, the model answers with the mean over K rotations of the
+cloud (``NeuralVisibility.pretrained(num_rotations=K)``, passed as ``model=``); and
 interleaved rounds of ``o3dvis.hidden_point_removal_neural`` (its kept encoding
 cleared first, so that it encodes), its two stages alone (``encode`` and one
 ``query``) and Open3D's ``hidden_point_removal``. The peak memory is what one call
@@ -32,6 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import o3dvis  # noqa: E402
 from o3dvis import encodings  # noqa: E402
+from o3dvis.neural import NeuralVisibility  # noqa: E402
 from o3dvis.pretrained import shared_pretrained  # noqa: E402
 from o3dvis.threads import cpu_pressure, plan_threads  # noqa: E402
 from o3dvis.training.speed import bench_cloud  # noqa: E402
@@ -67,26 +71,33 @@ def _status_kib(field: str) -> int:
         return next(int(line.split()[1]) for line in f if line.startswith(field + ":"))
 
 
-def child_peak_mib(way: str, points: int, kind: str | None) -> None:
+def _dropin_model(rotations: int) -> NeuralVisibility | None:
+    """What the drop-in is given as ``model=``: None (its default) or the shipped models with
+    ``num_rotations`` (the scene model answers a camera inside)."""
+    return None if rotations == 1 else NeuralVisibility.pretrained(num_rotations=rotations)
+
+
+def child_peak_mib(way: str, points: int, kind: str | None, rotations: int) -> None:
     """Prints the peak resident memory (MiB) one call of ``way`` adds to this fresh process, above its
     level with the cloud built and the model loaded and run once on a small cloud (Linux)."""
     pcd, camera, radius = _scene(points, kind)
     small, small_camera, _ = _scene(2048, kind)
-    o3dvis.hidden_point_removal_neural(small, small_camera)
+    model = _dropin_model(rotations)
+    o3dvis.hidden_point_removal_neural(small, small_camera, model=model)
     encodings.clear()
     with open("/proc/self/clear_refs", "w") as f:  # resets the peak (VmHWM) to the current level
         f.write("5")
     before = _status_kib("VmRSS")
     if way == "drop-in":
-        o3dvis.hidden_point_removal_neural(pcd, camera)
+        o3dvis.hidden_point_removal_neural(pcd, camera, model=model)
     else:
         pcd.hidden_point_removal(camera, radius)
     print((_status_kib("VmHWM") - before) / 1024)
 
 
-def _peak_mib(way: str, points: int, kind: str | None) -> float | None:
+def _peak_mib(way: str, points: int, kind: str | None, rotations: int) -> float | None:
     """:func:`child_peak_mib` in a fresh process; None where it cannot tell."""
-    run = subprocess.run([sys.executable, __file__, "--child", way, str(points)]
+    run = subprocess.run([sys.executable, __file__, "--child", way, str(points), "--rotations", str(rotations)]
                          + (["--scene", kind] if kind else []), capture_output=True, text=True)
     try:
         return float(run.stdout.strip().splitlines()[-1])
@@ -94,13 +105,15 @@ def _peak_mib(way: str, points: int, kind: str | None) -> float | None:
         return None
 
 
-def measure(points: int, rounds: int, kind: str | None = None) -> dict:
+def measure(points: int, rounds: int, kind: str | None = None, rotations: int = 1) -> dict:
     pcd, camera, radius = _scene(points, kind)
-    vis = shared_pretrained("scene" if kind else "default")
+    name = "scene" if kind else "default"
+    vis = shared_pretrained(name) if rotations == 1 else NeuralVisibility.pretrained(name, num_rotations=rotations)
+    model = _dropin_model(rotations)
 
     def dropin():
         encodings.clear()
-        o3dvis.hidden_point_removal_neural(pcd, camera)
+        o3dvis.hidden_point_removal_neural(pcd, camera, model=model)
 
     field = vis.encode(pcd)
     ways = {"drop-in": dropin, "encode": lambda: vis.encode(pcd), "query": lambda: field.query(camera),
@@ -114,7 +127,8 @@ def measure(points: int, rounds: int, kind: str | None = None) -> dict:
     encodings.clear()
     medians = {name: statistics.median(t) for name, t in times.items()}
     return {"points": points, "rounds": rounds, "median_s": medians,
-            "peak_mib": {way: _peak_mib(way, points, kind) for way in ("drop-in", "Open3D HPR")},
+            "rotations": rotations,
+            "peak_mib": {way: _peak_mib(way, points, kind, rotations) for way in ("drop-in", "Open3D HPR")},
             "speedup_vs_hpr": medians["Open3D HPR"] / medians["drop-in"],
             "threads_planned": plan_threads(points, 1), "cpu_pressure": cpu_pressure()}
 
@@ -125,15 +139,16 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--few-above", type=int, default=1_000_000)
     parser.add_argument("--scene", choices=("rooms", "street"), help="a procedural scene, the camera inside")
+    parser.add_argument("--rotations", type=int, default=1, help="the model's num_rotations (default 1)")
     parser.add_argument("--out", type=Path)
     parser.add_argument("--child", nargs=2, metavar=("WAY", "POINTS"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        child_peak_mib(args.child[0], int(args.child[1]), args.scene)
+        child_peak_mib(args.child[0], int(args.child[1]), args.scene, args.rotations)
         return 0
     rows = []
     for n in (int(p) for p in args.points.split(",")):
-        rows.append(measure(n, args.rounds if n <= args.few_above else 1, args.scene))
+        rows.append(measure(n, args.rounds if n <= args.few_above else 1, args.scene, args.rotations))
         print(json.dumps(rows[-1]), flush=True)
     lines = ["| points | drop-in (ms) | encode (ms) | query, one view (ms) | drop-in peak memory (MiB) | "
              "Open3D HPR (ms) | HPR peak memory (MiB) | speed-up vs HPR |", "|---|---|---|---|---|---|---|---|"]
@@ -147,7 +162,8 @@ def main() -> int:
     crossover = ("never faster than HPR here" if not faster else f"faster than HPR from {min(faster):,} points"
                  + (f" (slower at {max(slower):,})" if slower else ""))
     pressure = [r["cpu_pressure"] for r in rows if r["cpu_pressure"] is not None]
-    scene = f" --scene {args.scene}" if args.scene else ""
+    scene = (f" --scene {args.scene}" if args.scene else "") + (f" --rotations {args.rotations}"
+                                                                 if args.rotations != 1 else "")
     lines = [f"`python3 benchmarks/bench_scaling.py{scene} --points {args.points}`: medians of {args.rounds} interleaved "
              f"rounds (one above {args.few_above:,} points), o3dvis's automatic threads "
              f"(planned: {sorted({r['threads_planned'] for r in rows})}"

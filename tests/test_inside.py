@@ -162,3 +162,22 @@ def test_scene_model_answers_the_cameras_inside(room):
     np.testing.assert_array_equal(pt_map, np.flatnonzero(probs[0] > 0.5))
     with pytest.raises(ValueError, match="takes no normals"):
         o3dvis.NeuralVisibility(default, scene_network=VisibilityNetwork(NetworkConfig(use_normals=True)))
+
+
+def test_rotations_average_the_scene_model_too(room):
+    """num_rotations turns the cloud for the scene model as for the default: the cameras inside
+    get the scene model's mean over the rotations, from a field and from the drop-in alike."""
+    points, _ = room
+    torch.manual_seed(0)
+    scene = VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 8, 8, 8), feature_channels=8,
+                                            num_frequencies=2, hidden=(16,)))
+    default = shared_pretrained().network
+    model = o3dvis.NeuralVisibility(default, scene_network=scene, num_rotations=3, precision="float32")
+    got = model.encode(points).probabilities(CAMERAS[:2]).numpy()
+    turned = o3dvis.NeuralVisibility(scene, num_rotations=3, precision="float32")
+    np.testing.assert_array_equal(got, turned.encode(points).probabilities(CAMERAS[:2]).numpy())
+    once = o3dvis.NeuralVisibility(scene, precision="float32").encode(points).probabilities(CAMERAS[:2]).numpy()
+    assert np.abs(got - once).max() > 1e-3
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    _, pt_map = o3dvis.hidden_point_removal_neural(pcd, CAMERAS[0], model=model)
+    np.testing.assert_array_equal(pt_map, np.flatnonzero(got[0] > 0.5))

@@ -9,8 +9,9 @@ and its points (and normals) still equal, value for value, to those encoded: a
 cloud changed in place, or a new cloud at the address of a freed one, is encoded
 anew. With a scene network, a camera inside the cloud's bounding box and one
 outside it are answered by different networks: which side the camera is on is
-part of what is kept. A crop (``max_range``) is encoded on every call. One encoding is kept (of at most :data:`MAX_POINTS` points), with a copy of
-its points; :func:`clear` frees it.
+part of what is kept. A crop (``max_range``) is encoded on every call. One
+encoding is kept (of at most :data:`MAX_POINTS` points), with a copy of its
+points; :func:`clear` frees it.
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ from torch import Tensor
 __all__ = ["empty_huge"]
 
 _HUGE_PAGE = 1 << 21
-_MADV_HUGEPAGE = 14  # Linux's value on every architecture
+_MADV_HUGEPAGE = 14  # Linux's asm-generic value (a system that reads it otherwise refuses the advice)
 # smaller buffers are not worth a system call (and mostly reuse pages the allocator has faulted in)
 _MIN_BYTES = 8 * _HUGE_PAGE
 _LIBC = ctypes.CDLL(None, use_errno=True) if sys.platform.startswith("linux") else None

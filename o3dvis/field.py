@@ -138,7 +138,7 @@ class VisibilityField:
         self.calibration = calibration
         self.matmul_dtype = matmul_dtype
         self._scene_factory, self._scene = scene, None
-        self._scene_lock = threading.Lock()
+        self._lazy_lock = threading.Lock()  # guards what is made on first use: the scene field, the surfels
         self._surfels: dict[int, Tensor | None] = {}  # each frame's point surfels, by its points' storage
 
     @property
@@ -183,7 +183,7 @@ class VisibilityField:
 
     def _scene_field(self) -> "VisibilityField":
         """The field answering cameras inside the bounding box, encoded on first use (thread-safe)."""
-        with self._scene_lock:
+        with self._lazy_lock:
             if self._scene is None:
                 with torch.inference_mode(False):  # features a later query may differentiate through
                     self._scene = self._scene_factory()
@@ -287,7 +287,7 @@ class VisibilityField:
         if not self.network.config.footprints:
             return None
         key = points.data_ptr()
-        with self._scene_lock:
+        with self._lazy_lock:
             if key not in self._surfels:
                 self._surfels[key] = self.network.surfels(points)
             return self._surfels[key]

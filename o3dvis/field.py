@@ -26,6 +26,7 @@ from torch import Tensor
 from .cameras import Views, as_views
 from .nn import native
 from .nn.network import VisibilityNetwork
+from .nn.zbuffer import surfel_zbuffer
 from .threads import plan_threads, threaded_map, torch_threads
 
 __all__ = ["VisibilityField", "RotatedEncoding", "DEFAULT_CHUNK", "checked_range", "inside_box"]
@@ -107,7 +108,9 @@ class VisibilityField:
     ``calibration``: the ``(scale, shift)`` that a calibrated network applies
     to this cloud's margins in every frame (see :mod:`o3dvis.nn.calibration`).
     ``matmul_dtype``: the dtype of the per-view matrix products when no gradient
-    is asked for (see ``NeuralVisibility(precision=...)``). ``scene``: makes the
+    is asked for (see ``NeuralVisibility(precision=...)``). ``noise``: the cloud's (2,)
+    noise cues, for a network that fuses its answers with the surfel z-buffer's
+    (see :mod:`o3dvis.nn.fusion`). ``scene``: makes the
     field of the same cloud that answers the cameras inside its bounding box
     (encoded with a scene model, on the first such camera); None: this field
     answers every view.
@@ -124,7 +127,7 @@ class VisibilityField:
                  chunk_size: int = DEFAULT_CHUNK, hull: tuple[Tensor, Tensor] | None = None,
                  rank: Tensor | None = None, rotated: Sequence[RotatedEncoding] = (),
                  calibration: tuple[float, float] | None = None, matmul_dtype: torch.dtype = torch.float32,
-                 scene: Callable[[], "VisibilityField"] | None = None):
+                 scene: Callable[[], "VisibilityField"] | None = None, noise: Tensor | None = None):
         self.network = network
         self.features = features
         self.points = points
@@ -137,6 +140,7 @@ class VisibilityField:
         self.rotated = tuple(rotated)
         self.calibration = calibration
         self.matmul_dtype = matmul_dtype
+        self.noise = noise
         self._scene_factory, self._scene = scene, None
         self._lazy_lock = threading.Lock()  # guards what is made on first use: the scene field, the surfels
         self._surfels: dict[int, Tensor | None] = {}  # each frame's point surfels, by its points' storage
@@ -213,7 +217,7 @@ class VisibilityField:
                    for e in self.rotated]
         return VisibilityField(self.network, channels_first(self.features), rows(self.points), rows(self.normals),
                                self.center, self.scale, self.bounds, self.chunk_size, self.hull, None, rotated,
-                               self.calibration, self.matmul_dtype)
+                               self.calibration, self.matmul_dtype, noise=self.noise)
 
     def _cropped(self, view: Views, max_range: float) -> Tensor:
         """(1, N) probabilities, in the cloud's order, of one view that sees only the points within
@@ -284,7 +288,7 @@ class VisibilityField:
     def _surfels_of(self, points: Tensor) -> Tensor | None:
         """The network's :meth:`~o3dvis.nn.network.VisibilityNetwork.surfels` of one frame's points,
         computed on the first view and kept (None for a network that needs none)."""
-        if not self.network.config.footprints:
+        if not (self.network.config.footprints or self.network.config.fusion):
             return None
         key = points.data_ptr()
         with self._lazy_lock:
@@ -299,19 +303,34 @@ class VisibilityField:
         of that frame, see :meth:`_normalised`), streaming the points ``rows`` (None: all n) in
         cache-sized chunks, on ``workers`` threads side by side."""
         surfels = self._surfels_of(points)
-        projections = [self.network.view(points, direction=directions[i], surfels=surfels) if orthographic[i]
-                       else self.network.view(points, cameras[i], surfels=surfels)
-                       for i in range(batch.start, batch.stop)]
+        fusion, views = self.network.fusion, range(batch.start, batch.stop)
+
+        def prepare(task: tuple[str, int]) -> object:  # a view's projection, or its camera's z-buffer test
+            kind, i = task
+            if kind == "zbuffer":
+                return None if orthographic[i] else surfel_zbuffer(points, surfels, cameras[i])
+            return (self.network.view(points, direction=directions[i], surfels=surfels) if orthographic[i]
+                    else self.network.view(points, cameras[i], surfels=surfels))
+
+        # with a fusion, a view's projection and its z-buffer are independent passes of C: side by side
+        tasks = [("view", i) for i in views] + ([("zbuffer", i) for i in views] if fusion is not None else [])
+        prepared = list(threaded_map(prepare, tasks, workers) if workers > 1 and fusion is not None else
+                        map(prepare, tasks))
+        projections, zbuffers = prepared[:len(views)], prepared[len(views):]
         step = min(n, self.chunk_size)
 
         def chunk_margin(a: int) -> Tensor:
             chunk = slice(a, a + step) if rows is None else rows[a:a + step]
-            return self.network.view_margin(projections, chunk, features, normals, self.matmul_dtype)
+            margin = self.network.view_margin(projections, chunk, features, normals, self.matmul_dtype)
+            if any(z is not None for z in zbuffers):  # camera views: fused with the z-buffer's test
+                margin = torch.stack([m if z is None else fusion(m, z[chunk], self.noise)
+                                      for m, z in zip(margin, zbuffers)])
+            return margin
 
         starts = range(0, n, step)
         margin = torch.cat(list(threaded_map(chunk_margin, starts, workers) if workers > 1 else
                                 map(chunk_margin, starts)), dim=1)
-        del projections
+        del projections, zbuffers, prepared
         if self.calibration is not None:
             scale, shift = self.calibration
             margin.mul_(scale).add_(shift)

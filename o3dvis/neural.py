@@ -327,17 +327,17 @@ class NeuralVisibility:
                scale: Tensor, bounds: tuple[Tensor, Tensor], hull: tuple[Tensor, Tensor] | None, rank: Tensor,
                scene: Callable[[], VisibilityField] | None = None) -> VisibilityField:
         """The field of ``network`` over the normalised, Morton-ordered points of :meth:`encode`."""
-        calibrated = network.calibration is not None
+        calibrated, fused = network.calibration is not None, network.fusion is not None
         precision = resolve_precision(self.precision, self.device)
         with torch.no_grad(), products_in(precision):
-            noise = network.cloud_noise(normalized, ordered=True) if network.config.noise_cues or calibrated else None
+            noise = (network.cloud_noise(normalized, ordered=True) if network.config.noise_cues or calibrated or fused
+                     else None)
             features = network.encode(normalized, normals=unit, noise=noise)
             rotated = [self._rotated(network, normalized, unit, r) for r in self.rotations[1:]]
         calibration = (network.calibration.affine(calibration_terms(noise[0], len(normalized)))
                        if calibrated else None)
         return VisibilityField(network, features, normalized, unit, center, scale, bounds, self.chunk_size,
-                               hull, rank, rotated, calibration, precision,
-                               scene)
+                               hull, rank, rotated, calibration, precision, scene, None if noise is None else noise[0])
 
     @staticmethod
     def _rotated(network: VisibilityNetwork, normalized: Tensor, normals: Tensor | None,

@@ -16,7 +16,8 @@ _MODULES = ("visible", "apps", "demo", "data", "eval")
 _DESCRIPTION = """Neural visibility of point sets, for Open3D users.
 
 Commands on your files: visible, normals, reconstruct, shadow, best-view, render, demo.
-Commands that make and measure models: shapes, prepare, train, calibrate, publish, eval, bench.
+Commands that make and measure models: shapes, prepare, train, calibrate, fuse, publish, eval,
+bench.
 'o3dvis COMMAND --help' tells what one does."""
 
 

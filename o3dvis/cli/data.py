@@ -1,4 +1,5 @@
-"""``o3dvis shapes``, ``o3dvis prepare``, ``o3dvis train``, ``o3dvis calibrate`` and ``o3dvis publish``."""
+"""``o3dvis shapes``, ``o3dvis prepare``, ``o3dvis train``, ``o3dvis calibrate``, ``o3dvis fuse`` and
+``o3dvis publish``."""
 
 from __future__ import annotations
 
@@ -78,6 +79,19 @@ def _calibrate(args) -> int:
                         Augmentation(max_points=args.max_points, estimated_normals=args.estimated_normals))
     print(json.dumps({k: summary[k] for k in ("u", "w", "samples", "cross_entropy_before",
                                               "cross_entropy_after")}))
+    return 0
+
+
+def _fuse(args) -> int:
+    import torch
+
+    from ..training.fuse import fuse
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    summary = fuse(args.checkpoint, args.data, args.out, args.clouds, args.keep, args.seed, args.min_points,
+                   args.max_points, args.noise, args.noise_prob, args.steps)
+    print(json.dumps({k: summary[k] for k in ("samples", "cross_entropy_before", "cross_entropy_after")}))
     return 0
 
 
@@ -181,6 +195,27 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="share of clouds given the normals normals='estimate' computes (as in train)")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
     p.set_defaults(func=_calibrate)
+
+    p = sub.add_parser("fuse", help="fit a scene network's fusion with the surfel z-buffer", formatter_class=fmt,
+                       description="Fit, on scene clouds seen from cameras inside them, the MLP that fuses the\n"
+                                   "network's margins with the surfel z-buffer's test (o3dvis.nn.fusion), and\n"
+                                   "write the fused network.\n\n"
+                                   "example:\n  o3dvis fuse o3dvis/weights/scene.safetensors data/sctrain "
+                                   "-o scene-fused.safetensors")
+    p.add_argument("checkpoint", metavar="CHECKPOINT", help=".safetensors file written by o3dvis train")
+    p.add_argument("data", nargs="+", help="folders of prepared scene .npz files (o3dvis prepare --scenes)")
+    p.add_argument("-o", "--out", required=True, help="the fused .safetensors file to write")
+    p.add_argument("--clouds", type=int, default=400, help="clouds drawn (default 400)")
+    p.add_argument("--keep", type=int, default=20000, help="(point, camera) pairs kept per cloud (default 20000)")
+    p.add_argument("--min-points", type=int, default=8192, help="smallest cloud drawn (default 8192)")
+    p.add_argument("--max-points", type=int, default=65536, help="largest cloud drawn (default 65536)")
+    p.add_argument("--noise", type=float, default=0.02,
+                   help="largest noise, a fraction of the median camera distance (default 0.02)")
+    p.add_argument("--noise-prob", type=float, default=0.5, help="share of clouds with noise (default 0.5)")
+    p.add_argument("--steps", type=int, default=3000, help="Adam steps of the fit (default 3000)")
+    p.add_argument("--seed", type=int, default=1, help="seed of the draw and the fit (default 1)")
+    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
+    p.set_defaults(func=_fuse)
 
     p = sub.add_parser("publish", help="install a checkpoint as a shipped model", formatter_class=fmt,
                        description="Copy a checkpoint into o3dvis/weights/ and write its model-card entry\n"

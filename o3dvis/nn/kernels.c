@@ -429,6 +429,107 @@ int o3dvis_plane_splat(int64_t n, const float *points, const float *surfels, con
     return 0;
 }
 
+/* The surfel z-buffer of a camera (o3dvis/nn/zbuffer.py, surfel_zbuffer, whose torch ops this
+ * follows): each point is a disc of radius its spacing in the plane of its normal, rendered
+ * into a rows x 2 rows latitude-longitude depth buffer around the camera, over each pixel whose
+ * centre ray meets the disc (and always over its own pixel; the nearest disc of a pixel, the
+ * first of equals); then each point is compared with the plane of the disc in front at its own
+ * pixel, along its own ray.
+ *
+ * points: (n, 3); surfels: (n, 4) spacing and unit normal; camera: (3,); rows: the buffer's
+ * rows; max_half: the largest half height of a disc's pixels, max_wide: the largest half
+ * width. out: (n, 3) per point 1 where its own disc is in front (else 0), its distance beyond
+ * the front plane in spacings (clipped to +-clip), and its spacing in pixels.
+ * Returns -1 where its scratch memory could not be allocated, else 0.
+ */
+int o3dvis_surfel_zbuffer(int64_t n, const float *points, const float *surfels, const float *camera,
+                          int32_t rows, int32_t max_half, int32_t max_wide, float clip, float *out) {
+    const int64_t cols = 2 * (int64_t)rows, size = rows * cols;
+    const float pixel = (float)M_PI / (float)rows, pi = (float)M_PI;
+    float *zbuf = malloc((size_t)size * sizeof(float));
+    int32_t *owner = malloc((size_t)size * sizeof(int32_t));
+    float *table = malloc((size_t)(2 * rows + 2 * cols) * sizeof(float));
+    float *geo = malloc((size_t)n * 4 * sizeof(float));
+    int64_t *own = malloc((size_t)n * sizeof(int64_t));
+    if (!zbuf || !owner || !table || !geo || !own) {
+        free(zbuf), free(owner), free(table), free(geo), free(own);
+        return -1;
+    }
+    float *rcos = table, *rsin = table + rows, *ccos = table + 2 * rows, *csin = ccos + cols;
+    for (int64_t r = 0; r < rows; r++) {
+        const float e = ((float)r + 0.5f) * pixel - pi / 2;
+        rcos[r] = cosf(e), rsin[r] = sinf(e);
+    }
+    for (int64_t c = 0; c < cols; c++) {
+        const float a = ((float)c + 0.5f) * pixel - pi;
+        ccos[c] = cosf(a), csin[c] = sinf(a);
+    }
+    for (int64_t q = 0; q < size; q++) zbuf[q] = INFINITY, owner[q] = -1;
+    for (int64_t i = 0; i < n; i++) {  /* each point's distance, offset and own pixel */
+        const float x = points[3 * i] - camera[0], y = points[3 * i + 1] - camera[1], z = points[3 * i + 2] - camera[2];
+        const float h = sqrtf(x * x + y * y), d = sqrtf(x * x + y * y + z * z);
+        /* elevation + pi / 2 and azimuth + pi, by the polynomial atan2 */
+        const float row = atan2_pos(h, -z) * (float)rows / pi;
+        const float col = (y >= 0.0f ? pi + atan2_pos(y, x) : pi - atan2_pos(-y, x)) * (float)rows / pi;
+        const int64_t c = (int64_t)col;
+        int64_t r = (int64_t)row;
+        r = r < rows - 1 ? r : rows - 1;
+        geo[4 * i] = x, geo[4 * i + 1] = y, geo[4 * i + 2] = z, geo[4 * i + 3] = d;
+        own[i] = r * cols + c % cols;
+        /* the pixels whose centres lie within the disc's angular radius asin(radius / d) of the point */
+        const float radius = surfels[4 * i], *nrm = surfels + 4 * i + 1;
+        float half_h = (radius < d ? atan2_pos(radius, sqrtf(d * d - radius * radius)) : pi / 2) / pixel;
+        half_h = half_h < (float)max_half ? half_h : (float)max_half;
+        const float flat = d > 0.0f ? h / d : 1.0f;  /* the cosine of the elevation */
+        float half_w = half_h / (flat > 1e-3f ? flat : 1e-3f);
+        /* at most the whole circle of latitude, each of its pixels once */
+        const float wide = 0.5f * (float)(cols - 1) < (float)max_wide ? 0.5f * (float)(cols - 1) : (float)max_wide;
+        half_w = half_w < wide ? half_w : wide;
+        int64_t r0 = (int64_t)ceilf(row - half_h - 0.5f), r1 = (int64_t)floorf(row + half_h - 0.5f);
+        int64_t k0 = (int64_t)ceilf(col - half_w - 0.5f), k1 = (int64_t)floorf(col + half_w - 0.5f);
+        r0 = r0 < r ? r0 : r, r1 = r1 > r ? r1 : r, k0 = k0 < c ? k0 : c, k1 = k1 > c ? k1 : c;
+        r0 = r0 > 0 ? r0 : 0, r1 = r1 < rows - 1 ? r1 : rows - 1;
+        const float plane = x * nrm[0] + y * nrm[1] + z * nrm[2], r2 = radius * radius;
+        const int64_t c0 = (k0 % cols + cols) % cols, width = k1 - k0 + 1, own_k = c - k0;
+        for (int64_t rr = r0; rr <= r1; rr++) {
+            const float rc = rcos[rr], rs = rsin[rr], rz = rs * nrm[2];
+            float *zrow = zbuf + rr * cols;
+            int32_t *orow = owner + rr * cols;
+            for (int64_t k = 0; k < width; k++) {
+                int64_t cc = c0 + k;
+                cc = cc >= cols ? cc - cols : cc;  /* the image wraps around in azimuth */
+                const float ray[3] = {rc * ccos[cc], rc * csin[cc], rs};
+                const float depth = plane / (ray[0] * nrm[0] + ray[1] * nrm[1] + rz);
+                const float ex = ray[0] * depth - x, ey = ray[1] * depth - y, ez = ray[2] * depth - z;
+                const int valid = depth > 0.0f && depth < INFINITY;
+                /* a disc always covers its own pixel, at the point's distance where its plane misses the ray */
+                const int hit = (valid & (ex * ex + ey * ey + ez * ez <= r2)) | ((rr == r) & (k == own_k));
+                const float z0 = valid ? depth : d;
+                const int take = hit & (z0 < zrow[cc]);
+                zrow[cc] = take ? z0 : zrow[cc];
+                orow[cc] = take ? (int32_t)i : orow[cc];
+            }
+        }
+    }
+    for (int64_t i = 0; i < n; i++) {
+        const int64_t j = owner[own[i]];
+        const float d = geo[4 * i + 3], *nrm = surfels + 4 * j + 1, radius = surfels[4 * j];
+        const float *o = geo + 4 * j;
+        const float facing = (geo[4 * i] * nrm[0] + geo[4 * i + 1] * nrm[1] + geo[4 * i + 2] * nrm[2]) / d;
+        float along = (o[0] * nrm[0] + o[1] * nrm[1] + o[2] * nrm[2]) / facing;
+        along = isnan(along) ? INFINITY : along;
+        const float lo = o[3] - 3.0f * radius, hi = o[3] + 3.0f * radius;
+        along = along < lo ? lo : along > hi ? hi : along;
+        float beyond = (d - along) / surfels[4 * i];
+        beyond = isnan(beyond) ? 0.0f : beyond < -clip ? -clip : beyond > clip ? clip : beyond;
+        out[3 * i] = j == i ? 1.0f : 0.0f;
+        out[3 * i + 1] = beyond;
+        out[3 * i + 2] = surfels[4 * i] / d / pixel;
+    }
+    free(zbuf), free(owner), free(table), free(geo), free(own);
+    return 0;
+}
+
 /* What the kernels below read of a view and its points, filled by the caller (native.py, _View).
  *
  * rows: the points' rows (NULL: start, start + 1, ...); dirs: (N, 3) view

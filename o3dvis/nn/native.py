@@ -22,7 +22,7 @@ from torch import Tensor
 
 from .. import clib
 
-__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "project", "surfels", "plane_splat", "PackedMLP", "pack_mlp", "view_margin"]
+__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "project", "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin"]
 
 _I64, _I32, _PTR = ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
 
@@ -43,6 +43,7 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_plane_splat": ([_I64, _PTR, _PTR, _PTR, _PTR, _I32, _PTR, _PTR, _PTR, _PTR, _PTR, ctypes.c_float,
                             ctypes.c_float, _PTR], ctypes.c_int),
     "o3dvis_surfels": ([_I64, _PTR, _PTR, _I32, _I32, _I64, _PTR], ctypes.c_int),
+    "o3dvis_surfel_zbuffer": ([_I64, _PTR, _PTR, _PTR, _I32, _I32, _I32, ctypes.c_float, _PTR], ctypes.c_int),
     "o3dvis_has_view_margin_bf16": ([], ctypes.c_int),
     "o3dvis_view_margin_bf16": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_view_margin_f32": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
@@ -142,6 +143,29 @@ def surfels(points: Tensor, keys: Tensor, finest: int, coarsest: int, count: int
     out = points.new_empty(n, 4)
     if n and _LIBRARY.o3dvis_surfels(n, points.data_ptr(), keys.data_ptr(), finest, coarsest, count, out.data_ptr()):
         raise MemoryError("no memory for the surfels' scratch buffers")
+    return out
+
+
+def surfel_zbuffer(points: Tensor, surfels: Tensor, camera: Tensor, rows: int, max_half: int, max_wide: int,
+                   clip: float) -> Tensor:
+    """(N, 3) :func:`o3dvis.nn.zbuffer.surfel_zbuffer` of ``points`` (N, 3) float32 with their
+    ``surfels`` (N, 4), seen from ``camera`` (3,), in one pass over the points and one over the buffer.
+
+    Raises:
+        ValueError: tensors of the wrong shapes or types, or a buffer out of [1, 2^15) rows.
+        MemoryError: no memory for the buffer.
+    """
+    n = points.shape[0]
+    _check("points", points, (n, 3))
+    _check("surfels", surfels, (n, 4))
+    _check("camera", camera, (3,))
+    if not 1 <= rows < 1 << 15 or max_half < 0 or max_wide < 0:
+        raise ValueError(f"rows must lie in [1, 32768) and the disc bounds be >= 0, got {rows}, {max_half}, "
+                         f"{max_wide}")
+    out = points.new_empty(n, 3)
+    if n and _LIBRARY.o3dvis_surfel_zbuffer(n, points.data_ptr(), surfels.data_ptr(), camera.data_ptr(), rows,
+                                            max_half, max_wide, clip, out.data_ptr()):
+        raise MemoryError(f"no memory for a {rows} x {2 * rows} surfel z-buffer")
     return out
 
 

@@ -11,6 +11,7 @@ import torch
 from torch import Tensor, nn
 
 from .calibration import CloudCalibration
+from .fusion import ZBufferFusion
 from . import native
 from .cues import DEFAULT_SCALES, ViewProjection, num_cues, point_surfels
 from .memory import empty_huge
@@ -46,6 +47,7 @@ class NetworkConfig:
     noise_cues: bool = False
     footprints: bool = False
     calibrated: bool = False
+    fusion: bool = False
 
     def __post_init__(self):
         self.check()
@@ -78,7 +80,7 @@ class NetworkConfig:
         if not (self.full_depth < self.depth and len(self.channels) < self.depth):
             raise ValueError(f"network config: depth {self.depth} must exceed full_depth {self.full_depth} "
                              f"and the number of stages {len(self.channels)}")
-        for name in ("use_normals", "noise_cues", "footprints", "calibrated"):
+        for name in ("use_normals", "noise_cues", "footprints", "calibrated", "fusion"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"network config: {name} must be true or false, got {getattr(self, name)!r}")
 
@@ -126,6 +128,8 @@ class VisibilityNetwork(nn.Module):
             num_cues(config.cue_scales, config.footprints) + (1 if config.use_normals else 0), config.hidden)
         # fitted after training (o3dvis calibrate); applied to the margins by o3dvis.VisibilityField
         self.calibration = CloudCalibration() if config.calibrated else None
+        # fitted after training (o3dvis fuse); applied to the margins of camera views by o3dvis.VisibilityField
+        self.fusion = ZBufferFusion() if config.fusion else None
 
     def _signal(self, points: Tensor, batch: Tensor, octree: Octree, normals: Tensor | None,
                 noise: Tensor | None = None) -> Tensor:
@@ -191,14 +195,17 @@ class VisibilityNetwork(nn.Module):
 
         ``surfels``: the cloud's :meth:`surfels` when the caller keeps them for several views
         (computed here when needed and not given)."""
-        if self.config.footprints and surfels is None:
+        if not self.config.footprints:
+            surfels = None
+        elif surfels is None:
             surfels = self.surfels(points)
         return ViewProjection(points, camera, direction, self.config.cue_scales, surfels)
 
     def surfels(self, points: Tensor) -> Tensor | None:
         """(N, 4) the points' :func:`~o3dvis.nn.cues.point_surfels` for a network whose depth
-        buffers splat each point over its footprint (``config.footprints``), else None."""
-        return point_surfels(points) if self.config.footprints else None
+        buffers splat each point over its footprint (``config.footprints``) or that fuses its
+        answers with the surfel z-buffer's (``config.fusion``), else None."""
+        return point_surfels(points) if self.config.footprints or self.config.fusion else None
 
     def view_inputs(self, view: ViewProjection, rows: slice | Tensor = slice(None),
                     normals: Tensor | None = None) -> tuple[Tensor, Tensor]:

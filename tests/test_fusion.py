@@ -47,7 +47,7 @@ def test_zbuffer_separates_the_halves_of_a_partitioned_room():
     p, surfels, camera = _normalised(points, np.array([1.2, 1.5, 1.4]))
     answer = surfel_zbuffer(p, surfels, camera)
     seen = (answer[:, 0] > 0) | (answer[:, 1] <= 1)
-    assert answer.shape == (len(points), 3) and answer.dtype == torch.float32
+    assert answer.shape == (len(points), 4) and answer.dtype == torch.float32
     assert seen[torch.from_numpy(left)].float().mean() > 0.97
     assert (~seen[~torch.from_numpy(left)]).float().mean() > 0.97  # behind the partition
     assert float(answer[~torch.from_numpy(left), 1].median()) > 5  # by many spacings
@@ -102,10 +102,11 @@ def test_native_zbuffer_checks_its_arguments():
 
 def test_fusion_inputs_and_standardisation():
     margin = torch.tensor([40.0, -2.0])
-    zbuffer = torch.tensor([[1.0, 0.0, 1.0], [0.0, 16.0, 0.5]])
+    zbuffer = torch.tensor([[1.0, 0.0, 1.0, 0.9], [0.0, 16.0, 0.5, 0.2]])
     x = fusion_inputs(margin, zbuffer, torch.tensor([0.1, 0.2]))
     assert x.shape == (2, NUM_FUSION_INPUTS)
-    torch.testing.assert_close(x[:, 5:], torch.tensor([[0.1, 0.2], [0.1, 0.2]]))
+    torch.testing.assert_close(x[:, 5], torch.tensor([0.9, 0.2]))
+    torch.testing.assert_close(x[:, 6:], torch.tensor([[0.1, 0.2], [0.1, 0.2]]))
     torch.testing.assert_close(x[:, 0], torch.tensor([15.0, -2.0]))  # clamped margins
     torch.testing.assert_close(x[1, 2:4], torch.tanh(torch.tensor([8.0, 2.0])))
     fusion = ZBufferFusion()
@@ -165,7 +166,8 @@ def test_fit_fusion_learns_from_the_zbuffer():
     g = torch.Generator().manual_seed(0)
     n = 40_000
     beyond = torch.randn(n, generator=g) * 6
-    zbuffer = torch.stack([(beyond.abs() < 0.3).float(), beyond, torch.rand(n, generator=g) + 0.5], dim=1)
+    zbuffer = torch.stack([(beyond.abs() < 0.3).float(), beyond, torch.rand(n, generator=g) + 0.5,
+                           torch.rand(n, generator=g)], dim=1)
     labels = (beyond < 1).float()
     margins = torch.randn(n, generator=g)  # a network that knows nothing
     noise = torch.rand(n, 2, generator=g)

@@ -21,24 +21,24 @@ from .zbuffer import NUM_ZBUFFER_FEATURES
 
 __all__ = ["NUM_FUSION_INPUTS", "ZBufferFusion", "fusion_inputs"]
 
-NUM_FUSION_INPUTS = 2 + NUM_ZBUFFER_FEATURES + NUM_NOISE_CUES
+NUM_FUSION_INPUTS = 1 + (NUM_ZBUFFER_FEATURES + 1) + NUM_NOISE_CUES
 _MAX_MARGIN = 15.0  # margins beyond this are certain either way (and saturate a float32 probability)
 
 
 def fusion_inputs(margin: Tensor, zbuffer: Tensor, noise: Tensor) -> Tensor:
-    """(..., 7) inputs of the fusion MLP: the margin (clamped to +-15), whether the point's own
+    """(..., 8) inputs of the fusion MLP: the margin (clamped to +-15), whether the point's own
     disc is in front, its distance beyond the front plane on two scales (``tanh`` of it over 2 and
-    over 8 spacings), the log of its spacing in pixels, and the cloud's noise cues, which tell
-    how far the z-buffer's test can be trusted.
+    over 8 spacings), the log of its spacing in pixels, how squarely it faces the camera, and the
+    cloud's noise cues: these tell how far the z-buffer's test can be trusted.
 
     Args:
         margin: (...) the network's margins.
-        zbuffer: (..., 3) the :func:`~o3dvis.nn.zbuffer.surfel_zbuffer` answers of the same pairs.
+        zbuffer: (..., 4) the :func:`~o3dvis.nn.zbuffer.surfel_zbuffer` answers of the same pairs.
         noise: (2,) the cloud's :func:`~o3dvis.nn.noise.noise_cues`, or (..., 2) each pair's cloud's.
     """
     beyond = zbuffer[..., 1]
     first = torch.stack([margin.clamp(-_MAX_MARGIN, _MAX_MARGIN), zbuffer[..., 0], torch.tanh(beyond / 2),
-                         torch.tanh(beyond / 8), zbuffer[..., 2].clamp_min(1e-6).log()], dim=-1)
+                         torch.tanh(beyond / 8), zbuffer[..., 2].clamp_min(1e-6).log(), zbuffer[..., 3]], dim=-1)
     return torch.cat([first, noise.to(first).expand(*first.shape[:-1], NUM_NOISE_CUES)], dim=-1)
 
 
@@ -57,7 +57,7 @@ class ZBufferFusion(nn.Module):
         self.mlp = nn.Sequential(nn.Linear(NUM_FUSION_INPUTS, hidden), nn.ReLU(), nn.Linear(hidden, 1))
 
     def forward(self, margin: Tensor, zbuffer: Tensor, noise: Tensor) -> Tensor:
-        """(...) fused margins of (...) ``margin``, (..., 3) ``zbuffer`` answers and the noise cues
+        """(...) fused margins of (...) ``margin``, (..., 4) ``zbuffer`` answers and the noise cues
         (see :func:`fusion_inputs`)."""
         x = fusion_inputs(margin, zbuffer.to(margin.dtype), noise)
         return self.mlp(((x - self.mean.to(x.dtype)) / self.std.to(x.dtype)).to(self.mlp[0].weight.dtype))[..., 0] \

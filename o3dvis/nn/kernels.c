@@ -438,8 +438,9 @@ int o3dvis_plane_splat(int64_t n, const float *points, const float *surfels, con
  *
  * points: (n, 3); surfels: (n, 4) spacing and unit normal; camera: (3,); rows: the buffer's
  * rows; max_half: the largest half height of a disc's pixels, max_wide: the largest half
- * width. out: (n, 3) per point 1 where its own disc is in front (else 0), its distance beyond
- * the front plane in spacings (clipped to +-clip), and its spacing in pixels.
+ * width. out: (n, 4) per point 1 where its own disc is in front (else 0), its distance beyond
+ * the front plane in spacings (clipped to +-clip), its spacing in pixels, and |cos| of the
+ * angle between its normal and its ray.
  * Returns -1 where its scratch memory could not be allocated, else 0.
  */
 int o3dvis_surfel_zbuffer(int64_t n, const float *points, const float *surfels, const float *camera,
@@ -522,9 +523,12 @@ int o3dvis_surfel_zbuffer(int64_t n, const float *points, const float *surfels, 
         along = along < lo ? lo : along > hi ? hi : along;
         float beyond = (d - along) / surfels[4 * i];
         beyond = isnan(beyond) ? 0.0f : beyond < -clip ? -clip : beyond > clip ? clip : beyond;
-        out[3 * i] = j == i ? 1.0f : 0.0f;
-        out[3 * i + 1] = beyond;
-        out[3 * i + 2] = surfels[4 * i] / d / pixel;
+        const float *mine = surfels + 4 * i + 1;
+        const float cosine = (geo[4 * i] * mine[0] + geo[4 * i + 1] * mine[1] + geo[4 * i + 2] * mine[2]) / d;
+        out[4 * i] = j == i ? 1.0f : 0.0f;
+        out[4 * i + 1] = beyond;
+        out[4 * i + 2] = surfels[4 * i] / d / pixel;
+        out[4 * i + 3] = isnan(cosine) ? 0.0f : fabsf(cosine);
     }
     free(zbuf), free(owner), free(table), free(geo), free(own);
     return 0;

@@ -148,7 +148,7 @@ def surfels(points: Tensor, keys: Tensor, finest: int, coarsest: int, count: int
 
 def surfel_zbuffer(points: Tensor, surfels: Tensor, camera: Tensor, rows: int, max_half: int, max_wide: int,
                    clip: float) -> Tensor:
-    """(N, 3) :func:`o3dvis.nn.zbuffer.surfel_zbuffer` of ``points`` (N, 3) float32 with their
+    """(N, 4) :func:`o3dvis.nn.zbuffer.surfel_zbuffer` of ``points`` (N, 3) float32 with their
     ``surfels`` (N, 4), seen from ``camera`` (3,), in one pass over the points and one over the buffer.
 
     Raises:
@@ -162,7 +162,7 @@ def surfel_zbuffer(points: Tensor, surfels: Tensor, camera: Tensor, rows: int, m
     if not 1 <= rows < 1 << 15 or max_half < 0 or max_wide < 0:
         raise ValueError(f"rows must lie in [1, 32768) and the disc bounds be >= 0, got {rows}, {max_half}, "
                          f"{max_wide}")
-    out = points.new_empty(n, 3)
+    out = points.new_empty(n, 4)
     if n and _LIBRARY.o3dvis_surfel_zbuffer(n, points.data_ptr(), surfels.data_ptr(), camera.data_ptr(), rows,
                                             max_half, max_wide, clip, out.data_ptr()):
         raise MemoryError(f"no memory for a {rows} x {2 * rows} surfel z-buffer")

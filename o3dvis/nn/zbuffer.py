@@ -25,7 +25,7 @@ from . import native
 
 __all__ = ["NUM_ZBUFFER_FEATURES", "buffer_rows", "surfel_zbuffer"]
 
-NUM_ZBUFFER_FEATURES = 3
+NUM_ZBUFFER_FEATURES = 4
 PIXELS_PER_SPACING = 1.0  # buffer pixels across the points' median angular spacing
 MAX_ROWS = 4096  # a buffer of at most 4096 x 8192 pixels (256 MiB of depths and owners)
 _MAX_HALF, _MAX_WIDE = 12, 48  # a disc's largest half height and half width, in pixels (near points, poles)
@@ -93,7 +93,8 @@ def _surfel_zbuffer_torch(points: Tensor, surfels: Tensor, camera: Tensor, rows:
     along = torch.minimum(torch.maximum(along, dist[front] - 3 * radius[front]), dist[front] + 3 * radius[front])
     beyond = ((dist - along) / radius).nan_to_num(0.0).clamp(-_CLIP, _CLIP)
     is_own = (front == torch.arange(n, device=points.device)).to(points.dtype)
-    return torch.stack([is_own, beyond, radius / dist / pixel], dim=1)
+    cosine = ((offset * normals).sum(dim=1) / dist).nan_to_num(0.0).abs()
+    return torch.stack([is_own, beyond, radius / dist / pixel, cosine], dim=1)
 
 
 def surfel_zbuffer(points: Tensor, surfels: Tensor, camera: Tensor, rows: int | None = None) -> Tensor:
@@ -106,9 +107,10 @@ def surfel_zbuffer(points: Tensor, surfels: Tensor, camera: Tensor, rows: int | 
         rows: the buffer's rows (default: :func:`buffer_rows`).
 
     Returns:
-        (N, 3) float32, not differentiable: 1 where the point's own disc is the front one at its
+        (N, 4) float32, not differentiable: 1 where the point's own disc is the front one at its
         pixel (else 0); its distance beyond the front disc's plane along its own ray, in its
-        spacings (negative: in front of it; within +-1000); its spacing in buffer pixels.
+        spacings (negative: in front of it; within +-1000); its spacing in buffer pixels; the
+        absolute cosine of the angle between its normal and its ray (0: seen edge-on).
     """
     points, surfels, camera = points.detach().float(), surfels.detach().float(), camera.detach().float()
     rows = buffer_rows(points, surfels[:, 0], camera) if rows is None else rows

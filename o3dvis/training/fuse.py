@@ -37,7 +37,7 @@ def _unfused(net: VisibilityNetwork) -> VisibilityNetwork:
 
 def fit_fusion(margins: torch.Tensor, zbuffers: torch.Tensor, noise: torch.Tensor, labels: torch.Tensor,
                steps: int = 3000, batch_size: int = 65536, seed: int = 0) -> tuple[ZBufferFusion, float, float]:
-    """A :class:`ZBufferFusion` fitted to pairs' margins (M,), z-buffer answers (M, 3), their clouds'
+    """A :class:`ZBufferFusion` fitted to pairs' margins (M,), z-buffer answers (M, 4), their clouds'
     noise cues (M, 2) and labels (M,) (1: visible) by Adam on the cross-entropy, with a
     cosine-decayed learning rate.
 
@@ -131,7 +131,7 @@ def fuse(checkpoint: str | Path, data: list[str | Path], out: str | Path, clouds
             answers = answers[:, field.rank]
         rows = torch.from_numpy(rng.choice(margin.numel(), min(margin.numel(), keep), replace=False))
         margins.append(margin.reshape(-1)[rows].float())
-        zbuffers.append(answers.reshape(-1, 3)[rows])
+        zbuffers.append(answers.reshape(-1, answers.shape[-1])[rows])
         cloud_cues.append(cues.expand(len(rows), -1))
         labels.append(torch.from_numpy(cloud.labels).reshape(-1)[rows])
         bar.update()

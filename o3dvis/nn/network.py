@@ -14,7 +14,6 @@ from .calibration import CloudCalibration
 from .fusion import ZBufferFusion
 from . import native
 from .cues import DEFAULT_SCALES, ViewProjection, num_cues, point_surfels
-from .memory import empty_huge
 from .noise import NUM_NOISE_CUES, noise_cues
 from .octree import Octree
 from .predictor import VisibilityPredictor
@@ -182,10 +181,7 @@ class VisibilityNetwork(nn.Module):
         leaf = self.unet(self._signal(points, batch, octree, normals, noise), octree)
 
         def carry(x: Tensor) -> Tensor:  # each point takes its leaf's values (a gather along dim 1)
-            index = octree.point_leaf.expand(x.shape[0], -1)
-            if torch.is_grad_enabled() and x.requires_grad:  # out= takes no autograd
-                return torch.gather(x, 1, index)
-            return torch.gather(x, 1, index, out=empty_huge(tuple(index.shape), x.dtype, x.device))
+            return torch.gather(x, 1, octree.point_leaf.expand(x.shape[0], -1))
 
         return self.predictor.project(leaf, points, carry)
 

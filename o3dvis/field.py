@@ -26,6 +26,7 @@ from torch import Tensor
 from .cameras import Views, as_views
 from .nn import native
 from .nn.network import VisibilityNetwork
+from .nn.fusion import zbuffer_inputs
 from .nn.zbuffer import surfel_zbuffer
 from .threads import plan_threads, threaded_map, torch_threads
 
@@ -323,7 +324,7 @@ class VisibilityField:
             chunk = slice(a, a + step) if rows is None else rows[a:a + step]
             margin = self.network.view_margin(projections, chunk, features, normals, self.matmul_dtype)
             if any(z is not None for z in zbuffers):  # camera views: fused with the z-buffer's test
-                margin = torch.stack([m if z is None else fusion(m, z[chunk], self.noise)
+                margin = torch.stack([m if z is None else fusion(m, zbuffer_inputs(z[chunk]), self.noise)
                                       for m, z in zip(margin, zbuffers)])
             return margin
 

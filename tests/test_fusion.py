@@ -9,7 +9,7 @@ import torch
 from o3dvis.neural import NeuralVisibility
 from o3dvis.nn import native
 from o3dvis.nn.cues import point_surfels
-from o3dvis.nn.fusion import NUM_FUSION_INPUTS, ZBufferFusion, fusion_inputs
+from o3dvis.nn.fusion import NUM_FUSION_INPUTS, ZBufferFusion, fusion_inputs, zbuffer_inputs
 from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
 from o3dvis.nn.octree import normalize_points
 from o3dvis.nn.zbuffer import _surfel_zbuffer_torch, buffer_rows, surfel_zbuffer
@@ -100,19 +100,24 @@ def test_native_zbuffer_checks_its_arguments():
         native.surfel_zbuffer(p, surfels[:, :3].contiguous(), cam, 64, 12, 48, 1000.0)
 
 
-def test_fusion_inputs_and_standardisation():
+def test_fusion_inputs_and_folded_standardisation():
     margin = torch.tensor([40.0, -2.0])
     zbuffer = torch.tensor([[1.0, 0.0, 1.0, 0.9], [0.0, 16.0, 0.5, 0.2]])
-    x = fusion_inputs(margin, zbuffer, torch.tensor([0.1, 0.2]))
+    noise = torch.tensor([0.1, 0.2])
+    x = fusion_inputs(margin, zbuffer_inputs(zbuffer), noise)
     assert x.shape == (2, NUM_FUSION_INPUTS)
+    torch.testing.assert_close(x[:, 0], torch.tensor([15.0, -2.0]))  # clamped margins
+    torch.testing.assert_close(x[:, 1], torch.tensor([1.0, 0.0]))
+    torch.testing.assert_close(x[1, 2:4], torch.tanh(torch.tensor([8.0, 2.0])))
+    torch.testing.assert_close(x[:, 4], torch.log(torch.tensor([1.0, 0.5])))
     torch.testing.assert_close(x[:, 5], torch.tensor([0.9, 0.2]))
     torch.testing.assert_close(x[:, 6:], torch.tensor([[0.1, 0.2], [0.1, 0.2]]))
-    torch.testing.assert_close(x[:, 0], torch.tensor([15.0, -2.0]))  # clamped margins
-    torch.testing.assert_close(x[1, 2:4], torch.tanh(torch.tensor([8.0, 2.0])))
+    torch.manual_seed(0)
     fusion = ZBufferFusion()
-    fusion.mean.copy_(x.mean(dim=0))
-    out = fusion(margin, zbuffer, torch.tensor([0.1, 0.2]))
-    assert out.shape == (2,) and torch.isfinite(out).all()
+    fusion.mean.copy_(torch.randn(NUM_FUSION_INPUTS))
+    fusion.std.copy_(torch.rand(NUM_FUSION_INPUTS) + 0.5)
+    by_hand = fusion.mlp((x - fusion.mean) / fusion.std)[:, 0]
+    torch.testing.assert_close(fusion(margin, zbuffer_inputs(zbuffer), noise), by_hand)
 
 
 def _fused_pair(seed: int = 0) -> tuple[VisibilityNetwork, VisibilityNetwork]:
@@ -143,7 +148,7 @@ def test_field_fuses_camera_views_and_keeps_directions(tmp_path):
     for j, camera in enumerate(cameras):
         cam = ((torch.from_numpy(camera) - field.center) / field.scale).float()
         answers = surfel_zbuffer(field.points, surfels, cam)[rank]
-        expected = torch.sigmoid(loaded.fusion(margin[j], answers, field.noise)).double()
+        expected = torch.sigmoid(loaded.fusion(margin[j], zbuffer_inputs(answers), field.noise)).double()
         keep = p[j].sub(0.5).abs() < 0.49  # away from float32 saturation of the plain margins
         torch.testing.assert_close(after[j][keep], expected[keep], atol=2e-4, rtol=0)
     assert (after != p).float().mean() > 0.9
@@ -173,7 +178,7 @@ def test_fit_fusion_learns_from_the_zbuffer():
     noise = torch.rand(n, 2, generator=g)
     fusion, before, after = fit_fusion(margins, zbuffer, noise, labels, steps=300, batch_size=4096)
     assert after < 0.2 < before
-    assert ((fusion(margins, zbuffer, noise) > 0).float() == labels).float().mean() > 0.97
+    assert ((fusion(margins, zbuffer_inputs(zbuffer), noise) > 0).float() == labels).float().mean() > 0.97
 
 
 def test_fuse_command_writes_a_fused_network(tmp_path, monkeypatch):

@@ -19,32 +19,44 @@ from torch import Tensor, nn
 from .noise import NUM_NOISE_CUES
 from .zbuffer import NUM_ZBUFFER_FEATURES
 
-__all__ = ["NUM_FUSION_INPUTS", "ZBufferFusion", "fusion_inputs"]
+__all__ = ["NUM_FUSION_INPUTS", "ZBufferFusion", "zbuffer_inputs", "fusion_inputs"]
 
 NUM_FUSION_INPUTS = 1 + (NUM_ZBUFFER_FEATURES + 1) + NUM_NOISE_CUES
 _MAX_MARGIN = 15.0  # margins beyond this are certain either way (and saturate a float32 probability)
 
 
-def fusion_inputs(margin: Tensor, zbuffer: Tensor, noise: Tensor) -> Tensor:
-    """(..., 8) inputs of the fusion MLP: the margin (clamped to +-15), whether the point's own
-    disc is in front, its distance beyond the front plane on two scales (``tanh`` of it over 2 and
-    over 8 spacings), the log of its spacing in pixels, how squarely it faces the camera, and the
-    cloud's noise cues: these tell how far the z-buffer's test can be trusted.
+def zbuffer_inputs(zbuffer: Tensor) -> Tensor:
+    """(..., 5) the fusion's inputs from the z-buffer's answers, computed once per view: whether
+    the point's own disc is in front, its distance beyond the front plane on two scales (``tanh``
+    of it over 2 and over 8 spacings), the log of its spacing in pixels and how squarely it faces
+    the camera.
+
+    Args:
+        zbuffer: (..., 4) :func:`~o3dvis.nn.zbuffer.surfel_zbuffer` answers.
+    """
+    beyond = zbuffer[..., 1:2]
+    return torch.cat([zbuffer[..., :1], torch.tanh(torch.cat([beyond / 2, beyond / 8], dim=-1)),
+                      zbuffer[..., 2:3].clamp_min(1e-6).log(), zbuffer[..., 3:]], dim=-1)
+
+
+def fusion_inputs(margin: Tensor, inputs: Tensor, noise: Tensor) -> Tensor:
+    """(..., 8) inputs of the fusion MLP: the margin (clamped to +-15), the :func:`zbuffer_inputs`
+    and the cloud's noise cues, which tell how far the z-buffer's test can be trusted.
 
     Args:
         margin: (...) the network's margins.
-        zbuffer: (..., 4) the :func:`~o3dvis.nn.zbuffer.surfel_zbuffer` answers of the same pairs.
+        inputs: (..., 5) the :func:`zbuffer_inputs` of the same pairs.
         noise: (2,) the cloud's :func:`~o3dvis.nn.noise.noise_cues`, or (..., 2) each pair's cloud's.
     """
-    beyond = zbuffer[..., 1]
-    first = torch.stack([margin.clamp(-_MAX_MARGIN, _MAX_MARGIN), zbuffer[..., 0], torch.tanh(beyond / 2),
-                         torch.tanh(beyond / 8), zbuffer[..., 2].clamp_min(1e-6).log(), zbuffer[..., 3]], dim=-1)
-    return torch.cat([first, noise.to(first).expand(*first.shape[:-1], NUM_NOISE_CUES)], dim=-1)
+    inputs = inputs.to(margin.dtype)
+    return torch.cat([margin.clamp(-_MAX_MARGIN, _MAX_MARGIN)[..., None], inputs,
+                      noise.to(inputs).expand(*inputs.shape[:-1], NUM_NOISE_CUES)], dim=-1)
 
 
 class ZBufferFusion(nn.Module):
     """The fused margin of :func:`fusion_inputs`: an MLP of one hidden layer on the inputs
-    standardised by the buffers ``mean`` and ``std`` (set when it is fitted).
+    standardised by the buffers ``mean`` and ``std`` (set when it is fitted; folded into the
+    first layer's weights when it runs).
 
     Args:
         hidden: width of the hidden layer.
@@ -56,9 +68,12 @@ class ZBufferFusion(nn.Module):
         self.register_buffer("std", torch.ones(NUM_FUSION_INPUTS))
         self.mlp = nn.Sequential(nn.Linear(NUM_FUSION_INPUTS, hidden), nn.ReLU(), nn.Linear(hidden, 1))
 
-    def forward(self, margin: Tensor, zbuffer: Tensor, noise: Tensor) -> Tensor:
-        """(...) fused margins of (...) ``margin``, (..., 4) ``zbuffer`` answers and the noise cues
-        (see :func:`fusion_inputs`)."""
-        x = fusion_inputs(margin, zbuffer.to(margin.dtype), noise)
-        return self.mlp(((x - self.mean.to(x.dtype)) / self.std.to(x.dtype)).to(self.mlp[0].weight.dtype))[..., 0] \
-            .to(margin.dtype)
+    def forward(self, margin: Tensor, inputs: Tensor, noise: Tensor) -> Tensor:
+        """(...) fused margins of (...) ``margin``, (..., 5) :func:`zbuffer_inputs` and the noise
+        cues (see :func:`fusion_inputs`)."""
+        first, last = self.mlp[0], self.mlp[2]
+        x = fusion_inputs(margin, inputs, noise).to(first.weight.dtype)
+        weight = first.weight / self.std.to(first.weight)
+        bias = first.bias - weight @ self.mean.to(first.weight)
+        hidden = torch.addmm(bias, x.reshape(-1, x.shape[-1]), weight.t()).relu_()
+        return torch.addmm(last.bias, hidden, last.weight.t()).view(margin.shape).to(margin.dtype)

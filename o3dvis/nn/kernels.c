@@ -477,12 +477,21 @@ int o3dvis_surfel_zbuffer(int64_t n, const float *points, const float *surfels, 
         r = r < rows - 1 ? r : rows - 1;
         geo[4 * i] = x, geo[4 * i + 1] = y, geo[4 * i + 2] = z, geo[4 * i + 3] = d;
         own[i] = r * cols + c % cols;
-        /* the pixels whose centres lie within the disc's angular radius asin(radius / d) of the point */
+        /* the pixels whose centres the disc may cover: it reaches r sqrt(1 - (n.e)^2) / (d - r) radians
+         * from the point along an image direction e (the small-angle extent of a tilted disc; the
+         * margin covers what that neglects), along the meridian in rows, along the parallel in columns */
         const float radius = surfels[4 * i], *nrm = surfels + 4 * i + 1;
-        float half_h = (radius < d ? atan2_pos(radius, sqrtf(d * d - radius * radius)) : pi / 2) / pixel;
+        const float reach = radius < d ? radius / (d - radius) / pixel : (float)max_half;
+        const float ez = h > 0.0f ? z / (h * d) : 0.0f;
+        const float along_v = h > 0.0f ? -ez * (x * nrm[0] + y * nrm[1]) + h / d * nrm[2] : nrm[0];
+        const float along_h = h > 0.0f ? (x * nrm[1] - y * nrm[0]) / h : nrm[1];
+        const float fv = sqrtf(fmaxf(0.0f, 1.0f - along_v * along_v)) + 0.15f;
+        const float fh = sqrtf(fmaxf(0.0f, 1.0f - along_h * along_h)) + 0.15f;
+        float half_h = reach * (fv < 1.0f ? fv : 1.0f), half_a = reach * (fh < 1.0f ? fh : 1.0f);
         half_h = half_h < (float)max_half ? half_h : (float)max_half;
+        half_a = half_a < (float)max_half ? half_a : (float)max_half;
         const float flat = d > 0.0f ? h / d : 1.0f;  /* the cosine of the elevation */
-        float half_w = half_h / (flat > 1e-3f ? flat : 1e-3f);
+        float half_w = half_a / (flat > 1e-3f ? flat : 1e-3f);
         /* at most the whole circle of latitude, each of its pixels once */
         const float wide = 0.5f * (float)(cols - 1) < (float)max_wide ? 0.5f * (float)(cols - 1) : (float)max_wide;
         half_w = half_w < wide ? half_w : wide;

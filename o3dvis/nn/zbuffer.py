@@ -58,12 +58,21 @@ def _surfel_zbuffer_torch(points: Tensor, surfels: Tensor, camera: Tensor, rows:
     col_f = (torch.atan2(offset[:, 1], offset[:, 0]) + math.pi) * rows / math.pi
     own_row, own_col = row_f.long().clamp_max(rows - 1), col_f.long()
     own = own_row * cols + own_col % cols
-    # the pixels whose centres lie within the disc's angular radius of the point's direction
+    # the pixels whose centres the disc may cover (see kernels.c): its reach along the meridian, in
+    # rows, and along the parallel, in columns
     radius, normals = surfels[:, 0], surfels[:, 1:]
-    sine = radius / dist
-    half_h = (torch.where(sine < 1, sine.clamp_max(1).asin(), math.pi / 2) / pixel).clamp_max(_MAX_HALF)
-    flat = torch.where(dist > 0, offset[:, :2].norm(dim=1) / dist, torch.ones_like(dist))  # cos(elevation)
-    half_w = (half_h / flat.clamp_min(1e-3)).clamp_max(min((cols - 1) / 2, _MAX_WIDE))  # each pixel once
+    reach = torch.where(radius < dist, radius / (dist - radius) / pixel, torch.full_like(dist, _MAX_HALF))
+    h = offset[:, :2].norm(dim=1)
+    flat_side = h > 0
+    ez = torch.where(flat_side, offset[:, 2] / (h * dist), torch.zeros_like(h))
+    along_v = torch.where(flat_side, -ez * (offset[:, 0] * normals[:, 0] + offset[:, 1] * normals[:, 1])
+                          + h / dist * normals[:, 2], normals[:, 0])
+    along_h = torch.where(flat_side, (offset[:, 0] * normals[:, 1] - offset[:, 1] * normals[:, 0]) / h,
+                          normals[:, 1])
+    half_h = (reach * ((1 - along_v.square()).clamp_min(0).sqrt() + 0.15).clamp_max(1)).clamp_max(_MAX_HALF)
+    half_a = (reach * ((1 - along_h.square()).clamp_min(0).sqrt() + 0.15).clamp_max(1)).clamp_max(_MAX_HALF)
+    flat = torch.where(dist > 0, h / dist, torch.ones_like(dist))  # cos(elevation)
+    half_w = (half_a / flat.clamp_min(1e-3)).clamp_max(min((cols - 1) / 2, _MAX_WIDE))  # each pixel once
     r0 = torch.minimum((row_f - half_h - 0.5).ceil().long(), own_row).clamp_min(0)
     r1 = torch.maximum((row_f + half_h - 0.5).floor().long(), own_row).clamp_max(rows - 1)
     k0 = torch.minimum((col_f - half_w - 0.5).ceil().long(), own_col)

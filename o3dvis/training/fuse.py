@@ -18,7 +18,7 @@ from torch import nn
 
 from ..models import load_model
 from ..nn.cues import point_surfels
-from ..nn.fusion import ZBufferFusion, fusion_inputs
+from ..nn.fusion import ZBufferFusion, fusion_inputs, zbuffer_inputs
 from ..nn.network import NetworkConfig, VisibilityNetwork
 from ..nn.zbuffer import surfel_zbuffer
 from .publish import portable_path
@@ -47,8 +47,8 @@ def fit_fusion(margins: torch.Tensor, zbuffers: torch.Tensor, noise: torch.Tenso
     generator = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
     fusion = ZBufferFusion()
-    margins, zbuffers, noise = margins.float(), zbuffers.float(), noise.float()
-    x = fusion_inputs(margins, zbuffers, noise)
+    margins, inputs, noise = margins.float(), zbuffer_inputs(zbuffers.float()), noise.float()
+    x = fusion_inputs(margins, inputs, noise)
     fusion.mean.copy_(x.mean(dim=0))
     fusion.std.copy_(x.std(dim=0).clamp_min(1e-3))
     labels = labels.float()
@@ -59,12 +59,12 @@ def fit_fusion(margins: torch.Tensor, zbuffers: torch.Tensor, noise: torch.Tenso
         for _ in range(steps):
             pick = torch.randint(len(labels), (min(batch_size, len(labels)),), generator=generator)
             opt.zero_grad()
-            loss(fusion(margins[pick], zbuffers[pick], noise[pick]), labels[pick]).backward()
+            loss(fusion(margins[pick], inputs[pick], noise[pick]), labels[pick]).backward()
             opt.step()
             schedule.step()
     with torch.no_grad():
         before = loss(margins.clamp(-15, 15), labels).item()
-        after = loss(fusion(margins, zbuffers, noise), labels).item()
+        after = loss(fusion(margins, inputs, noise), labels).item()
     return fusion, before, after
 
 

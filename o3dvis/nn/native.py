@@ -22,7 +22,8 @@ from torch import Tensor
 
 from .. import clib
 
-__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "project", "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin"]
+__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "project", "surfels",
+           "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin"]
 
 _I64, _I32, _PTR = ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
 

@@ -136,8 +136,8 @@ def fuse(checkpoint: str | Path, data: list[str | Path], out: str | Path, clouds
         labels.append(torch.from_numpy(cloud.labels).reshape(-1)[rows])
         bar.update()
     bar.close()
-    fusion, before, after = fit_fusion(torch.cat(margins), torch.cat(zbuffers), torch.cat(cloud_cues), torch.cat(labels),
-                                       steps, seed=seed)
+    fusion, before, after = fit_fusion(torch.cat(margins), torch.cat(zbuffers), torch.cat(cloud_cues),
+                                       torch.cat(labels), steps, seed=seed)
     fused = VisibilityNetwork(NetworkConfig.from_dict({**asdict(net.config), "fusion": True}))
     fused.load_state_dict({**net.state_dict(), **{f"fusion.{k}": v for k, v in fusion.state_dict().items()}})
     summary = {"clouds": clouds, "samples": sum(len(m) for m in margins), "seed": seed,

@@ -2,10 +2,12 @@
 
     python3 benchmarks/bench_scaling.py --points 2048,8192,32768,200000,1000000,3000000,10000000 \\
         --out benchmarks/results/scaling.md
-    python3 benchmarks/bench_scaling.py --scene rooms --points 200000,1000000,10000000 \\
+    python3 benchmarks/bench_scaling.py --scene rooms --points 200000,1000000 --rounds 5 \\
         --out benchmarks/results/scaling_inside.md
-    python3 benchmarks/bench_scaling.py --scene rooms --points 200000,1000000 --rotations 4 \\
-        --out benchmarks/results/scaling_inside_x4.md
+    python3 benchmarks/bench_scaling.py --scene rooms --points 10000000 --rounds 1 \\
+        --out benchmarks/results/scaling_inside_10m.md
+    python3 benchmarks/bench_scaling.py --scene rooms --points 200000,1000000 --rotations 2 \\
+        --out benchmarks/results/scaling_inside_x2.md
 
 For each size, one procedural cloud and one camera (as ``o3dvis bench``), or with ``--scene``
 a procedural scene (furnished rooms or a street, sampled uniformly, fixed seed) and a camera

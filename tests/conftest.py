@@ -4,7 +4,21 @@ import sys
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 os.environ.setdefault("MPLBACKEND", "Agg")
 
+import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+
+
+def box_surface(lo, hi, count: int, rng: np.random.Generator) -> np.ndarray:
+    """``count`` points uniform on the six faces of the box [lo, hi] (rooms for the tests of
+    cameras inside a cloud)."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    size = hi - lo
+    areas = np.repeat([size[1] * size[2], size[0] * size[2], size[0] * size[1]], 2)
+    face = rng.choice(6, size=count, p=areas / areas.sum())
+    points = lo + rng.random((count, 3)) * size
+    axis = face // 2
+    points[np.arange(count), axis] = np.where(face % 2 == 0, lo[axis], hi[axis])
+    return points
 
 
 @pytest.fixture

@@ -14,6 +14,8 @@ from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
 from o3dvis.nn.octree import normalize_points
 from o3dvis.nn.zbuffer import _surfel_zbuffer_torch, buffer_rows, surfel_zbuffer
 
+from conftest import box_surface
+
 SMALL = dict(depth=6, channels=(8, 16, 16, 16, 16), footprints=True)
 WALL = 2.5  # a partition 0.3 thick across the room's length at x = 2.5, closed from floor to ceiling
 
@@ -22,13 +24,8 @@ def _room(count: int = 12_000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Points on the inner faces of a 6 x 4 x 3 room and on both faces of a full partition at
     ``x = WALL``, and whether each lies in the left half (x < WALL)."""
     rng = np.random.default_rng(seed)
-    lo, hi = np.zeros(3), np.array([6.0, 4.0, 3.0])
-    size = hi - lo
-    areas = np.repeat([size[1] * size[2], size[0] * size[2], size[0] * size[1]], 2)
-    face = rng.choice(6, size=count, p=areas / areas.sum())
-    points = lo + rng.random((count, 3)) * size
-    axis = face // 2
-    points[np.arange(count), axis] = np.where(face % 2 == 0, lo[axis], hi[axis])
+    size = np.array([6.0, 4.0, 3.0])
+    points = box_surface(np.zeros(3), size, count, rng)
     points = points[np.abs(points[:, 0] - WALL) > 0.15]  # none inside the partition
     wall = rng.random((count // 6, 3)) * size
     wall[:, 0] = WALL + np.where(rng.random(len(wall)) < 0.5, -0.15, 0.15)

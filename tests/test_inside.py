@@ -12,20 +12,10 @@ from o3dvis.apps import render, shadows
 from o3dvis.nn import NetworkConfig, VisibilityNetwork
 from o3dvis.pretrained import shared_pretrained
 
+from conftest import box_surface
+
 ROOM = (6.0, 4.0, 3.0)  # length, width, height
 WALL = (2.45, 2.55)  # the partition's faces, across the length: two closed rooms side by side
-
-
-def _box_surface(lo, hi, count: int, rng: np.random.Generator) -> np.ndarray:
-    """``count`` points uniform on the six faces of the box [lo, hi]."""
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    size = hi - lo
-    areas = np.repeat([size[1] * size[2], size[0] * size[2], size[0] * size[1]], 2)
-    face = rng.choice(6, size=count, p=areas / areas.sum())
-    points = lo + rng.random((count, 3)) * size
-    axis = face // 2
-    points[np.arange(count), axis] = np.where(face % 2 == 0, lo[axis], hi[axis])
-    return points
 
 
 @pytest.fixture(scope="module")
@@ -37,8 +27,8 @@ def room() -> tuple[np.ndarray, np.ndarray]:
     """
     rng = np.random.default_rng(0)
     length, width, height = ROOM
-    left = _box_surface((0, 0, 0), (WALL[0], width, height), 10_000, rng)
-    right = _box_surface((WALL[1], 0, 0), (length, width, height), 10_000, rng)
+    left = box_surface((0, 0, 0), (WALL[0], width, height), 10_000, rng)
+    right = box_surface((WALL[1], 0, 0), (length, width, height), 10_000, rng)
     return np.vstack([left, right]), np.r_[np.ones(len(left), bool), np.zeros(len(right), bool)]
 
 

@@ -104,6 +104,17 @@ def _publish(args) -> int:
     return 0
 
 
+def _fit_arguments(p: argparse.ArgumentParser, data: str, out: str, clouds: int) -> None:
+    """The arguments of the commands that fit a part of a trained network (calibrate, fuse)."""
+    p.add_argument("checkpoint", metavar="CHECKPOINT", help=".safetensors file written by o3dvis train")
+    p.add_argument("data", nargs="+", help=data)
+    p.add_argument("-o", "--out", required=True, help=out)
+    p.add_argument("--clouds", type=int, default=clouds, help=f"clouds drawn (default {clouds})")
+    p.add_argument("--keep", type=int, default=20000, help="(point, view) pairs kept per cloud (default 20000)")
+    p.add_argument("--seed", type=int, default=1, help="seed of the draw and of the fit (default 1)")
+    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     fmt = argparse.RawDescriptionHelpFormatter
     p = sub.add_parser("shapes", help="write random procedural training meshes", formatter_class=fmt,
@@ -184,16 +195,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "(o3dvis.nn.calibration), and write the calibrated network.\n\n"
                                    "example:\n  o3dvis calibrate runs/default/best.safetensors data/train "
                                    "data/proc -o default-calibrated.safetensors")
-    p.add_argument("checkpoint", metavar="CHECKPOINT", help=".safetensors file written by o3dvis train")
-    p.add_argument("data", nargs="+", help="folders of prepared .npz training files")
-    p.add_argument("-o", "--out", required=True, help="the calibrated .safetensors file to write")
-    p.add_argument("--clouds", type=int, default=2000, help="training clouds drawn (default 2000)")
-    p.add_argument("--keep", type=int, default=20000, help="(point, view) pairs kept per cloud (default 20000)")
+    _fit_arguments(p, "folders of prepared .npz training files", "the calibrated .safetensors file to write", 2000)
     p.add_argument("--max-points", type=int, default=81920, help="largest cloud drawn (default 81920)")
-    p.add_argument("--seed", type=int, default=1, help="seed of the draw (default 1)")
     p.add_argument("--estimated-normals", type=float, default=0.0, metavar="SHARE",
                    help="share of clouds given the normals normals='estimate' computes (as in train)")
-    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
     p.set_defaults(func=_calibrate)
 
     p = sub.add_parser("fuse", help="fit a scene network's fusion with the surfel z-buffer", formatter_class=fmt,
@@ -202,19 +207,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "write the fused network.\n\n"
                                    "example:\n  o3dvis fuse o3dvis/weights/scene.safetensors data/sctrain "
                                    "-o scene-fused.safetensors")
-    p.add_argument("checkpoint", metavar="CHECKPOINT", help=".safetensors file written by o3dvis train")
-    p.add_argument("data", nargs="+", help="folders of prepared scene .npz files (o3dvis prepare --scenes)")
-    p.add_argument("-o", "--out", required=True, help="the fused .safetensors file to write")
-    p.add_argument("--clouds", type=int, default=400, help="clouds drawn (default 400)")
-    p.add_argument("--keep", type=int, default=20000, help="(point, camera) pairs kept per cloud (default 20000)")
+    _fit_arguments(p, "folders of prepared scene .npz files (o3dvis prepare --scenes)",
+                   "the fused .safetensors file to write", 400)
     p.add_argument("--min-points", type=int, default=8192, help="smallest cloud drawn (default 8192)")
     p.add_argument("--max-points", type=int, default=65536, help="largest cloud drawn (default 65536)")
     p.add_argument("--noise", type=float, default=0.02,
                    help="largest noise, a fraction of the median camera distance (default 0.02)")
     p.add_argument("--noise-prob", type=float, default=0.5, help="share of clouds with noise (default 0.5)")
     p.add_argument("--steps", type=int, default=3000, help="Adam steps of the fit (default 3000)")
-    p.add_argument("--seed", type=int, default=1, help="seed of the draw and the fit (default 1)")
-    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
     p.set_defaults(func=_fuse)
 
     p = sub.add_parser("publish", help="install a checkpoint as a shipped model", formatter_class=fmt,

@@ -28,6 +28,8 @@ _MAX_WIDTH, _MAX_STAGES, _MAX_CUE_SCALE = 1024, 8, 256
 # options that earlier versions stored in every checkpoint's config, with the only value any
 # shipped model used: a config may still name them, with that value
 _RETIRED_OPTIONS = {"interpolation": "nearest", "plane_cues": False, "extra": {}}
+# the config options that add a part fitted after training, and that part's name in the state dict
+_FITTED = {"calibrated": "calibration.", "fusion": "fusion."}
 
 
 @dataclass
@@ -258,6 +260,21 @@ class VisibilityNetwork(nn.Module):
         as in :meth:`view`)."""
         return self.predictor(features, *self.view_inputs(self.view(points, camera, direction, surfels),
                                                           normals=normals))
+
+    def without(self, option: str) -> "VisibilityNetwork":
+        """This network, or where its config sets ``option`` (``"calibrated"`` or ``"fusion"``, the
+        parts fitted after training) a copy without that part, to fit it anew.
+
+        Raises:
+            ValueError: another option.
+        """
+        if option not in _FITTED:
+            raise ValueError(f"option must be one of {sorted(_FITTED)}, got {option!r}")
+        if not getattr(self.config, option):
+            return self
+        plain = VisibilityNetwork(NetworkConfig.from_dict({**asdict(self.config), option: False}))
+        plain.load_state_dict({k: v for k, v in self.state_dict().items() if not k.startswith(_FITTED[option])})
+        return plain
 
     def num_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())

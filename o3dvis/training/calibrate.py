@@ -23,15 +23,6 @@ from .publish import portable_path
 __all__ = ["calibrate"]
 
 
-def _uncalibrated(net: VisibilityNetwork) -> VisibilityNetwork:
-    """``net`` itself, or a copy without its calibration."""
-    if net.calibration is None:
-        return net
-    plain = VisibilityNetwork(NetworkConfig.from_dict({**asdict(net.config), "calibrated": False}))
-    plain.load_state_dict({k: v for k, v in net.state_dict().items() if not k.startswith("calibration.")})
-    return plain
-
-
 def calibrate(checkpoint: str | Path, data: list[str | Path], out: str | Path, clouds: int = 2000,
               keep: int = 20000, seed: int = 1, augmentation: Augmentation | None = None,
               progress: bool = True) -> dict:
@@ -60,7 +51,7 @@ def calibrate(checkpoint: str | Path, data: list[str | Path], out: str | Path, c
 
     if clouds < 1 or keep < 1:
         raise ValueError(f"clouds and keep must be positive, got {clouds} and {keep}")
-    net = _uncalibrated(load_model(Path(checkpoint)))
+    net = load_model(Path(checkpoint)).without("calibrated")
     files = [f for d in data for f in list_samples(d)]
     if not files:
         raise ValueError(f"no prepared .npz files in {[str(d) for d in data]}")

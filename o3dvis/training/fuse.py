@@ -26,15 +26,6 @@ from .publish import portable_path
 __all__ = ["fuse", "fit_fusion"]
 
 
-def _unfused(net: VisibilityNetwork) -> VisibilityNetwork:
-    """``net`` itself, or a copy without its fusion."""
-    if net.fusion is None:
-        return net
-    plain = VisibilityNetwork(NetworkConfig.from_dict({**asdict(net.config), "fusion": False}))
-    plain.load_state_dict({k: v for k, v in net.state_dict().items() if not k.startswith("fusion.")})
-    return plain
-
-
 def fit_fusion(margins: torch.Tensor, zbuffers: torch.Tensor, noise: torch.Tensor, labels: torch.Tensor,
                steps: int = 3000, batch_size: int = 65536, seed: int = 0) -> tuple[ZBufferFusion, float, float]:
     """A :class:`ZBufferFusion` fitted to pairs' margins (M,), z-buffer answers (M, 4), their clouds'
@@ -100,7 +91,7 @@ def fuse(checkpoint: str | Path, data: list[str | Path], out: str | Path, clouds
     if clouds < 1 or keep < 1 or not 1 <= min_points <= max_points:
         raise ValueError(f"clouds and keep must be positive and 1 <= min_points <= max_points, got {clouds}, "
                          f"{keep}, {min_points}, {max_points}")
-    net = _unfused(load_model(Path(checkpoint)))
+    net = load_model(Path(checkpoint)).without("fusion")
     files = [f for d in data for f in list_samples(d)]
     if not files:
         raise ValueError(f"no prepared .npz files in {[str(d) for d in data]}")

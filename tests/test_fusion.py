@@ -202,3 +202,14 @@ def test_fuse_command_writes_a_fused_network(tmp_path, monkeypatch):
 def test_config_fusion_must_be_a_flag():
     with pytest.raises(ValueError, match="fusion"):
         NetworkConfig(fusion=1)
+
+
+def test_without_drops_a_fitted_part_only():
+    plain, fused = _fused_pair(3)
+    stripped = fused.without("fusion")
+    assert stripped.fusion is None and not stripped.config.fusion
+    for name, value in plain.state_dict().items():
+        torch.testing.assert_close(stripped.state_dict()[name], value)
+    assert plain.without("fusion") is plain and fused.without("calibrated") is fused
+    with pytest.raises(ValueError, match="option"):
+        fused.without("footprints")

@@ -26,6 +26,7 @@ from torch import Tensor
 from .cameras import Views, as_views
 from .nn import native
 from .nn.network import VisibilityNetwork
+from .nn.cues import point_surfels
 from .nn.fusion import zbuffer_inputs
 from .nn.zbuffer import surfel_zbuffer
 from .threads import plan_threads, threaded_map, torch_threads
@@ -144,7 +145,8 @@ class VisibilityField:
         self.noise = noise
         self._scene_factory, self._scene = scene, None
         self._lazy_lock = threading.Lock()  # guards what is made on first use: the scene field, the surfels
-        self._surfels: dict[int, Tensor | None] = {}  # each frame's point surfels, by its points' storage
+        # each frame's point surfels (and with their area spacing), by its points' storage
+        self._surfels: dict[int, tuple[Tensor | None, Tensor | None]] = {}
 
     @property
     def num_points(self) -> int:
@@ -286,15 +288,21 @@ class VisibilityField:
                              f"{int(rows.min())} .. {int(rows.max())}")
         return rows
 
-    def _surfels_of(self, points: Tensor) -> Tensor | None:
-        """The network's :meth:`~o3dvis.nn.network.VisibilityNetwork.surfels` of one frame's points,
-        computed on the first view and kept (None for a network that needs none)."""
-        if not (self.network.config.footprints or self.network.config.fusion):
-            return None
+    def _surfels_of(self, points: Tensor) -> tuple[Tensor | None, Tensor | None]:
+        """The network's :meth:`~o3dvis.nn.network.VisibilityNetwork.surfels` of one frame's points
+        (None for a network that needs none) and, for a network with a fusion, those surfels with
+        their area spacing for its z-buffer (else None); computed on the first view and kept."""
+        config = self.network.config
+        if not (config.footprints or config.fusion):
+            return None, None
         key = points.data_ptr()
         with self._lazy_lock:
             if key not in self._surfels:
-                self._surfels[key] = self.network.surfels(points)
+                if config.fusion:  # one pass for both
+                    full = point_surfels(points, areas=True)
+                    self._surfels[key] = (full[:, :4].contiguous() if config.footprints else None, full)
+                else:
+                    self._surfels[key] = (self.network.surfels(points), None)
             return self._surfels[key]
 
     def _frame_probabilities(self, features: Tensor, points: Tensor, normals: Tensor | None,
@@ -303,13 +311,13 @@ class VisibilityField:
         """(v, n) probabilities of the views ``batch`` in one frame (features, points and views
         of that frame, see :meth:`_normalised`), streaming the points ``rows`` (None: all n) in
         cache-sized chunks, on ``workers`` threads side by side."""
-        surfels = self._surfels_of(points)
+        surfels, with_areas = self._surfels_of(points)
         fusion, views = self.network.fusion, range(batch.start, batch.stop)
 
         def prepare(task: tuple[str, int]) -> object:  # a view's projection, or its camera's z-buffer test
             kind, i = task
             if kind == "zbuffer":
-                return None if orthographic[i] else surfel_zbuffer(points, surfels, cameras[i])
+                return None if orthographic[i] else surfel_zbuffer(points, with_areas, cameras[i])
             return (self.network.view(points, direction=directions[i], surfels=surfels) if orthographic[i]
                     else self.network.view(points, cameras[i], surfels=surfels))
 

@@ -36,7 +36,9 @@ def _room(count: int = 12_000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 def _normalised(points: np.ndarray, camera: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     p, center, scale = normalize_points(torch.from_numpy(points))
     p = p.float()
-    return p, point_surfels(p), ((torch.from_numpy(camera) - center) / scale).float()
+    with torch.inference_mode():  # as a field computes them (with the C kernels, where built)
+        surfels = point_surfels(p, areas=True)
+    return p, surfels, ((torch.from_numpy(camera) - center) / scale).float()
 
 
 def test_zbuffer_separates_the_halves_of_a_partitioned_room():
@@ -56,7 +58,7 @@ def test_native_and_torch_zbuffers_agree():
     points, _ = _room(6000, seed=1)
     for camera in ([1.2, 1.5, 1.4], [4.0, 3.5, 0.3], [2.0, 2.0, 2.95]):  # the last right under the ceiling
         p, surfels, cam = _normalised(points, np.array(camera))
-        rows = buffer_rows(p, surfels[:, 0], cam)
+        rows = buffer_rows(p, surfels[:, 4], cam)
         a, b = surfel_zbuffer(p, surfels, cam), _surfel_zbuffer_torch(p, surfels, cam, rows)
         assert (a[:, 0] == b[:, 0]).float().mean() > 0.999
         assert torch.isclose(a[:, 1], b[:, 1], rtol=1e-3, atol=1e-3).float().mean() > 0.999
@@ -94,7 +96,7 @@ def test_native_zbuffer_checks_its_arguments():
     with pytest.raises(ValueError, match="rows"):
         native.surfel_zbuffer(p, surfels, cam, 0, 12, 48, 1000.0)
     with pytest.raises(ValueError, match="surfels"):
-        native.surfel_zbuffer(p, surfels[:, :3].contiguous(), cam, 64, 12, 48, 1000.0)
+        native.surfel_zbuffer(p, surfels[:, :4].contiguous(), cam, 64, 12, 48, 1000.0)
 
 
 def test_fusion_inputs_and_folded_standardisation():
@@ -141,7 +143,7 @@ def test_field_fuses_camera_views_and_keeps_directions(tmp_path):
     margin = (torch.log(p) - torch.log1p(-p)).float()
     rank = torch.arange(len(points)) if field.rank is None else field.rank
     with torch.inference_mode():  # as the field computes them (with the C kernels, where built)
-        surfels = point_surfels(field.points)
+        surfels = point_surfels(field.points, areas=True)
     for j, camera in enumerate(cameras):
         cam = ((torch.from_numpy(camera) - field.center) / field.scale).float()
         answers = surfel_zbuffer(field.points, surfels, cam)[rank]

@@ -60,7 +60,8 @@ def _sides(num_points: int, scales: Sequence[int]) -> list[int]:
     return [max(2, math.ceil(finest / scale)) for scale in scales]
 
 
-def point_surfels(points: Tensor, levels: Sequence[int] = (4, 5, 6, 7), count: int = 8) -> Tensor:
+def point_surfels(points: Tensor, levels: Sequence[int] = (4, 5, 6, 7), count: int = 8,
+                  areas: bool = False) -> Tensor:
     """(N, 4) each point's spacing to its neighbours and the unit normal of the surface around it.
 
     A surface that crosses a cell of side ``c`` holding ``n`` points has them about
@@ -69,13 +70,18 @@ def point_surfels(points: Tensor, levels: Sequence[int] = (4, 5, 6, 7), count: i
     points, else the coarsest, and the normal (unoriented) of the plane fitted
     to the points of that same cell. The finest cells' Morton keys, sorted, give
     every level's cells, and the finest cells' sums of the points' moments
-    theirs (in double, as the C kernel sums them).
+    theirs (in double, as the C kernel sums them). A cell that the surface crosses
+    only in part holds its points closer than that: ``areas`` adds the spacing
+    the points' spread gives, ``sqrt(12 sqrt(l1 l2) / n)`` with ``l1, l2`` the two
+    larger eigenvalues of their covariance (a uniformly covered rectangle's area
+    is ``12 sqrt(l1 l2)``), at least a tenth of the first spacing.
 
     Args:
         points: (N, 3) normalised points (in [-1, 1]^3).
+        areas: also give the area spacing.
 
     Returns:
-        (N, 4): the spacing, then the normal.
+        (N, 4): the spacing, then the normal; with ``areas`` (N, 5), the area spacing last.
     """
     finest = max(levels)
     keys, order = cell_keys(points, finest), None
@@ -83,7 +89,7 @@ def point_surfels(points: Tensor, levels: Sequence[int] = (4, 5, 6, 7), count: i
         keys, order = keys.sort()
         points = points[order]
     if native.usable(points):  # the same in one pass of C
-        surfels = native.surfels(points.contiguous(), keys, finest, min(levels), count)
+        surfels = native.surfels(points.contiguous(), keys, finest, min(levels), count, areas)
         return surfels if order is None else surfels.new_empty(surfels.shape).index_copy_(0, order, surfels)
     keys, leaf, counts = torch.unique_consecutive(keys, return_inverse=True, return_counts=True)
     # each finest cell's sums of its points and of their products (x, y, z, xx, yy, zz, xy, xz, yz), in double
@@ -95,23 +101,33 @@ def point_surfels(points: Tensor, levels: Sequence[int] = (4, 5, 6, 7), count: i
         _, cell = torch.unique_consecutive(keys >> 3 * (finest - level), return_inverse=True)
         total = torch.zeros(int(cell[-1]) + 1, dtype=counts.dtype, device=counts.device).index_add_(0, cell, counts)
         mean = moments.new_zeros(len(total), 9).index_add_(0, cell, moments) / total[:, None]
-        here = torch.cat([((2.0 / (1 << level)) / total.double().sqrt())[:, None], mean], dim=1)[cell]
+        here = torch.cat([((2.0 / (1 << level)) / total.double().sqrt())[:, None], mean, total.double()[:, None]],
+                         dim=1)[cell]
         take = (total[cell] >= count) if level != min(levels) else torch.ones_like(cell, dtype=torch.bool)
         chosen = here if chosen is None else torch.where((take & ~done)[:, None], here, chosen)
         done = take if level == finest else done | take
-    mean, second = chosen[:, 1:4], chosen[:, 4:]
+    mean, second = chosen[:, 1:4], chosen[:, 4:10]
     cross = second[:, 3:] - mean[:, [0, 0, 1]] * mean[:, [1, 2, 2]]
     covariance = torch.diag_embed(second[:, :3] - mean * mean)
     covariance[:, [0, 0, 1], [1, 2, 2]] = cross
     covariance[:, [1, 2, 2], [0, 0, 1]] = cross
-    surfels = torch.cat([chosen[:, :1], _least_axis(covariance)], dim=1).to(points.dtype)[leaf]
+    axis, least = _least_axis(covariance)
+    columns = [chosen[:, :1], axis]
+    if areas:  # the product of the two larger eigenvalues, from the sum of the principal 2 x 2 minors
+        d, c = covariance.diagonal(dim1=1, dim2=2), cross
+        minors = d[:, 0] * d[:, 1] + d[:, 0] * d[:, 2] + d[:, 1] * d[:, 2] - c.square().sum(dim=1)
+        product = (minors - least * (d.sum(dim=1) - least)).clamp_min(0)
+        spread = (12 * product.sqrt() / chosen[:, 10]).sqrt()
+        columns.append(torch.maximum(spread, 0.1 * chosen[:, 0])[:, None])
+    surfels = torch.cat(columns, dim=1).to(points.dtype)[leaf]
     return surfels if order is None else surfels.new_empty(surfels.shape).index_copy_(0, order, surfels)
 
 
-def _least_axis(a: Tensor) -> Tensor:
-    """(M, 3) unit eigenvectors of the smallest eigenvalues of symmetric (M, 3, 3) matrices, in
-    closed form (the trigonometric solution of the characteristic cubic, then the largest cross
-    product of two rows of ``a - lambda I``); any unit vector where that eigenvalue is not single."""
+def _least_axis(a: Tensor) -> tuple[Tensor, Tensor]:
+    """(M, 3) unit eigenvectors of the smallest eigenvalues of symmetric (M, 3, 3) matrices, and (M,)
+    those eigenvalues, in closed form (the trigonometric solution of the characteristic cubic, then
+    the largest cross product of two rows of ``a - lambda I``); any unit vector where that
+    eigenvalue is not single."""
     q = a.diagonal(dim1=1, dim2=2).sum(dim=1) / 3
     off = a[:, 0, 1] ** 2 + a[:, 0, 2] ** 2 + a[:, 1, 2] ** 2
     p = ((a.diagonal(dim1=1, dim2=2) - q[:, None]).pow(2).sum(dim=1) + 2 * off).div(6).sqrt()
@@ -126,8 +142,9 @@ def _least_axis(a: Tensor) -> Tensor:
     best = norms.argmax(dim=1)
     axis = crosses[torch.arange(len(a), device=a.device), best]
     length = norms.gather(1, best[:, None])
-    return torch.where(length > 0, axis / length.clamp_min(1e-300), torch.tensor([0.0, 0.0, 1.0], dtype=a.dtype,
+    unit = torch.where(length > 0, axis / length.clamp_min(1e-300), torch.tensor([0.0, 0.0, 1.0], dtype=a.dtype,
                                                                                    device=a.device))
+    return unit, smallest
 
 
 _SPLAT = 1.5  # a point covers its pixel at the finest scale whose pixels are this many spacings wide

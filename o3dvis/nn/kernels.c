@@ -272,7 +272,7 @@ int o3dvis_project(int64_t n, const float *points, const float *camera, const fl
 /* The unit eigenvector of the smallest eigenvalue of the symmetric 3x3 matrix a (row-major), as
  * o3dvis/nn/cues.py's _least_axis finds it: the trigonometric solution of the characteristic
  * cubic, then the longest cross product of two rows of a - lambda I; (0, 0, 1) where none. */
-static void least_axis(const double *a, double *axis) {
+static double least_axis(const double *a, double *axis) {
     const double q = (a[0] + a[4] + a[8]) / 3.0;
     const double off = a[1] * a[1] + a[2] * a[2] + a[5] * a[5];
     const double p = sqrt(((a[0] - q) * (a[0] - q) + (a[4] - q) * (a[4] - q) + (a[8] - q) * (a[8] - q) + 2.0 * off) / 6.0);
@@ -293,16 +293,19 @@ static void least_axis(const double *a, double *axis) {
         const double len = sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2]);
         if (len > best) best = len, axis[0] = c[0] / len, axis[1] = c[1] / len, axis[2] = c[2] / len;
     }
+    return smallest;
 }
 
 /* Each point's spacing to its neighbours and the normal of the plane of its cell
  * (o3dvis/nn/cues.py, point_surfels): points (n, 3) sorted by keys, their Morton keys at level
  * finest; each point takes the finest cell of levels coarsest .. finest that holds at least count
  * points, else its coarsest cell: spacing = cell side / sqrt(points in it), normal = the least
- * axis of their covariance (sums in double). surfels: (n, 4). Returns -1 where its scratch
- * memory could not be allocated, else 0. */
+ * axis of their covariance (sums in double). surfels: (n, 4). areas: NULL, or (n,) the spacing
+ * the points' spread gives: sqrt(12 sqrt(l1 l2) / points), l1 and l2 the two larger eigenvalues
+ * of the covariance (the area of a uniformly covered rectangle), at least a tenth of the cell's
+ * spacing. Returns -1 where its scratch memory could not be allocated, else 0. */
 int o3dvis_surfels(int64_t n, const float *points, const int64_t *keys, int32_t finest, int32_t coarsest,
-                   int64_t count, float *surfels) {
+                   int64_t count, float *surfels, float *areas) {
     int64_t m = 0;
     for (int64_t i = 0; i < n; i++) m += i == 0 || keys[i] != keys[i - 1];
     int64_t *start = malloc((size_t)(m + 1) * sizeof(int64_t));
@@ -338,10 +341,15 @@ int o3dvis_surfels(int64_t n, const float *points, const int64_t *keys, int32_t 
         const double xy = t[7] / w - mx * my, xz = t[8] / w - mx * mz, yz = t[9] / w - my * mz;
         const double cov[9] = {t[4] / w - mx * mx, xy, xz, xy, t[5] / w - my * my, yz, xz, yz, t[6] / w - mz * mz};
         double axis[3];
-        least_axis(cov, axis);
+        const double least = least_axis(cov, axis);
+        /* the product of the two larger eigenvalues, from the sum of the principal 2 x 2 minors */
+        const double minors = cov[0] * cov[4] + cov[0] * cov[8] + cov[4] * cov[8] - xy * xy - xz * xz - yz * yz;
+        const double product = minors - least * (cov[0] + cov[4] + cov[8] - least);
+        const double area = sqrt(12.0 * sqrt(product > 0.0 ? product : 0.0) / w), floor = 0.1 * chosen[11 * c];
         for (int64_t i = start[c]; i < start[c + 1]; i++) {
             surfels[4 * i] = (float)chosen[11 * c];
             for (int k = 0; k < 3; k++) surfels[4 * i + 1 + k] = (float)axis[k];
+            if (areas) areas[i] = (float)(area > floor ? area : floor);
         }
     }
     free(start), free(sums), free(chosen), free(done);
@@ -436,7 +444,8 @@ int o3dvis_plane_splat(int64_t n, const float *points, const float *surfels, con
  * first of equals); then each point is compared with the plane of the disc in front at its own
  * pixel, along its own ray.
  *
- * points: (n, 3); surfels: (n, 4) spacing and unit normal; camera: (3,); rows: the buffer's
+ * points: (n, 3); surfels: (n, 5) spacing, unit normal and area spacing (point_surfels with
+ * areas; the area spacing is the disc's radius and the unit of distances); camera: (3,); rows: the buffer's
  * rows; max_half: the largest half height of a disc's pixels, max_wide: the largest half
  * width. out: (n, 4) per point 1 where its own disc is in front (else 0), its distance beyond
  * the front plane in spacings (clipped to +-clip), its spacing in pixels, and |cos| of the
@@ -480,7 +489,7 @@ int o3dvis_surfel_zbuffer(int64_t n, const float *points, const float *surfels, 
         /* the pixels whose centres the disc may cover: it reaches r sqrt(1 - (n.e)^2) / (d - r) radians
          * from the point along an image direction e (the small-angle extent of a tilted disc; the
          * margin covers what that neglects), along the meridian in rows, along the parallel in columns */
-        const float radius = surfels[4 * i], *nrm = surfels + 4 * i + 1;
+        const float radius = surfels[5 * i + 4], *nrm = surfels + 5 * i + 1;
         const float reach = radius < d ? radius / (d - radius) / pixel : (float)max_half;
         const float ez = h > 0.0f ? z / (h * d) : 0.0f;
         const float along_v = h > 0.0f ? -ez * (x * nrm[0] + y * nrm[1]) + h / d * nrm[2] : nrm[0];
@@ -523,20 +532,20 @@ int o3dvis_surfel_zbuffer(int64_t n, const float *points, const float *surfels, 
     }
     for (int64_t i = 0; i < n; i++) {
         const int64_t j = owner[own[i]];
-        const float d = geo[4 * i + 3], *nrm = surfels + 4 * j + 1, radius = surfels[4 * j];
+        const float d = geo[4 * i + 3], *nrm = surfels + 5 * j + 1, radius = surfels[5 * j + 4];
         const float *o = geo + 4 * j;
         const float facing = (geo[4 * i] * nrm[0] + geo[4 * i + 1] * nrm[1] + geo[4 * i + 2] * nrm[2]) / d;
         float along = (o[0] * nrm[0] + o[1] * nrm[1] + o[2] * nrm[2]) / facing;
         along = isnan(along) ? INFINITY : along;
         const float lo = o[3] - 3.0f * radius, hi = o[3] + 3.0f * radius;
         along = along < lo ? lo : along > hi ? hi : along;
-        float beyond = (d - along) / surfels[4 * i];
+        float beyond = (d - along) / surfels[5 * i + 4];
         beyond = isnan(beyond) ? 0.0f : beyond < -clip ? -clip : beyond > clip ? clip : beyond;
-        const float *mine = surfels + 4 * i + 1;
+        const float *mine = surfels + 5 * i + 1;
         const float cosine = (geo[4 * i] * mine[0] + geo[4 * i + 1] * mine[1] + geo[4 * i + 2] * mine[2]) / d;
         out[4 * i] = j == i ? 1.0f : 0.0f;
         out[4 * i + 1] = beyond;
-        out[4 * i + 2] = surfels[4 * i] / d / pixel;
+        out[4 * i + 2] = surfels[5 * i + 4] / d / pixel;
         out[4 * i + 3] = isnan(cosine) ? 0.0f : fabsf(cosine);
     }
     free(zbuf), free(owner), free(table), free(geo), free(own);

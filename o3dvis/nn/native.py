@@ -43,7 +43,7 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_project": ([_I64, _PTR, _PTR, _PTR, _I32, _PTR] + [_PTR] * 6, ctypes.c_int),
     "o3dvis_plane_splat": ([_I64, _PTR, _PTR, _PTR, _PTR, _I32, _PTR, _PTR, _PTR, _PTR, _PTR, ctypes.c_float,
                             ctypes.c_float, _PTR], ctypes.c_int),
-    "o3dvis_surfels": ([_I64, _PTR, _PTR, _I32, _I32, _I64, _PTR], ctypes.c_int),
+    "o3dvis_surfels": ([_I64, _PTR, _PTR, _I32, _I32, _I64, _PTR, _PTR], ctypes.c_int),
     "o3dvis_surfel_zbuffer": ([_I64, _PTR, _PTR, _PTR, _I32, _I32, _I32, ctypes.c_float, _PTR], ctypes.c_int),
     "o3dvis_has_view_margin_bf16": ([], ctypes.c_int),
     "o3dvis_view_margin_bf16": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
@@ -128,9 +128,11 @@ def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,
     return dirs, depth, buffers, corners, rpix, uv
 
 
-def surfels(points: Tensor, keys: Tensor, finest: int, coarsest: int, count: int) -> Tensor:
+def surfels(points: Tensor, keys: Tensor, finest: int, coarsest: int, count: int,
+            areas: bool = False) -> Tensor:
     """(N, 4) :func:`o3dvis.nn.cues.point_surfels` of ``points`` (N, 3) float32 sorted by their
-    ``keys`` (N,) int64, the Morton keys of their cells at level ``finest``, in one pass.
+    ``keys`` (N,) int64, the Morton keys of their cells at level ``finest``, in one pass; with
+    ``areas``, (N, 5): their area spacing follows.
 
     Raises:
         ValueError: tensors of the wrong shapes or types, or levels out of [1, 21].
@@ -142,15 +144,17 @@ def surfels(points: Tensor, keys: Tensor, finest: int, coarsest: int, count: int
     if not 1 <= coarsest <= finest <= 21:
         raise ValueError(f"levels must lie in [1, 21], coarsest first, got {coarsest}, {finest}")
     out = points.new_empty(n, 4)
-    if n and _LIBRARY.o3dvis_surfels(n, points.data_ptr(), keys.data_ptr(), finest, coarsest, count, out.data_ptr()):
+    spread = points.new_empty(n) if areas else None
+    if n and _LIBRARY.o3dvis_surfels(n, points.data_ptr(), keys.data_ptr(), finest, coarsest, count, out.data_ptr(),
+                                     spread.data_ptr() if areas else None):
         raise MemoryError("no memory for the surfels' scratch buffers")
-    return out
+    return torch.cat([out, spread[:, None]], dim=1) if areas else out
 
 
 def surfel_zbuffer(points: Tensor, surfels: Tensor, camera: Tensor, rows: int, max_half: int, max_wide: int,
                    clip: float) -> Tensor:
     """(N, 4) :func:`o3dvis.nn.zbuffer.surfel_zbuffer` of ``points`` (N, 3) float32 with their
-    ``surfels`` (N, 4), seen from ``camera`` (3,), in one pass over the points and one over the buffer.
+    ``surfels`` (N, 5), seen from ``camera`` (3,), in one pass over the points and one over the buffer.
 
     Raises:
         ValueError: tensors of the wrong shapes or types, or a buffer out of [1, 2^15) rows.
@@ -158,7 +162,7 @@ def surfel_zbuffer(points: Tensor, surfels: Tensor, camera: Tensor, rows: int, m
     """
     n = points.shape[0]
     _check("points", points, (n, 3))
-    _check("surfels", surfels, (n, 4))
+    _check("surfels", surfels, (n, 5))
     _check("camera", camera, (3,))
     if not 1 <= rows < 1 << 15 or max_half < 0 or max_wide < 0:
         raise ValueError(f"rows must lie in [1, 32768) and the disc bounds be >= 0, got {rows}, {max_half}, "

@@ -201,9 +201,8 @@ class VisibilityNetwork(nn.Module):
 
     def surfels(self, points: Tensor) -> Tensor | None:
         """(N, 4) the points' :func:`~o3dvis.nn.cues.point_surfels` for a network whose depth
-        buffers splat each point over its footprint (``config.footprints``) or that fuses its
-        answers with the surfel z-buffer's (``config.fusion``), else None."""
-        return point_surfels(points) if self.config.footprints or self.config.fusion else None
+        buffers splat each point over its footprint (``config.footprints``), else None."""
+        return point_surfels(points) if self.config.footprints else None
 
     def view_inputs(self, view: ViewProjection, rows: slice | Tensor = slice(None),
                     normals: Tensor | None = None) -> tuple[Tensor, Tensor]:

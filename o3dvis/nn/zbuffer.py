@@ -1,7 +1,8 @@
 """The surfel z-buffer of a camera: each point tested against the surface in front of it, along its own ray.
 
 Every point becomes a disc of radius its spacing in the plane of its normal (its
-:func:`~o3dvis.nn.cues.point_surfels`), and the discs are rendered into a depth
+:func:`~o3dvis.nn.cues.point_surfels`, the spacing from the spread of the points of
+its cell), and the discs are rendered into a depth
 buffer over the full sphere around the camera (latitude-longitude, ``rows`` x
 ``2 rows`` pixels), each over the pixels whose centre ray meets it and always over
 its own pixel. A point is then compared with the plane of the disc in front at
@@ -60,7 +61,7 @@ def _surfel_zbuffer_torch(points: Tensor, surfels: Tensor, camera: Tensor, rows:
     own = own_row * cols + own_col % cols
     # the pixels whose centres the disc may cover (see kernels.c): its reach along the meridian, in
     # rows, and along the parallel, in columns
-    radius, normals = surfels[:, 0], surfels[:, 1:]
+    radius, normals = surfels[:, 4], surfels[:, 1:4]
     reach = torch.where(radius < dist, radius / (dist - radius) / pixel, torch.full_like(dist, _MAX_HALF))
     h = offset[:, :2].norm(dim=1)
     flat_side = h > 0
@@ -111,7 +112,8 @@ def surfel_zbuffer(points: Tensor, surfels: Tensor, camera: Tensor, rows: int | 
 
     Args:
         points: (N, 3) points (normalised coordinates).
-        surfels: (N, 4) their spacing and unit normal (:func:`~o3dvis.nn.cues.point_surfels`).
+        surfels: (N, 5) their spacing, unit normal and area spacing (:func:`~o3dvis.nn.cues.point_surfels`
+            with ``areas``): the area spacing is each disc's radius and the unit of its distances.
         camera: (3,) the camera, anywhere but on a point.
         rows: the buffer's rows (default: :func:`buffer_rows`).
 
@@ -122,7 +124,7 @@ def surfel_zbuffer(points: Tensor, surfels: Tensor, camera: Tensor, rows: int | 
         absolute cosine of the angle between its normal and its ray (0: seen edge-on).
     """
     points, surfels, camera = points.detach().float(), surfels.detach().float(), camera.detach().float()
-    rows = buffer_rows(points, surfels[:, 0], camera) if rows is None else rows
+    rows = buffer_rows(points, surfels[:, 4], camera) if rows is None else rows
     if native.available() and points.device.type == "cpu":
         return native.surfel_zbuffer(points.contiguous(), surfels.contiguous(), camera.contiguous(), rows,
                                      _MAX_HALF, _MAX_WIDE, _CLIP)

@@ -115,7 +115,7 @@ def fuse(checkpoint: str | Path, data: list[str | Path], out: str | Path, clouds
         margin = torch.log(p) - torch.log1p(-p)
         cameras = ((torch.as_tensor(cloud.cameras) - field.center) / field.scale).to(field.points.dtype)
         with torch.inference_mode():  # as the fused network's field computes them (C kernels, where built)
-            surfels = point_surfels(field.points)
+            surfels = point_surfels(field.points, areas=True)
             answers = torch.stack([surfel_zbuffer(field.points, surfels, c) for c in cameras])
             cues = VisibilityNetwork.cloud_noise(field.points, ordered=True)[0].float()
         if field.rank is not None:

@@ -273,6 +273,24 @@ def test_point_surfels_of_a_grid(side):
     torch.testing.assert_close((shuffled[:, 1:] * normals[order]).sum(dim=1).abs(), torch.ones(len(points)))
 
 
+def test_area_spacing_of_a_strip_that_crosses_its_cells_in_part():
+    """Two rows of grid points 0.02 apart: too few in the cells of their own size, they take cells
+    several rows wide, whose side over the square root of their count overstates the spacing about
+    twice; the spread of the points gives it (within 10 %), in C as in torch."""
+    u, v = torch.meshgrid(torch.arange(-0.5, 0.5, 0.02), torch.tensor([0.3, 0.32]), indexing="ij")
+    points = torch.stack([u.flatten(), v.flatten(), torch.zeros(u.numel())], dim=1)
+    points = torch.cat([points, torch.tensor([[-0.99, -0.99, -0.99], [0.99, 0.99, 0.99]])])  # the cube's corners
+    expected = point_surfels(points, areas=True)
+    with torch.inference_mode():  # the C kernel, where built
+        kernel = point_surfels(points, areas=True)
+    for surfels in (expected, kernel):
+        assert surfels.shape == (len(points), 5)
+        torch.testing.assert_close(surfels[:, :4], point_surfels(points))
+        strip = surfels[:-2]
+        assert strip[:, 0].min() > 1.5 * 0.02 and (strip[:, 4] - 0.02).abs().max() < 0.002
+    torch.testing.assert_close(kernel[:, 4], expected[:, 4], rtol=1e-4, atol=1e-7)
+
+
 def _slanted_plane(side: int, extent: float, slope: float) -> torch.Tensor:
     """A side x side grid of points on the plane z = 0.5 + slope * x."""
     points = _grid_plane(side, 0.5, extent)

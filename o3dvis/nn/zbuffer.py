@@ -31,12 +31,15 @@ PIXELS_PER_SPACING = 1.0  # buffer pixels across the points' median angular spac
 MAX_ROWS = 4096  # a buffer of at most 4096 x 8192 pixels (256 MiB of depths and owners)
 _MAX_HALF, _MAX_WIDE = 12, 48  # a disc's largest half height and half width, in pixels (near points, poles)
 _CLIP = 1000.0  # the largest distance beyond the front plane reported, in spacings
+_MEDIAN_POINTS = 1 << 16  # the most points whose median angular spacing sets the buffer's rows
 
 
 def buffer_rows(points: Tensor, spacing: Tensor, camera: Tensor) -> int:
     """The rows of the buffer of ``camera``: :data:`PIXELS_PER_SPACING` pixels across the median
-    angular spacing (``spacing`` over the distance) of the ``points``, in [16, :data:`MAX_ROWS`]."""
-    angular = spacing / (points - camera).norm(dim=1).clamp_min(1e-12)
+    angular spacing (``spacing`` over the distance) of the ``points`` (of every k-th of them in a
+    cloud of more than 2^16, k the fewest that leaves at most 2^16), in [16, :data:`MAX_ROWS`]."""
+    step = max(1, -(-len(points) // _MEDIAN_POINTS))
+    angular = spacing[::step] / (points[::step] - camera).norm(dim=1).clamp_min(1e-12)
     median = float(angular.median()) if len(angular) else 1.0
     return int(min(max(PIXELS_PER_SPACING * math.pi / max(median, 1e-12), 16), MAX_ROWS))
 

@@ -2,10 +2,10 @@
 
 Every point becomes a disc of radius its spacing in the plane of its normal (its
 :func:`~o3dvis.nn.cues.point_surfels`, the spacing from the spread of the points of
-its cell), and the discs are rendered into a depth
-buffer over the full sphere around the camera (latitude-longitude, ``rows`` x
-``2 rows`` pixels), each over the pixels whose centre ray meets it and always over
-its own pixel. A point is then compared with the plane of the disc in front at
+its cell), and the discs are rendered into a depth buffer over the full sphere
+around the camera (latitude-longitude, ``rows`` x ``2 rows`` pixels), each over
+the pixels whose centre ray meets it and always over its own pixel, the nearest
+disc in front. A point is then compared with the plane of the disc in front at
 its own pixel, evaluated along the point's own ray rather than at the pixel's
 centre: on a surface seen at a grazing angle the point lies on that plane, behind
 a wall it lies beyond it by many spacings. The buffer's resolution follows the

@@ -222,24 +222,8 @@ def _surfels(points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     return distance[:, 1:].mean(axis=1), normals
 
 
-def _equirectangular(offset: np.ndarray, rows: int) -> tuple[np.ndarray, np.ndarray]:
-    """Continuous (row, column) of each direction in a rows x 2 rows latitude-longitude image."""
-    r = np.linalg.norm(offset, axis=1)
-    elevation = np.arcsin(np.clip(offset[:, 2] / r, -1.0, 1.0))
-    azimuth = np.arctan2(offset[:, 1], offset[:, 0])
-    return (elevation + np.pi / 2) * rows / np.pi, (azimuth + np.pi) * rows / np.pi
-
-
-def _pixel_rays(row: np.ndarray, col: np.ndarray, rows: int) -> np.ndarray:
-    """Unit directions through pixel centres."""
-    elevation = (np.arange(rows) + 0.5) * np.pi / rows - np.pi / 2
-    azimuth = (np.arange(2 * rows) + 0.5) * np.pi / rows - np.pi
-    flat = np.cos(elevation)[row]
-    return np.column_stack([flat * np.cos(azimuth)[col], flat * np.sin(azimuth)[col], np.sin(elevation)[row]])
-
-
 def zbuffer_mask(points, cameras, splat: float = 1.0, tolerance: float = 1.0, neighbours: int = 8,
-                 max_rows: int = 2048, max_splat_pixels: int = 12) -> np.ndarray:
+                 max_rows: int = 2048) -> np.ndarray:
     """Visibility by splatting oriented discs (surfels) into a depth buffer around each camera.
 
     Every point becomes a disc of radius ``splat`` x its spacing (mean distance
@@ -249,7 +233,8 @@ def zbuffer_mask(points, cameras, splat: float = 1.0, tolerance: float = 1.0, ne
     spacing of the points seen from it (1.5 pixels per spacing, at most
     ``max_rows`` rows). A point is visible when its distance exceeds, by at most
     ``tolerance`` x its spacing, the depth along its own ray of the plane of the
-    disc nearest at its pixel (its own disc makes it visible).
+    disc nearest at its pixel (its own disc makes it visible). The buffer is the
+    library's (:func:`o3dvis.nn.zbuffer.surfel_zbuffer`) with these discs.
 
     Args:
         points: (N, 3) points.
@@ -258,58 +243,32 @@ def zbuffer_mask(points, cameras, splat: float = 1.0, tolerance: float = 1.0, ne
         tolerance: depth tolerance in units of the point spacing, >= 0.
         neighbours: neighbours that give the spacing and the normal.
         max_rows: largest number of buffer rows (the buffer has twice as many columns).
-        max_splat_pixels: largest disc radius in pixels (near points).
 
     Returns:
         (V, N) bool array, True where the point is visible.
     """
+    import torch
+
+    from .nn.zbuffer import surfel_zbuffer
+
     if not (np.isfinite(splat) and splat > 0 and np.isfinite(tolerance) and tolerance >= 0):
         raise ValueError(f"splat must be > 0 and tolerance >= 0, got {splat} and {tolerance}")
 
     def prepare(unique: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
         spacing, normals = _surfels(unique, neighbours)
-        radius = splat * spacing
+        centre = unique.mean(axis=0)
+        scale = max(float(np.abs(unique - centre).max()), 1e-300)  # float32 coordinates of order one
+        points32 = torch.from_numpy((unique - centre) / scale).float()
+        surfels = torch.from_numpy(np.column_stack([spacing, normals, splat * spacing]) / [scale, 1, 1, 1, scale])
 
         def visible(camera: np.ndarray) -> np.ndarray:
-            offset, dist = _offsets(unique, camera)
+            _, dist = _offsets(unique, camera)
             rows = int(np.clip(1.5 * np.pi / np.median(spacing / dist), 16, max_rows))
-            cols, pixel = 2 * rows, np.pi / rows
-            row, col = _equirectangular(offset, rows)
-            own_row = np.minimum(row.astype(np.int64), rows - 1)
-            own_col = col.astype(np.int64) % cols
-            # the disc's bounding ellipse in pixels: rows, and columns widened towards the poles
-            half_h = np.minimum(radius / dist / pixel, max_splat_pixels)
-            half_w = np.minimum(half_h / np.maximum(np.cos((row / rows - 0.5) * np.pi), 1e-3), cols / 2)
-            nh, nw = np.ceil(half_h).astype(np.int64), np.ceil(half_w).astype(np.int64)
-            size = (2 * nh + 1) * (2 * nw + 1)
-            owner = np.repeat(np.arange(len(unique)), size)
-            local = np.arange(len(owner)) - np.repeat(np.cumsum(size) - size, size)
-            width = 2 * nw[owner] + 1
-            r = own_row[owner] + local // width - nh[owner]
-            keep = (r >= 0) & (r < rows)
-            owner, r = owner[keep], r[keep]
-            c = (own_col[owner] + local[keep] % width[keep] - nw[owner]) % cols
-            # depth of each disc along each pixel's ray; pixels whose ray misses the disc are dropped
-            ray = _pixel_rays(r, c, rows)
-            facing = np.einsum("ij,ij->i", ray, normals[owner])
-            with np.errstate(divide="ignore", invalid="ignore"):
-                depth = np.einsum("ij,ij->i", offset[owner], normals[owner]) / facing
-            hit = np.isfinite(depth) & (depth > 0)
-            hit[hit] = np.linalg.norm(ray[hit] * depth[hit, None] - offset[owner[hit]], axis=1) <= radius[owner[hit]]
-            hit |= (r == own_row[owner]) & (c == own_col[owner])  # a disc always covers its own pixel
-            depth = np.where(np.isfinite(depth) & (depth > 0), depth, dist[owner])
-            owner, pixel_index, depth = owner[hit], (r * cols + c)[hit], depth[hit]
-            order = np.lexsort((depth, pixel_index))
-            first = order[np.r_[True, pixel_index[order][1:] != pixel_index[order][:-1]]]
-            front = np.full(rows * cols, -1)
-            front[pixel_index[first]] = owner[first]
-            # the front disc's plane along each point's own ray
-            j = front[own_row * cols + own_col]
-            unit = offset / dist[:, None]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                along = np.einsum("ij,ij->i", offset[j], normals[j]) / np.einsum("ij,ij->i", unit, normals[j])
-            along = np.clip(np.nan_to_num(along, nan=np.inf), dist[j] - 3 * radius[j], dist[j] + 3 * radius[j])
-            return (j == np.arange(len(unique))) | (dist <= along + tolerance * spacing)
+            with torch.inference_mode():
+                answer = surfel_zbuffer(points32, surfels, torch.from_numpy((camera - centre) / scale),
+                                        rows).numpy()
+            # the distance beyond the front plane comes in disc radii, the tolerance in spacings
+            return (answer[:, 0] > 0) | (answer[:, 1] * splat <= tolerance)
 
         return visible
 

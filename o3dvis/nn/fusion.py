@@ -26,10 +26,10 @@ _MAX_MARGIN = 15.0  # margins beyond this are certain either way (and saturate a
 
 
 def zbuffer_inputs(zbuffer: Tensor) -> Tensor:
-    """(..., 5) the fusion's inputs from the z-buffer's answers, computed once per view: whether
-    the point's own disc is in front, its distance beyond the front plane on two scales (``tanh``
-    of it over 2 and over 8 spacings), the log of its spacing in pixels and how squarely it faces
-    the camera.
+    """(..., 5) the fusion's inputs from the z-buffer's answers: whether the point's own disc is in
+    front, its distance beyond the front plane on two scales (``tanh`` of it over 2 and over 8
+    spacings), the log of its spacing in pixels and how squarely it faces the camera. A field
+    computes them chunk by chunk of points, where the temporaries stay in cache.
 
     Args:
         zbuffer: (..., 4) :func:`~o3dvis.nn.zbuffer.surfel_zbuffer` answers.

@@ -117,7 +117,8 @@ def fuse(checkpoint: str | Path, data: list[str | Path], out: str | Path, clouds
         with torch.inference_mode():  # as the fused network's field computes them (C kernels, where built)
             surfels = point_surfels(field.points, areas=True)
             answers = torch.stack([surfel_zbuffer(field.points, surfels, c) for c in cameras])
-            cues = VisibilityNetwork.cloud_noise(field.points, ordered=True)[0].float()
+            cues = (field.noise if field.noise is not None  # the field's own, when its network reads them
+                    else VisibilityNetwork.cloud_noise(field.points, ordered=True)[0]).float()
         if field.rank is not None:
             answers = answers[:, field.rank]
         rows = torch.from_numpy(rng.choice(margin.numel(), min(margin.numel(), keep), replace=False))

@@ -105,7 +105,7 @@ def encode(model: "NeuralVisibility", pcd, normals=None, camera: Tensor | None =
         last = _last
     if _holds(last, model, pcd, settings, points, cloud_normals):
         return last.field
-    field = model._encode(pcd, normals, camera)
+    field = model._encode(pcd, normals, camera, (points, cloud_normals))
     if len(points) <= MAX_POINTS:
         entry = _Entry(id(pcd), model, settings, _tensors(model), points.clone(),
                        None if cloud_normals is None else cloud_normals.clone(), field)

@@ -27,7 +27,6 @@ from .cameras import Views, as_views
 from .nn import native
 from .nn.network import VisibilityNetwork
 from .nn.cues import point_surfels
-from .nn.fusion import zbuffer_inputs
 from .nn.zbuffer import surfel_zbuffer
 from .threads import plan_threads, threaded_map, torch_threads
 
@@ -327,13 +326,13 @@ class VisibilityField:
                         map(prepare, tasks))
         projections, zbuffers = prepared[:len(views)], prepared[len(views):]
         step = min(n, self.chunk_size)
+        fuse = fusion.bind(self.noise) if any(z is not None for z in zbuffers) else None
 
         def chunk_margin(a: int) -> Tensor:
             chunk = slice(a, a + step) if rows is None else rows[a:a + step]
             margin = self.network.view_margin(projections, chunk, features, normals, self.matmul_dtype)
-            if any(z is not None for z in zbuffers):  # camera views: fused with the z-buffer's test
-                margin = torch.stack([m if z is None else fusion(m, zbuffer_inputs(z[chunk]), self.noise)
-                                      for m, z in zip(margin, zbuffers)])
+            if fuse is not None:  # camera views: fused with the z-buffer's test
+                margin = torch.stack([m if z is None else fuse(m, z, chunk) for m, z in zip(margin, zbuffers)])
             return margin
 
         starts = range(0, n, step)

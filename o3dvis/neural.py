@@ -278,10 +278,12 @@ class NeuralVisibility:
         """
         return self._encode(pcd, normals)
 
-    def _encode(self, pcd, normals=None, camera: Tensor | None = None) -> VisibilityField:
+    def _encode(self, pcd, normals=None, camera: Tensor | None = None,
+                arrays: tuple[Tensor, Tensor | None] | None = None) -> VisibilityField:
         """:meth:`encode`; given the (3,) ``camera`` of the only view to come, a camera inside the
-        cloud's bounding box with a scene network gets the scene model's field alone."""
-        points, cloud_normals = cloud_arrays(pcd)
+        cloud's bounding box with a scene network gets the scene model's field alone. ``arrays``:
+        the cloud's :func:`~o3dvis.clouds.cloud_arrays`, where the caller has them already."""
+        points, cloud_normals = cloud_arrays(pcd) if arrays is None else arrays
         estimate = isinstance(normals, str)
         if estimate and normals != "estimate":
             raise ValueError(f"normals must be None, True, False, 'estimate' or an (N, 3) array, got {normals!r}")

@@ -111,12 +111,70 @@ def test_fusion_inputs_and_folded_standardisation():
     torch.testing.assert_close(x[:, 4], torch.log(torch.tensor([1.0, 0.5])))
     torch.testing.assert_close(x[:, 5], torch.tensor([0.9, 0.2]))
     torch.testing.assert_close(x[:, 6:], torch.tensor([[0.1, 0.2], [0.1, 0.2]]))
-    torch.manual_seed(0)
+    fusion = _random_fusion()
+    by_hand = fusion.mlp((x - fusion.mean) / fusion.std)[:, 0]
+    torch.testing.assert_close(fusion(margin, zbuffer_inputs(zbuffer), noise), by_hand)
+
+
+def _random_fusion(seed: int = 0) -> ZBufferFusion:
+    torch.manual_seed(seed)
     fusion = ZBufferFusion()
     fusion.mean.copy_(torch.randn(NUM_FUSION_INPUTS))
     fusion.std.copy_(torch.rand(NUM_FUSION_INPUTS) + 0.5)
-    by_hand = fusion.mlp((x - fusion.mean) / fusion.std)[:, 0]
-    torch.testing.assert_close(fusion(margin, zbuffer_inputs(zbuffer), noise), by_hand)
+    return fusion
+
+
+def _pairs(n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Margins and z-buffer answers over their whole ranges: margins past the clamp, distances
+    beyond from -1000 to 1000, spacings down to 0 (below the log's floor)."""
+    g = torch.Generator().manual_seed(seed)
+    zbuffer = torch.stack([(torch.rand(n, generator=g) < 0.5).float(),
+                           torch.randn(n, generator=g) * 10 ** torch.randint(-3, 4, (n,), generator=g),
+                           torch.rand(n, generator=g) * 4, torch.rand(n, generator=g)], dim=1)
+    zbuffer[:8, 1] = torch.tensor([0.0, 1e-3, -1e-3, 0.125, -0.5, 1000.0, -1000.0, 80.0])
+    zbuffer[:4, 2] = torch.tensor([0.0, 1e-7, 1e-6, 1e-5])
+    return torch.randn(n, generator=g) * 12, zbuffer
+
+
+@pytest.mark.skipif(not native.available(), reason="the C kernels are not built")
+def test_native_fusion_matches_the_torch_ops():
+    fusion, noise = _random_fusion(), torch.tensor([0.3, 0.05])
+    margin, zbuffer = _pairs(5000)
+    expected = fusion(margin, zbuffer_inputs(zbuffer), noise)
+    with torch.inference_mode():
+        fuse = fusion.bind(noise)
+        chunk = slice(1000, 4000)
+        m = margin[chunk].clone()
+        assert fuse(m, zbuffer, chunk) is m  # in place
+        torch.testing.assert_close(m, expected[chunk], atol=2e-5, rtol=1e-5)
+        rows = torch.randperm(5000)[:700]
+        torch.testing.assert_close(fuse(margin[rows].clone(), zbuffer, rows), expected[rows], atol=2e-5, rtol=1e-5)
+    # with autograd on, the torch ops: the margins keep their gradient
+    m = margin[:10].clone().requires_grad_()
+    fused = fusion.bind(noise)(m, zbuffer, slice(0, 10))
+    assert fused.requires_grad and fused.data_ptr() != m.data_ptr()
+    torch.testing.assert_close(fused.detach(), expected[:10])
+
+
+@pytest.mark.skipif(not native.available(), reason="the C kernels are not built")
+def test_native_fusion_checks_its_arguments():
+    margin, zbuffer = _pairs(100)
+    mlp = native.pack_mlp([(torch.randn(16, 6), torch.randn(16)), (torch.randn(1, 16), torch.randn(1))],
+                          torch.float32)
+    out = torch.empty(100)
+    with pytest.raises(ValueError, match="zbuffer"):
+        native.fuse_margin(slice(0, 100), zbuffer[:, :3].contiguous(), margin, mlp, out)
+    with pytest.raises(ValueError, match="margin"):
+        native.fuse_margin(slice(0, 100), zbuffer, margin[:50], mlp, out)
+    with pytest.raises(IndexError, match="rows"):
+        native.fuse_margin(torch.tensor([0, 100]), zbuffer, margin[:2].contiguous(), mlp, out[:2])
+    wrong = native.pack_mlp([(torch.randn(16, 8), torch.randn(16)), (torch.randn(1, 16), torch.randn(1))],
+                            torch.float32)
+    with pytest.raises(ValueError, match="6 inputs"):
+        native.fuse_margin(slice(0, 100), zbuffer, margin, wrong, out)
+    with pytest.raises(ValueError, match="float32"):
+        native.fuse_margin(slice(0, 100), zbuffer, margin, native.pack_mlp(
+            [(torch.randn(16, 6), torch.randn(16)), (torch.randn(1, 16), torch.randn(1))], torch.bfloat16), out)
 
 
 def _fused_pair(seed: int = 0) -> tuple[VisibilityNetwork, VisibilityNetwork]:

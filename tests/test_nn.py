@@ -11,6 +11,7 @@ from o3dvis.nn import (NetworkConfig, Octree, OctreeConv, OctreeDownsample, Octr
                        VisibilityNetwork, ViewEmbedding, VisibilityPredictor, morton_decode, morton_encode,
                        morton_order, noise_cues, normalize_points, view_cues)
 from o3dvis.nn.cues import ViewProjection, point_surfels
+from o3dvis.nn import native
 from o3dvis.nn import octree as octree_module
 
 
@@ -481,13 +482,32 @@ def test_noise_cues_grow_with_noise_and_ignore_order():
 
 
 def test_noise_cues_do_not_depend_on_the_block_size(monkeypatch):
-    """The cell moments are summed over blocks of rows: blocks of 1 000 give the one-block sums."""
+    """The torch ops sum the cell moments over blocks of rows: blocks of 1 000 give the one-block sums."""
     import o3dvis.nn.noise as noise
 
+    monkeypatch.setattr(noise.native, "available", lambda: False)
     p = _noisy_sphere(40_000, 0.003)
     whole = noise_cues(p)
     monkeypatch.setattr(noise, "_BLOCK", 1_000)
     torch.testing.assert_close(noise_cues(p), whole, atol=1e-6, rtol=0)
+
+
+@pytest.mark.skipif(not native.available(), reason="the C kernels are not built")
+def test_native_cell_moments_match_the_torch_sums(monkeypatch):
+    import o3dvis.nn.noise as noise
+
+    p = _noisy_sphere(30_000, 0.003).float()
+    p[:5] = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [-1.0, 1.0, 0.0], [0.5, -0.5, 1.0]])
+    counts, moments = noise._cell_moments(p)
+    assert counts.sum() == len(p) and (counts > 0).sum() > 100
+    monkeypatch.setattr(noise.native, "available", lambda: False)
+    torch_counts, torch_moments = noise._cell_moments(p)
+    assert torch.equal(counts, torch_counts)  # the same cells, to the point on a boundary
+    torch.testing.assert_close(moments, torch_moments.double(), atol=1e-6, rtol=1e-4)
+    with pytest.raises(ValueError, match="level"):
+        native.cell_moments(p, 11)
+    with pytest.raises(ValueError, match="points"):
+        native.cell_moments(p.double(), 5)
 
 
 def test_noise_cues_of_clouds_too_small_to_measure_are_zero():

@@ -13,15 +13,19 @@ from a camera position (a viewing direction keeps the network's margin).
 
 from __future__ import annotations
 
+from typing import Callable
+
 import torch
 from torch import Tensor, nn
 
+from . import native
 from .noise import NUM_NOISE_CUES
 from .zbuffer import NUM_ZBUFFER_FEATURES
 
 __all__ = ["NUM_FUSION_INPUTS", "ZBufferFusion", "zbuffer_inputs", "fusion_inputs"]
 
-NUM_FUSION_INPUTS = 1 + (NUM_ZBUFFER_FEATURES + 1) + NUM_NOISE_CUES
+NUM_FUSION_PAIR_INPUTS = NUM_ZBUFFER_FEATURES + 1  # the zbuffer_inputs of a (point, camera) pair
+NUM_FUSION_INPUTS = 1 + NUM_FUSION_PAIR_INPUTS + NUM_NOISE_CUES
 _MAX_MARGIN = 15.0  # margins beyond this are certain either way (and saturate a float32 probability)
 
 
@@ -68,12 +72,43 @@ class ZBufferFusion(nn.Module):
         self.register_buffer("std", torch.ones(NUM_FUSION_INPUTS))
         self.mlp = nn.Sequential(nn.Linear(NUM_FUSION_INPUTS, hidden), nn.ReLU(), nn.Linear(hidden, 1))
 
+    def _folded(self) -> tuple[Tensor, Tensor]:
+        """The first layer's weight and bias with the standardisation folded in."""
+        first = self.mlp[0]
+        weight = first.weight / self.std.to(first.weight)
+        return weight, first.bias - weight @ self.mean.to(first.weight)
+
     def forward(self, margin: Tensor, inputs: Tensor, noise: Tensor) -> Tensor:
         """(...) fused margins of (...) ``margin``, (..., 5) :func:`zbuffer_inputs` and the noise
         cues (see :func:`fusion_inputs`)."""
-        first, last = self.mlp[0], self.mlp[2]
-        x = fusion_inputs(margin, inputs, noise).to(first.weight.dtype)
-        weight = first.weight / self.std.to(first.weight)
-        bias = first.bias - weight @ self.mean.to(first.weight)
+        last = self.mlp[2]
+        weight, bias = self._folded()
+        x = fusion_inputs(margin, inputs, noise).to(weight.dtype)
         hidden = torch.addmm(bias, x.reshape(-1, x.shape[-1]), weight.t()).relu_()
         return torch.addmm(last.bias, hidden, last.weight.t()).view(margin.shape).to(margin.dtype)
+
+    def bind(self, noise: Tensor) -> Callable[[Tensor, Tensor, slice | Tensor], Tensor]:
+        """The fusion of one cloud, ``fuse(margin, zbuffer, rows)``: (n,) fused margins of the
+        points ``rows`` (a slice or (n,) indices) with margins ``margin`` (n,) and a camera's
+        z-buffer answers ``zbuffer`` (N, 4). Where :func:`~o3dvis.nn.native.usable` (float32 on the
+        CPU, autograd off) one pass of C per call, in place of ``margin``, with the cloud's noise
+        cues folded into the first layer's biases; else this module's torch ops.
+
+        Args:
+            noise: (2,) the cloud's :func:`~o3dvis.nn.noise.noise_cues`.
+        """
+        mlp = None
+        if native.usable(self.mlp[0].weight) and noise.device.type == "cpu":
+            weight, bias = self._folded()
+            bias = bias + weight[:, 1 + NUM_FUSION_PAIR_INPUTS:] @ noise.to(weight)
+            last = self.mlp[2]
+            mlp = native.pack_mlp([(weight[:, :1 + NUM_FUSION_PAIR_INPUTS], bias), (last.weight, last.bias)],
+                                  torch.float32)
+
+        def fuse(margin: Tensor, zbuffer: Tensor, rows: slice | Tensor) -> Tensor:
+            if mlp is not None and native.usable(margin, zbuffer) and margin.is_contiguous():
+                native.fuse_margin(rows, zbuffer, margin, mlp, margin)
+                return margin
+            return self(margin, zbuffer_inputs(zbuffer[rows]), noise)
+
+        return fuse

@@ -11,13 +11,16 @@
  * with the features) compute in a dozen eager torch ops, each a pass over
  * memory; and they run the predictor's MLP on them while they are in the L1
  * cache (VisibilityPredictor.margin_from_inputs), in bfloat16 with the CPU's
- * bfloat16 dot products, or in float32. And for the encoding,
- * o3dvis_morton_keys computes the octree's Morton keys (o3dvis/nn/octree.py,
- * cell_keys) in one pass instead of some twenty.
+ * bfloat16 dot products, or in float32. o3dvis_surfel_zbuffer tests each point
+ * against a z-buffer of discs (o3dvis/nn/zbuffer.py) and o3dvis_fuse_margin
+ * runs the fusion of its answer with the margin (o3dvis/nn/fusion.py) in one
+ * pass. And for the encoding, o3dvis_morton_keys computes the octree's Morton
+ * keys (o3dvis/nn/octree.py, cell_keys) in one pass instead of some twenty,
+ * and o3dvis_cell_moments the noise cue's per-cell sums (o3dvis/nn/noise.py).
  *
  * The arithmetic is torch's, op for op, but: sin, cos, log and atan2 are short
  * polynomials (a few float32 ulps off, with fused multiply-adds where the CPU
- * has them); asinh is log(|x| + sqrt(x^2 + 1)), or its series below 1/8, where
+ * has them), and so are exp and tanh; asinh is log(|x| + sqrt(x^2 + 1)), or its series below 1/8, where
  * torch's log1p form loses digits; the pixel size enters as its reciprocal;
  * the mean view direction is summed in double. A point within an ulp of a
  * pixel border may thus land on the other side. The bfloat16 MLP rounds to
@@ -54,9 +57,9 @@
 static inline uint32_t bits_of(float x) { uint32_t u; memcpy(&u, &x, 4); return u; }
 static inline float float_of(uint32_t u) { float x; memcpy(&x, &u, 4); return x; }
 
-/* log(u) for finite u >= 1: the exponent, and a polynomial on the mantissa
+/* log(u) for finite normal u > 0: the exponent, and a polynomial on the mantissa
    reduced to [sqrt(1/2) - 1, sqrt(2) - 1] (Cephes' logf scheme) */
-static inline float log_ge1(float u) {
+static inline float log_pos(float u) {
     uint32_t b = bits_of(u);
     float e = (float)((int32_t)(b >> 23) - 126);
     float m = float_of((b & 0x007fffffu) | 0x3f000000u); /* [0.5, 1) */
@@ -89,7 +92,7 @@ static void asinh_inplace(float *restrict x, int64_t n) {
         p = MADD(p, a2, 7.5e-2f);
         p = MADD(p, a2, -1.6666666667e-1f);
         float small = MADD(a * a2, p, a);
-        float big = log_ge1(a + sqrtf(a2 + 1.0f));
+        float big = log_pos(a + sqrtf(a2 + 1.0f));
         x[i] = copysignf(a < 0.125f ? small : big, v);
     }
 }
@@ -173,6 +176,33 @@ void o3dvis_morton_keys(int64_t n, const float *points, int32_t depth, int64_t *
             cell[a] = (uint64_t)(q < top ? q : top);
         }
         keys[i] = (int64_t)(spread_bits(cell[0]) << 2 | spread_bits(cell[1]) << 1 | spread_bits(cell[2]));
+    }
+}
+
+/* The moments of n points of [-1, 1]^3 about the centres of their cells of a 2^level grid
+ * (1 <= level <= 10), as o3dvis/nn/noise.py's cell thickness sums them: each coordinate's cell as
+ * in o3dvis_morton_keys, cell index (x res + y) res + z; counts[c] += 1 and moments[c] (9 values)
+ * += the products qx qx, qx qy, qx qz, qy qy, qy qz, qz qz, then qx, qy, qz of q = the point less
+ * its cell's centre (in float32, as torch computes it), summed in double. counts (8^level) and
+ * moments (8^level x 9) are zeroed by the caller. */
+void o3dvis_cell_moments(int64_t n, const float *points, int32_t level, int64_t *counts, double *moments) {
+    const int res = 1 << level;
+    const float half = (float)(res / 2), top = (float)(res - 1), size = 2.0f / (float)res;
+    for (int64_t i = 0; i < n; i++) {
+        int c[3];
+        float q[3];
+        for (int a = 0; a < 3; a++) {
+            float u = (points[3 * i + a] + 1.0f) * half;
+            u = u >= 0.0f ? u : 0.0f;
+            c[a] = (int)(u < top ? u : top);
+            q[a] = points[3 * i + a] - (((float)c[a] + 0.5f) * size - 1.0f);
+        }
+        const int64_t cell = ((int64_t)c[0] * res + c[1]) * res + c[2];
+        double *m = moments + 9 * cell;
+        counts[cell]++;
+        m[0] += (double)(q[0] * q[0]), m[1] += (double)(q[0] * q[1]), m[2] += (double)(q[0] * q[2]);
+        m[3] += (double)(q[1] * q[1]), m[4] += (double)(q[1] * q[2]), m[5] += (double)(q[2] * q[2]);
+        m[6] += q[0], m[7] += q[1], m[8] += q[2];
     }
 }
 
@@ -817,6 +847,27 @@ static void dense_f32(const float *restrict x, int inputs, const float *restrict
         }
 }
 
+/* Whether float32 MLP sizes (layers + 2,) fit dense_f32 and the buffers: every layer's outputs a
+ * multiple of 4 and at most MAX_WIDTH. */
+static int mlp_f32_fits(int32_t layers, const int32_t *sizes) {
+    if (layers < 0) return 0;
+    for (int l = 1; l <= layers + 1; l++)
+        if (sizes[l] < 4 || sizes[l] % 4 || sizes[l] > MAX_WIDTH) return 0;
+    return 1;
+}
+
+/* Runs a packed float32 MLP (see o3dvis_view_margin_f32) on a block of inputs (rows of BLOCK);
+ * returns the row of its output, in h. */
+static const float *mlp_f32(const float *in, int32_t layers, const int32_t *sizes, const float *weights,
+                            const float *biases, float h[2][MAX_WIDTH * BLOCK]) {
+    const float *x = in, *w = weights, *bias = biases;
+    for (int l = 0; l <= layers; l++) {
+        dense_f32(x, sizes[l], w, bias, sizes[l + 1], l < layers, h[l % 2]);
+        x = h[l % 2], w += sizes[l] * sizes[l + 1], bias += sizes[l + 1];
+    }
+    return x;
+}
+
 /* o3dvis_view_margin_bf16 in float32, in plain C: each layer's products and sums in float32, as
  * torch's float32 products but for the order of the sums. sizes: (layers + 2,) the inputs, each
  * hidden layer's outputs, padded to a multiple of 4, then 4 (the margin and 3 of padding);
@@ -825,18 +876,69 @@ int o3dvis_view_margin_f32(int64_t n, const struct view *v, int32_t layers, cons
                            const float *weights, const float *biases, float *out) {
     const int channels = channels_of(v);
     float in[MAX_INPUTS * BLOCK] = {0}, h[2][MAX_WIDTH * BLOCK];
-    if (channels < 0 || layers < 0 || sizes[0] != channels) return -1;
-    for (int l = 1; l <= layers + 1; l++)
-        if (sizes[l] < 4 || sizes[l] % 4 || sizes[l] > MAX_WIDTH) return -1;
+    if (channels < 0 || sizes[0] != channels || !mlp_f32_fits(layers, sizes)) return -1;
     for (int64_t b0 = 0; b0 < n; b0 += BLOCK) {
         const int m = n - b0 < BLOCK ? (int)(n - b0) : BLOCK;
         block_inputs(v, b0, m, in);
-        const float *x = in, *w = weights, *bias = biases;
-        for (int l = 0; l <= layers; l++) {
-            dense_f32(x, sizes[l], w, bias, sizes[l + 1], l < layers, h[l % 2]);
-            x = h[l % 2], w += sizes[l] * sizes[l + 1], bias += sizes[l + 1];
+        memcpy(out + b0, mlp_f32(in, layers, sizes, weights, biases, h), sizeof(float) * m);
+    }
+    return 0;
+}
+
+/* exp(y) for -20 <= y <= 0: y = k ln 2 + r with |r| <= ln 2 / 2 (ln 2 in two parts, as Cephes'
+   expf), exp(r) by its Taylor series to r^7 (error below 1e-8), times 2^k from the exponent bits */
+static inline float exp_neg(float y) {
+    const float k = (y * 1.44269504088896341f + 12582912.0f) - 12582912.0f; /* rounded to an integer */
+    const float r = (y - k * 0.693359375f) + k * 2.12194440e-4f;
+    float p = 1.9841269841e-4f;
+    p = MADD(p, r, 1.3888888889e-3f);
+    p = MADD(p, r, 8.3333333333e-3f);
+    p = MADD(p, r, 4.1666666667e-2f);
+    p = MADD(p, r, 1.6666666667e-1f);
+    p = MADD(p, r, 0.5f);
+    p = MADD(p, r, 1.0f);
+    p = MADD(p, r, 1.0f);
+    return p * float_of((uint32_t)((int32_t)k + 127) << 23);
+}
+
+/* tanh(x): below |x| = 1/16 its odd series to x^7 (error below 1e-12), else
+   (1 - e) / (1 + e) with e = exp(-2 |x|), |x| clamped to 10 (where tanh rounds to 1) */
+static inline float tanh_f(float x) {
+    const float a = fabsf(x), a2 = a * a;
+    float p = -5.3968253968e-2f;
+    p = MADD(p, a2, 1.3333333333e-1f);
+    p = MADD(p, a2, -3.3333333333e-1f);
+    const float small = MADD(a * a2, p, a);
+    const float e = exp_neg(-2.0f * (a < 10.0f ? a : 10.0f));
+    return copysignf(a < 0.0625f ? small : (1.0f - e) / (1.0f + e), x);
+}
+
+#define FUSION_INPUTS 6 /* of a pair; the cloud's noise cues are in the first layer's biases */
+#define FUSION_CLAMP 15.0f
+
+/* The fused margins of n (point, camera) pairs (o3dvis/nn/fusion.py, ZBufferFusion): the MLP
+ * (packed as for o3dvis_view_margin_f32, sizes[0] = 6) on each pair's margin clamped to +-15 and
+ * its z-buffer answer (o3dvis_surfel_zbuffer's row of 4): the own-front flag, tanh of the
+ * distance beyond over 2 and over 8, the log of the spacing in pixels (at least 1e-6) and |cos|.
+ * Pair i is point rows[i], or start + i without rows; margin and out may be the same. Returns 0,
+ * or -1 for an MLP that does not fit. */
+int o3dvis_fuse_margin(int64_t n, const int64_t *rows, int64_t start, const float *zbuffer, const float *margin,
+                       int32_t layers, const int32_t *sizes, const float *weights, const float *biases, float *out) {
+    float in[FUSION_INPUTS * BLOCK] = {0}, h[2][MAX_WIDTH * BLOCK];
+    if (sizes[0] != FUSION_INPUTS || !mlp_f32_fits(layers, sizes)) return -1;
+    for (int64_t b0 = 0; b0 < n; b0 += BLOCK) {
+        const int m = n - b0 < BLOCK ? (int)(n - b0) : BLOCK;
+        for (int b = 0; b < m; b++) {
+            const float *z = zbuffer + 4 * (rows ? rows[b0 + b] : start + b0 + b);
+            const float t = margin[b0 + b], spacing = z[2] > 1e-6f ? z[2] : 1e-6f;
+            in[b] = t < -FUSION_CLAMP ? -FUSION_CLAMP : (t > FUSION_CLAMP ? FUSION_CLAMP : t);
+            in[BLOCK + b] = z[0];
+            in[2 * BLOCK + b] = tanh_f(z[1] / 2.0f);
+            in[3 * BLOCK + b] = tanh_f(z[1] / 8.0f);
+            in[4 * BLOCK + b] = log_pos(spacing);
+            in[5 * BLOCK + b] = z[3];
         }
-        memcpy(out + b0, x, sizeof(float) * m);
+        memcpy(out + b0, mlp_f32(in, layers, sizes, weights, biases, h), sizeof(float) * m);
     }
     return 0;
 }

@@ -22,8 +22,8 @@ from torch import Tensor
 
 from .. import clib
 
-__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "project", "surfels",
-           "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin"]
+__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "cell_moments", "project",
+           "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin"]
 
 _I64, _I32, _PTR = ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
 
@@ -40,6 +40,7 @@ class _View(ctypes.Structure):
 _VIEW = ctypes.POINTER(_View)
 _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_morton_keys": ([_I64, _PTR, _I32, _PTR], None),
+    "o3dvis_cell_moments": ([_I64, _PTR, _I32, _PTR, _PTR], None),
     "o3dvis_project": ([_I64, _PTR, _PTR, _PTR, _I32, _PTR] + [_PTR] * 6, ctypes.c_int),
     "o3dvis_plane_splat": ([_I64, _PTR, _PTR, _PTR, _PTR, _I32, _PTR, _PTR, _PTR, _PTR, _PTR, ctypes.c_float,
                             ctypes.c_float, _PTR], ctypes.c_int),
@@ -48,6 +49,7 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_has_view_margin_bf16": ([], ctypes.c_int),
     "o3dvis_view_margin_bf16": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_view_margin_f32": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
+    "o3dvis_fuse_margin": ([_I64, _PTR, _I64, _PTR, _PTR, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
 }
 # the most points a view of the kernels takes: its depth buffers (about 1.4 values a point over four
 # scales) are then indexed by int32
@@ -84,6 +86,22 @@ def morton_keys(points: Tensor, depth: int) -> Tensor:
     keys = torch.empty(points.shape[0], dtype=torch.long)
     _LIBRARY.o3dvis_morton_keys(points.shape[0], points.data_ptr(), depth, keys.data_ptr())
     return keys
+
+
+def cell_moments(points: Tensor, level: int) -> tuple[Tensor, Tensor]:
+    """The points' count (8^level,) int64 and moments (8^level, 9) float64 per cell of a
+    ``2^level`` grid over [-1, 1]^3 (see ``kernels.c``), in one pass over ``points`` (N, 3) float32.
+
+    Raises:
+        ValueError: points of the wrong shape or type, or a level out of [1, 10].
+    """
+    _check("points", points, (points.shape[0], 3))
+    if not 1 <= level <= 10:
+        raise ValueError(f"level must lie in [1, 10], got {level}")
+    counts = torch.zeros(8 ** level, dtype=torch.long)
+    moments = torch.zeros(8 ** level, 9, dtype=torch.float64)
+    _LIBRARY.o3dvis_cell_moments(points.shape[0], points.data_ptr(), level, counts.data_ptr(), moments.data_ptr())
+    return counts, moments
 
 
 def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,
@@ -223,22 +241,28 @@ def has_view_margin(dtype: torch.dtype) -> bool:
     return dtype == torch.float32 or bool(_LIBRARY.o3dvis_has_view_margin_bf16())
 
 
+def _rows_of(rows: slice | Tensor, n_points: int) -> tuple[int, int, Tensor | None]:
+    """(count, start, long tensor or None) of ``rows``, a slice with step 1 or an index tensor of
+    ``n_points`` rows, checked."""
+    if isinstance(rows, slice):
+        start, stop, step = rows.indices(n_points)
+        if step != 1:
+            raise ValueError("rows must be a slice with step 1 or an index tensor")
+        return max(0, stop - start), start, None
+    rows = rows.to(device="cpu", dtype=torch.long).contiguous()
+    if len(rows) and (int(rows.min()) < 0 or int(rows.max()) >= n_points):
+        raise IndexError(f"rows must lie in [0, {n_points})")
+    return len(rows), 0, rows
+
+
 def _view(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies: int, buffers: Tensor,
           corners: Tensor, sides: list[int], depth: Tensor, rpix: Tensor, perspective: bool, empty: float,
           normals: Tensor | None = None) -> tuple[int, _View]:
     """The number of points and the kernels' ``struct view`` of them (see :func:`view_margin`), all
     checked; the struct holds on to the tensors made here that it points into."""
     n_points, scales = corners.shape
-    if isinstance(rows, slice):
-        start, stop, step = rows.indices(n_points)
-        if step != 1:
-            raise ValueError("rows must be a slice with step 1 or an index tensor")
-        n, rows_pointer = max(0, stop - start), None
-    else:
-        rows = rows.to(device="cpu", dtype=torch.long).contiguous()
-        if len(rows) and (int(rows.min()) < 0 or int(rows.max()) >= n_points):
-            raise IndexError(f"rows must lie in [0, {n_points})")
-        n, start, rows_pointer = len(rows), 0, rows.data_ptr()
+    n, start, rows = _rows_of(rows, n_points)
+    rows_pointer = None if rows is None else rows.data_ptr()
     e = 3 + 6 * num_frequencies
     # the kernel reads each channel of the features as a contiguous row (as encode() stores them):
     # copying other layouts here would copy all N points for every chunk
@@ -340,4 +364,32 @@ def view_margin(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequ
     if kernel(n, ctypes.byref(view), len(mlp.sizes) - 2, mlp.sizes.data_ptr(), mlp.weights.data_ptr(),
               mlp.biases.data_ptr(), out.data_ptr()):
         raise ValueError(f"the MLP (sizes {mlp.sizes.tolist()}) does not match the view's inputs, or it has a "
+                         f"layer wider than 128")
+
+
+def fuse_margin(rows: slice | Tensor, zbuffer: Tensor, margin: Tensor, mlp: PackedMLP, out: Tensor) -> None:
+    """Writes the fused margins of the points ``rows`` for one camera into ``out`` (see
+    :class:`~o3dvis.nn.fusion.ZBufferFusion`; ``kernels.c`` says what the inputs are).
+
+    Args:
+        rows: the points, a slice with step 1 or a (n,) long tensor.
+        zbuffer: (N, 4) the camera's :func:`surfel_zbuffer` answers.
+        margin: (n,) the network's margins of those points; ``out`` may be the same tensor.
+        mlp: the fusion's float32 MLP on the 6 inputs of a pair (its noise cues in the biases).
+        out: (n,) float32.
+
+    Raises:
+        ValueError: tensors of the wrong shape, dtype or layout, or an MLP that does not fit.
+        IndexError: rows out of range.
+    """
+    _check("zbuffer", zbuffer, (zbuffer.shape[0], 4))
+    n, start, index = _rows_of(rows, zbuffer.shape[0])
+    _check("margin", margin, (n,))
+    _check("out", out, (n,))
+    if mlp.dtype != torch.float32:
+        raise ValueError(f"the fusion's MLP must be packed in float32, got {mlp.dtype}")
+    if n and _LIBRARY.o3dvis_fuse_margin(n, None if index is None else index.data_ptr(), start, zbuffer.data_ptr(),
+                                         margin.data_ptr(), len(mlp.sizes) - 2, mlp.sizes.data_ptr(),
+                                         mlp.weights.data_ptr(), mlp.biases.data_ptr(), out.data_ptr()):
+        raise ValueError(f"the MLP (sizes {mlp.sizes.tolist()}) does not take a pair's 6 inputs, or it has a "
                          f"layer wider than 128")

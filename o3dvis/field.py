@@ -27,6 +27,7 @@ from .cameras import Views, as_views
 from .nn import native
 from .nn.network import VisibilityNetwork
 from .nn.cues import point_surfels
+from .nn.features import LeafFeatures
 from .nn.zbuffer import surfel_zbuffer
 from .threads import plan_threads, threaded_map, torch_threads
 
@@ -123,14 +124,17 @@ class VisibilityField:
     Answers always come in the cloud's order.
     """
 
-    def __init__(self, network: VisibilityNetwork, features: Tensor, points: Tensor,
+    def __init__(self, network: VisibilityNetwork, features: Tensor | LeafFeatures, points: Tensor,
                  normals: Tensor | None, center: Tensor, scale: Tensor, bounds: tuple[Tensor, Tensor],
                  chunk_size: int = DEFAULT_CHUNK, hull: tuple[Tensor, Tensor] | None = None,
                  rank: Tensor | None = None, rotated: Sequence[RotatedEncoding] = (),
                  calibration: tuple[float, float] | None = None, matmul_dtype: torch.dtype = torch.float32,
                  scene: Callable[[], "VisibilityField"] | None = None, noise: Tensor | None = None):
         self.network = network
-        self.features = features
+        # the features as encoded, per leaf (or per point), and carried to every point on first use
+        self._leaves = features if isinstance(features, LeafFeatures) else None
+        self._features = None if self._leaves is not None else features
+        self._queried = False
         self.points = points
         self.normals = normals
         self.center, self.scale = center, scale
@@ -143,13 +147,31 @@ class VisibilityField:
         self.matmul_dtype = matmul_dtype
         self.noise = noise
         self._scene_factory, self._scene = scene, None
-        self._lazy_lock = threading.Lock()  # guards what is made on first use: the scene field, the surfels
+        self._lazy_lock = threading.Lock()  # guards what is made on first use: the scene field, the surfels, features
         # each frame's point surfels (and with their area spacing), by its points' storage
         self._surfels: dict[int, tuple[Tensor | None, Tensor | None]] = {}
 
     @property
     def num_points(self) -> int:
         return self.points.shape[0]
+
+    @property
+    def features(self) -> Tensor:
+        """(N, E) each stored point's projected features, stored channels first (strides (1, N))."""
+        with self._lazy_lock:
+            if self._features is None:
+                with torch.inference_mode(False), torch.no_grad():  # fixed, yet readable by a later autograd query
+                    self._features = self._leaves.rows()
+            return self._features
+
+    def _query_features(self, views: int) -> Tensor | LeafFeatures:
+        """The features a query of ``views`` views reads: the first query of one view reads them
+        from the leaves (one view reads less than carrying them to every point writes: that is
+        the drop-in's call); any other query, those carried to the points (:attr:`features`)."""
+        first, self._queried = not self._queried, True
+        if self._features is None and first and views == 1:
+            return self._leaves
+        return self.features
 
     @property
     def device(self) -> torch.device:
@@ -217,7 +239,8 @@ class VisibilityField:
 
         rotated = [e._replace(features=channels_first(e.features), points=rows(e.points), normals=rows(e.normals))
                    for e in self.rotated]
-        return VisibilityField(self.network, channels_first(self.features), rows(self.points), rows(self.normals),
+        features = channels_first(self._features) if self._leaves is None else self._leaves.restricted(kept)
+        return VisibilityField(self.network, features, rows(self.points), rows(self.normals),
                                self.center, self.scale, self.bounds, self.chunk_size, self.hull, None, rotated,
                                self.calibration, self.matmul_dtype, noise=self.noise)
 
@@ -229,7 +252,7 @@ class VisibilityField:
             raise ValueError("max_range needs camera positions, not viewing directions")
         reach = (self.points - cameras[0].detach()).square().sum(dim=1) <= (max_range / float(self.scale)) ** 2
         kept = reach.nonzero()[:, 0]
-        probs = self.features.new_zeros(1, self.num_points)
+        probs = self.points.new_zeros(1, self.num_points)
         if len(kept):
             near = torch.cat([p for _, p in self._restricted(kept)._batches(view)], dim=1)
             probs = probs.to(near.dtype).index_put((torch.zeros_like(kept), kept), near[0])
@@ -304,7 +327,7 @@ class VisibilityField:
                     self._surfels[key] = (self.network.surfels(points), None)
             return self._surfels[key]
 
-    def _frame_probabilities(self, features: Tensor, points: Tensor, normals: Tensor | None,
+    def _frame_probabilities(self, features: Tensor | LeafFeatures, points: Tensor, normals: Tensor | None,
                              cameras: Tensor | None, directions: Tensor, orthographic: list[bool],
                              batch: slice, rows: Tensor | None, n: int, workers: int = 1) -> Tensor:
         """(v, n) probabilities of the views ``batch`` in one frame (features, points and views
@@ -359,11 +382,11 @@ class VisibilityField:
             else:
                 rows = self.rank[rows]
         if n == 0:
-            empty = self.features.new_zeros(total, 0)
+            empty = self.points.new_zeros(total, 0)
             yield slice(0, total), empty if finish is None else finish(empty)
             return
         asked_points = self.points if rows is None else self.points[rows]
-        frames = [(self.features, self.points, self.normals, cameras, directions, orthographic)] + [
+        frames = [(self._query_features(total), self.points, self.normals, cameras, directions, orthographic)] + [
             (e.features, e.points, e.normals, *e.views(cameras, directions), orthographic)
             for e in self.rotated]
         per_batch = max(1, self.chunk_size // n)
@@ -400,7 +423,7 @@ class VisibilityField:
             yield batches[0], result
             return
         workers = min(threads, len(batches))
-        if side_by_side and workers > 1 and (n > self.chunk_size or native.usable(self.features)):
+        if side_by_side and workers > 1 and (n > self.chunk_size or native.usable(self.points)):
             yield from zip(batches, threaded_map(probabilities_of, batches, workers))
             return
         for batch in batches:  # one at a time, the ops split over the threads planned

@@ -334,7 +334,7 @@ class NeuralVisibility:
         with torch.no_grad(), products_in(precision):
             noise = (network.cloud_noise(normalized, ordered=True) if network.config.noise_cues or calibrated or fused
                      else None)
-            features = network.encode(normalized, normals=unit, noise=noise)
+            features = network.encode_leaves(normalized, normals=unit, noise=noise)
             rotated = [self._rotated(network, normalized, unit, r) for r in self.rotations[1:]]
         calibration = (network.calibration.affine(calibration_terms(noise[0], len(normalized)))
                        if calibrated else None)

@@ -677,3 +677,20 @@ def test_the_runtime_never_imports_training_code():
                          cwd=root.parent)
     assert run.returncode == 0, run.stderr
     assert run.stdout.strip() == "[]"
+
+
+def test_a_first_view_reads_the_features_from_the_leaves_and_later_queries_carry_them(vis, points):
+    """The drop-in's one view reads the features where they are stored, per octree leaf; a
+    later query carries them to every point once, and the answers do not change."""
+    field = vis.encode(points)
+    camera = _camera(points)
+    first = field.probabilities(camera)
+    assert field._features is None  # nothing carried to the points for one view
+    again = field.probabilities(camera)
+    assert field._features is not None
+    torch.testing.assert_close(again, first, atol=1e-6, rtol=0)
+    features = field.features
+    assert features.shape == (len(points), vis.network.predictor.embedding.dim) and features.stride(0) == 1
+    two = vis.encode(points)  # a first query of several views carries them too
+    torch.testing.assert_close(two.probabilities(np.stack([camera, -camera]))[:1], first, atol=1e-6, rtol=0)
+    assert two._features is not None

@@ -192,6 +192,42 @@ def test_view_margin_equals_the_torch_one(config, rows, dtype, variant):
 
 
 @needs_kernels
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+@pytest.mark.parametrize("rows", [slice(None), slice(700, 3100), "indices"])
+def test_view_margin_reads_features_stored_per_leaf(rows, dtype):
+    """Features stored per leaf (as encode_leaves keeps them), carried to each point in the
+    kernel: the margins of the same features carried to every point first."""
+    from o3dvis.nn.features import LeafFeatures
+    from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
+
+    if not native.has_view_margin(dtype):
+        pytest.skip(f"no fused {dtype} kernel here")
+    g = torch.Generator().manual_seed(2)
+    network = VisibilityNetwork(NetworkConfig(channels=(8, 8))).eval()
+    points = _points()
+    if rows == "indices":
+        rows = torch.randperm(len(points), generator=g)[:1500]
+    leaf = torch.randint(0, 600, (len(points),), generator=g).sort().values
+    stored = LeafFeatures(torch.randn(27, 600, generator=g), leaf, torch.randn(27, 3, generator=g), points)
+    fast, _ = _views(points, camera=_CAMERA)
+    with torch.inference_mode():
+        from_leaves = network.view_margin([fast], rows, stored, None, dtype)[0]
+        carried = network.view_margin([fast], rows, stored.rows(), None, dtype)[0]
+    scale = carried.abs().max()
+    torch.testing.assert_close(from_leaves, carried, atol=(1e-5 if dtype == torch.float32 else 0.02) * scale, rtol=0)
+    assert ((from_leaves > 0) == (carried > 0)).float().mean() > 0.998
+    torch.testing.assert_close(stored.rows(rows), stored.rows()[rows])
+    with pytest.raises(IndexError, match="leaf must lie"):
+        LeafFeatures(stored.leaves, leaf + 1, stored.point_weight, points)
+    with pytest.raises(ValueError, match="point_weight"):
+        LeafFeatures(stored.leaves, leaf, stored.point_weight[:, :2], points)
+    mlp = network.predictor.packed_mlp(torch.float32)
+    with torch.inference_mode(), pytest.raises(ValueError, match="leaves must be a contiguous"):
+        fast.margin(slice(None), LeafFeatures(stored.leaves.double(), leaf, stored.point_weight, points), 4, None,
+                    mlp, torch.empty(len(points)))
+
+
+@needs_kernels
 def test_view_margin_rejects_what_the_kernel_cannot_take():
     from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
 

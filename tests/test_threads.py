@@ -137,7 +137,7 @@ def test_encode_and_query_run_on_the_planned_threads_and_restore_torch(monkeypat
     vis = o3dvis.NeuralVisibility.pretrained(precision="float32")
     cloud = bench_cloud(20_000, 3)
     seen, ran_on = [], []
-    encode, margin = vis.network.encode, vis.network.view_margin
+    encode, margin = vis.network.encode_leaves, vis.network.view_margin
 
     def spy_encode(*args, **kwargs):
         seen.append(torch.get_num_threads())
@@ -147,7 +147,7 @@ def test_encode_and_query_run_on_the_planned_threads_and_restore_torch(monkeypat
         ran_on.append(threading.current_thread())
         return margin(*args, **kwargs)
 
-    monkeypatch.setattr(vis.network, "encode", spy_encode)
+    monkeypatch.setattr(vis.network, "encode_leaves", spy_encode)
     monkeypatch.setattr(vis.network, "view_margin", spy_margin)
     torch.set_num_threads(2)
     monkeypatch.setattr(threads, "usable_cores", lambda: 1)
@@ -157,7 +157,7 @@ def test_encode_and_query_run_on_the_planned_threads_and_restore_torch(monkeypat
     assert seen == [1] and set(ran_on) == {threading.current_thread()}
     assert torch.get_num_threads() == 2
     monkeypatch.undo()
-    monkeypatch.setattr(vis.network, "encode", spy_encode)
+    monkeypatch.setattr(vis.network, "encode_leaves", spy_encode)
     monkeypatch.setattr(vis.network, "view_margin", spy_margin)
     seen.clear(), ran_on.clear()
     torch.set_num_threads(1)

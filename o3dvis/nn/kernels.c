@@ -591,7 +591,11 @@ int o3dvis_surfel_zbuffer(int64_t n, const float *points, const float *surfels, 
  * buffers' row lengths, sides + 2; perspective: 1 for a camera (a residual's
  * footprint is the depth), 0 for a direction (1); empty: the residual that an
  * empty pixel takes before asinh;
- * normals: (N, 3) for a model with the normal cue, else NULL.
+ * normals: (N, 3) for a model with the normal cue, else NULL;
+ * leaf: NULL, or the features stored per octree leaf: then proj holds the
+ * leaves' values (channel j of leaf l at proj[j * proj_ld + l]), leaf (N,)
+ * each point's leaf, and point i's channel j is its leaf's value plus
+ * point_weight[3 j .. 3 j + 2] . points[3 i .. 3 i + 2].
  */
 struct view {
     const int64_t *rows;
@@ -610,6 +614,9 @@ struct view {
     int scales;
     float empty;
     const float *normals;
+    const int64_t *leaf;
+    const float *points;
+    const float *point_weight;
 };
 
 /* Writes the 3x3 depths around the pixels of m <= BLOCK points (rows idx) at every scale into
@@ -632,7 +639,8 @@ static void gather_patches(const struct view *v, const int64_t *idx, int m, floa
  * hold finite values of no meaning. */
 static void block_inputs(const struct view *v, int64_t b0, int m, float *in) {
     const int ne = 3 + 6 * v->frequencies, nc = 9 * v->scales, scales = v->scales;
-    float *cue = in + ne * BLOCK, dep[BLOCK], kd[BLOCK], k[BLOCK];
+    float *cue = in + ne * BLOCK, dep[BLOCK], kd[BLOCK], k[BLOCK], px[BLOCK], py[BLOCK], pz[BLOCK];
+    int64_t lf[BLOCK];
     const float empty = v->empty; /* a local: the stores below could otherwise change it */
     int64_t idx[BLOCK];
     for (int b = 0; b < m; b++) idx[b] = v->rows ? v->rows[b0 + b] : v->start + b0 + b;
@@ -681,10 +689,19 @@ static void block_inputs(const struct view *v, int64_t b0, int m, float *in) {
             c[b] = -(nrm[0] * in[b] + nrm[1] * in[BLOCK + b] + nrm[2] * in[2 * BLOCK + b]);
         }
     }
+    if (v->leaf) { /* each point's leaf and coordinates, for the features below */
+        for (int b = 0; b < m; b++) {
+            const float *q = v->points + 3 * idx[b];
+            lf[b] = v->leaf[idx[b]], px[b] = q[0], py[b] = q[1], pz[b] = q[2];
+        }
+    }
     for (int j = 0; j < ne; j++) {
         const float *p = v->proj + j * v->proj_ld;
         float *e = in + j * BLOCK;
-        if (v->rows) {
+        if (v->leaf) { /* the leaf's value plus the point's term, in the order of torch's addmm_ */
+            const float *w = v->point_weight + 3 * j;
+            for (int b = 0; b < m; b++) e[b] *= p[lf[b]] + (w[0] * px[b] + w[1] * py[b] + w[2] * pz[b]);
+        } else if (v->rows) {
             for (int b = 0; b < m; b++) e[b] *= p[idx[b]];
         } else { /* the next block's features fetched now: the CPU's own prefetcher follows
                     fewer streams than the 3 + 6 frequencies rows read side by side here */

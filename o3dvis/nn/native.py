@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from .. import clib
+from .features import LeafFeatures
 
 __all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "cell_moments", "project",
            "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin"]
@@ -34,7 +35,8 @@ class _View(ctypes.Structure):
     _fields_ = [("rows", _PTR), ("start", _I64), ("dirs", _PTR), ("dirs_stride", _I64), ("proj", _PTR),
                 ("proj_ld", _I64), ("frequencies", ctypes.c_int), ("zbufs", _PTR), ("corners", _PTR),
                 ("widths", _PTR), ("depth", _PTR), ("rpix", _PTR), ("perspective", ctypes.c_int),
-                ("scales", ctypes.c_int), ("empty", ctypes.c_float), ("normals", _PTR)]
+                ("scales", ctypes.c_int), ("empty", ctypes.c_float), ("normals", _PTR), ("leaf", _PTR),
+                ("points", _PTR), ("point_weight", _PTR)]
 
 
 _VIEW = ctypes.POINTER(_View)
@@ -255,23 +257,32 @@ def _rows_of(rows: slice | Tensor, n_points: int) -> tuple[int, int, Tensor | No
     return len(rows), 0, rows
 
 
-def _view(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies: int, buffers: Tensor,
-          corners: Tensor, sides: list[int], depth: Tensor, rpix: Tensor, perspective: bool, empty: float,
-          normals: Tensor | None = None) -> tuple[int, _View]:
+def _view(rows: slice | Tensor, dirs: Tensor, projected: Tensor | LeafFeatures, num_frequencies: int,
+          buffers: Tensor, corners: Tensor, sides: list[int], depth: Tensor, rpix: Tensor, perspective: bool,
+          empty: float, normals: Tensor | None = None) -> tuple[int, _View]:
     """The number of points and the kernels' ``struct view`` of them (see :func:`view_margin`), all
     checked; the struct holds on to the tensors made here that it points into."""
     n_points, scales = corners.shape
     n, start, rows = _rows_of(rows, n_points)
     rows_pointer = None if rows is None else rows.data_ptr()
     e = 3 + 6 * num_frequencies
+    leaves = isinstance(projected, LeafFeatures)
+    if leaves:  # the leaves' rows, each point's leaf (in range: LeafFeatures checks it) and its term
+        _check("leaves", projected.leaves, (e, projected.leaves.shape[1]))
+        _check("leaf", projected.leaf, (n_points,), torch.long)
+        _check("point_weight", projected.point_weight, (e, 3))
+        _check("points", projected.points, (n_points, 3))
+        stored, ld = projected.leaves, projected.leaves.stride(0)
     # the kernel reads each channel of the features as a contiguous row (as encode() stores them):
     # copying other layouts here would copy all N points for every chunk
-    if (projected.shape != (n_points, e) or projected.stride(0) != 1 or dirs.shape != (n_points, 3)
-            or dirs.stride(1) != 1
-            or any(t.dtype != torch.float32 or t.device.type != "cpu" for t in (projected, dirs))):
-        raise ValueError(f"projected must be ({n_points}, {e}) stored channels first (strides (1, N)) and dirs "
-                         f"({n_points}, 3) with contiguous rows, float32 on the CPU, got "
-                         f"{tuple(projected.shape)} {projected.dtype} strides {projected.stride()} and "
+    elif projected.shape != (n_points, e) or projected.stride(0) != 1 or any(
+            t.dtype != torch.float32 or t.device.type != "cpu" for t in (projected, dirs)):
+        raise ValueError(f"projected must be ({n_points}, {e}) stored channels first (strides (1, N)), float32 on "
+                         f"the CPU, got {tuple(projected.shape)} {projected.dtype} strides {projected.stride()}")
+    else:
+        stored, ld = projected, projected.stride(1)
+    if dirs.shape != (n_points, 3) or dirs.stride(1) != 1 or dirs.dtype != torch.float32 or dirs.device.type != "cpu":
+        raise ValueError(f"dirs must be ({n_points}, 3) with contiguous rows, float32 on the CPU, got "
                          f"{tuple(dirs.shape)} {dirs.dtype} strides {dirs.stride()}")
     _check("buffers", buffers, (sum((res + 2) ** 2 for res in sides),))
     _check("corners", corners, (n_points, len(sides)), torch.int32)
@@ -280,9 +291,11 @@ def _view(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies
     if normals is not None:
         _check("normals", normals, (n_points, 3))
     widths = torch.tensor([res + 2 for res in sides], dtype=torch.long)
-    view = _View(rows_pointer, start, dirs.data_ptr(), dirs.stride(0), projected.data_ptr(), projected.stride(1),
+    view = _View(rows_pointer, start, dirs.data_ptr(), dirs.stride(0), stored.data_ptr(), ld,
                  num_frequencies, buffers.data_ptr(), corners.data_ptr(), widths.data_ptr(), depth.data_ptr(),
-                 rpix.data_ptr(), perspective, scales, empty, normals.data_ptr() if normals is not None else None)
+                 rpix.data_ptr(), perspective, scales, empty, normals.data_ptr() if normals is not None else None,
+                 *((projected.leaf.data_ptr(), projected.points.data_ptr(), projected.point_weight.data_ptr())
+                   if leaves else (None, None, None)))
     view.tensors = (rows, widths)
     return n, view
 
@@ -328,9 +341,9 @@ def pack_mlp(layers: list[tuple[Tensor, Tensor]], dtype: torch.dtype) -> PackedM
     return PackedMLP(dtype, torch.tensor(sizes, dtype=torch.int32), torch.cat(weights).cpu(), torch.cat(biases).cpu())
 
 
-def view_margin(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequencies: int, buffers: Tensor,
-                corners: Tensor, sides: list[int], depth: Tensor, rpix: Tensor, perspective: bool, empty: float,
-                normals: Tensor | None, mlp: PackedMLP, out: Tensor) -> None:
+def view_margin(rows: slice | Tensor, dirs: Tensor, projected: Tensor | LeafFeatures, num_frequencies: int,
+                buffers: Tensor, corners: Tensor, sides: list[int], depth: Tensor, rpix: Tensor, perspective: bool,
+                empty: float, normals: Tensor | None, mlp: PackedMLP, out: Tensor) -> None:
     """Writes the margins of the points ``rows`` for one view into ``out``.
 
     The MLP ``mlp`` runs on the first layer's inputs of each point: ``projected[rows]`` times
@@ -340,8 +353,9 @@ def view_margin(rows: slice | Tensor, dirs: Tensor, projected: Tensor, num_frequ
     Args:
         rows: the points, a slice with step 1 or a (n,) long tensor.
         dirs: (N, 3) view directions, rows contiguous (a direction expanded to N rows will do).
-        projected: (N, E) projected features (:meth:`VisibilityPredictor.project`),
-            E = 3 + 6 ``num_frequencies``, stored channels first (strides (1, N)).
+        projected: the projected features (:meth:`VisibilityPredictor.project`), E = 3 + 6
+            ``num_frequencies``: stored per leaf (float32 on the CPU, contiguous), or (N, E) stored
+            channels first (strides (1, N)).
         buffers, corners, depth, rpix: the view's, as :func:`project` returns them for ``sides``.
         perspective: a view from a camera (True) or along a direction.
         empty: the residual an empty pixel takes before ``asinh``.

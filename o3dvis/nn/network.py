@@ -14,6 +14,7 @@ from .calibration import CloudCalibration
 from .fusion import ZBufferFusion
 from . import native
 from .cues import DEFAULT_SCALES, ViewProjection, num_cues, point_surfels
+from .features import LeafFeatures
 from .noise import NUM_NOISE_CUES, noise_cues
 from .octree import Octree
 from .predictor import VisibilityPredictor
@@ -165,7 +166,13 @@ class VisibilityNetwork(nn.Module):
 
     def encode(self, points: Tensor, batch: Tensor | None = None, normals: Tensor | None = None,
                batch_size: int | None = None, noise: Tensor | None = None) -> Tensor:
-        """Per-point view-independent features, (N, E).
+        """Per-point view-independent features, (N, E), stored channels first (strides (1, N)):
+        :meth:`encode_leaves` carried to every point. Takes the arguments of :meth:`encode_leaves`."""
+        return self.encode_leaves(points, batch, normals, batch_size, noise).rows()
+
+    def encode_leaves(self, points: Tensor, batch: Tensor | None = None, normals: Tensor | None = None,
+                      batch_size: int | None = None, noise: Tensor | None = None) -> LeafFeatures:
+        """View-independent features, stored per octree leaf (what the per-view predictor reads).
 
         Args:
             points: (N, 3) normalised points of one or several clouds.
@@ -181,11 +188,7 @@ class VisibilityNetwork(nn.Module):
             batch = torch.zeros(points.shape[0], dtype=torch.long, device=points.device)
         octree = self.octree(points, batch, batch_size)
         leaf = self.unet(self._signal(points, batch, octree, normals, noise), octree)
-
-        def carry(x: Tensor) -> Tensor:  # each point takes its leaf's values (a gather along dim 1)
-            return torch.gather(x, 1, octree.point_leaf.expand(x.shape[0], -1))
-
-        return self.predictor.project(leaf, points, carry)
+        return self.predictor.project(leaf, points, octree.point_leaf)
 
     def view(self, points: Tensor, camera: Tensor | None = None, direction: Tensor | None = None,
              surfels: Tensor | None = None) -> ViewProjection:
@@ -218,14 +221,14 @@ class VisibilityNetwork(nn.Module):
             raise ValueError("this model needs normals")
         return -(normals[rows] * dirs).sum(dim=1)
 
-    def view_margin(self, views: Sequence[ViewProjection], rows: slice | Tensor, projected: Tensor,
+    def view_margin(self, views: Sequence[ViewProjection], rows: slice | Tensor, projected: Tensor | LeafFeatures,
                     normals: Tensor | None = None, dtype: torch.dtype | None = None) -> Tensor:
         """(V, n) margins (see :meth:`VisibilityPredictor.margin`) of ``points[rows]`` for ``views``.
 
         Args:
             views: the views' projections of the cloud.
             rows: the points, a slice or a (n,) long tensor.
-            projected: (N, E) the cloud's :meth:`encode` output.
+            projected: the cloud's :meth:`encode_leaves` output, or (N, E) its :meth:`encode` output.
             normals: (N, 3) the cloud's unit normals, for a normals model.
             dtype: the dtype of the matrix products (None: ``projected``'s).
 
@@ -236,21 +239,24 @@ class VisibilityNetwork(nn.Module):
         view that computes the inputs and runs the MLP on them while they are in cache.
         """
         predictor = self.predictor
-        dtype = dtype or projected.dtype
-        if (all(v.native for v in views) and native.usable(projected) and native.has_view_margin(dtype)
-                and projected.stride(0) == 1):  # stored channels first, as encode() stores it
+        leaves = isinstance(projected, LeafFeatures)
+        stored = projected.leaves if leaves else projected
+        dtype = dtype or stored.dtype
+        if (all(v.native for v in views) and native.usable(stored) and native.has_view_margin(dtype)
+                and (leaves or projected.stride(0) == 1)):  # stored channels first, as encode() stores it
             if self.config.use_normals and normals is None:
                 raise ValueError("this model needs normals")
-            n = len(range(*rows.indices(projected.shape[0]))) if isinstance(rows, slice) else len(rows)
+            n_points = projected.num_points if leaves else projected.shape[0]
+            n = len(range(*rows.indices(n_points))) if isinstance(rows, slice) else len(rows)
             frequencies = predictor.embedding.num_frequencies
-            mlp, out = predictor.packed_mlp(dtype), projected.new_empty(len(views), n)
+            mlp, out = predictor.packed_mlp(dtype), stored.new_empty(len(views), n)
             for j, view in enumerate(views):
                 view.margin(rows, projected, frequencies, normals if self.config.use_normals else None, mlp, out[j])
             return out
         inputs = [self.view_inputs(view, rows, normals) for view in views]
         dirs, cues = ((inputs[0][0][None], inputs[0][1][None]) if len(inputs) == 1 else
                       (torch.stack([d for d, _ in inputs]), torch.stack([c for _, c in inputs])))
-        return predictor.margin(projected[rows], dirs, cues, dtype)
+        return predictor.margin(projected.rows(rows) if leaves else projected[rows], dirs, cues, dtype)
 
     def predict(self, features: Tensor, points: Tensor, camera: Tensor | None = None,
                 direction: Tensor | None = None, normals: Tensor | None = None,

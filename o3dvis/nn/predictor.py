@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from . import native
+from .features import LeafFeatures
 
 __all__ = ["ViewEmbedding", "VisibilityPredictor", "PRECISIONS", "resolve_precision"]
 
@@ -103,22 +104,21 @@ class VisibilityPredictor(nn.Module):
         self.mlp = nn.Sequential(*layers)
         self._packed: dict[torch.dtype, tuple[tuple, native.PackedMLP]] = {}  # dtype: (weights' identity, packed)
 
-    def project(self, features: Tensor, points: Tensor, carry: Callable[[Tensor], Tensor]) -> Tensor:
-        """Projects ``[feature, point]`` to the embedding's width, (N, E), stored channels first.
+    def project(self, features: Tensor, points: Tensor, leaf: Tensor) -> LeafFeatures:
+        """Projects ``[feature, point]`` to the embedding's width, stored per leaf.
 
-        The projection is linear, so the features are projected where they are
-        computed, once per octree leaf, and ``carry`` then takes the (E, L)
-        projected leaf features to the (E, N) points (each point takes its leaf's
-        values; any carry whose weights sum to 1 keeps the bias exact).
+        The projection is linear, so its feature part is computed once per octree
+        leaf; a point's projected features are its leaf's plus the point's term
+        (see :class:`~o3dvis.nn.features.LeafFeatures`).
 
         Args:
             features: (L, C) features of the octree leaves (the layer takes C + 3 inputs).
             points: (N, 3) normalised points, the layer's last 3 inputs.
-            carry: (E, L) -> (E, N) leaf values at the points.
+            leaf: (N,) each point's leaf.
         """
         layer, c = self.project_feature, features.shape[1]
         per_leaf = torch.addmm(layer.bias[:, None], layer.weight[:, :c], features.transpose(0, 1))
-        return carry(per_leaf).addmm_(layer.weight[:, c:], points.transpose(0, 1)).transpose(0, 1)
+        return LeafFeatures(per_leaf, leaf, layer.weight[:, c:].contiguous(), points)
 
     def forward(self, projected: Tensor, dirs: Tensor, cues: Tensor) -> Tensor:
         """(..., N, E) projected features, (..., N, 3) directions, (..., N, Z) cues -> (..., N, 2)."""

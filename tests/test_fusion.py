@@ -250,13 +250,16 @@ def test_fuse_command_writes_a_fused_network(tmp_path, monkeypatch):
     out = tmp_path / "fused.safetensors"
     monkeypatch.chdir(tmp_path)
     summary = fuse(ckpt, [data], out, clouds=3, keep=1000, min_points=1500, max_points=3000, steps=50,
-                   progress=False)
+                   hidden=8, progress=False)
     net = VisibilityNetwork.load(out)
-    assert net.config.fusion and summary["samples"] == 3 * 1000
+    assert net.config.fusion and net.config.fusion_hidden == 8 and net.fusion.mlp[0].out_features == 8
+    assert summary["samples"] == 3 * 1000
     assert summary["cross_entropy_after"] < summary["cross_entropy_before"]  # an untrained network's margins
     assert summary["data"] == ["scenes"] and summary["checkpoint"] == "net.safetensors"
     with pytest.raises(ValueError, match="positive"):
         fuse(ckpt, [data], out, clouds=0)
+    with pytest.raises(ValueError, match="fusion_hidden"):  # wider than the C kernel takes
+        fuse(ckpt, [data], out, hidden=129)
 
 
 def test_config_fusion_must_be_a_flag():

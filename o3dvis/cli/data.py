@@ -90,7 +90,7 @@ def _fuse(args) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     summary = fuse(args.checkpoint, args.data, args.out, args.clouds, args.keep, args.seed, args.min_points,
-                   args.max_points, args.noise, args.noise_prob, args.steps)
+                   args.max_points, args.noise, args.noise_prob, args.steps, args.hidden)
     print(json.dumps({k: summary[k] for k in ("samples", "cross_entropy_before", "cross_entropy_after")}))
     return 0
 
@@ -215,6 +215,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="largest noise, a fraction of the median camera distance (default 0.02)")
     p.add_argument("--noise-prob", type=float, default=0.5, help="share of clouds with noise (default 0.5)")
     p.add_argument("--steps", type=int, default=3000, help="Adam steps of the fit (default 3000)")
+    p.add_argument("--hidden", type=int, default=32, help="width of the fusion's hidden layer (default 32)")
     p.set_defaults(func=_fuse)
 
     p = sub.add_parser("publish", help="install a checkpoint as a shipped model", formatter_class=fmt,

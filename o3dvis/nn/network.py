@@ -24,7 +24,7 @@ __all__ = ["NetworkConfig", "VisibilityNetwork"]
 
 # bounds of a config (see NetworkConfig.check): (field, lowest, highest)
 _INT_BOUNDS = (("depth", 2, 10), ("full_depth", 1, 5), ("blocks", 0, 8), ("feature_channels", 1, 1024),
-               ("num_frequencies", 0, 16))
+               ("num_frequencies", 0, 16), ("fusion_hidden", 1, 128))
 _MAX_WIDTH, _MAX_STAGES, _MAX_CUE_SCALE = 1024, 8, 256
 # options that earlier versions stored in every checkpoint's config, with the only value any
 # shipped model used: a config may still name them, with that value
@@ -50,6 +50,7 @@ class NetworkConfig:
     footprints: bool = False
     calibrated: bool = False
     fusion: bool = False
+    fusion_hidden: int = 16  # width of the fusion's hidden layer (with fusion)
 
     def __post_init__(self):
         self.check()
@@ -131,7 +132,7 @@ class VisibilityNetwork(nn.Module):
         # fitted after training (o3dvis calibrate); applied to the margins by o3dvis.VisibilityField
         self.calibration = CloudCalibration() if config.calibrated else None
         # fitted after training (o3dvis fuse); applied to the margins of camera views by o3dvis.VisibilityField
-        self.fusion = ZBufferFusion() if config.fusion else None
+        self.fusion = ZBufferFusion(config.fusion_hidden) if config.fusion else None
 
     def _signal(self, points: Tensor, batch: Tensor, octree: Octree, normals: Tensor | None,
                 noise: Tensor | None = None) -> Tensor:

@@ -27,17 +27,18 @@ __all__ = ["fuse", "fit_fusion"]
 
 
 def fit_fusion(margins: torch.Tensor, zbuffers: torch.Tensor, noise: torch.Tensor, labels: torch.Tensor,
-               steps: int = 3000, batch_size: int = 65536, seed: int = 0) -> tuple[ZBufferFusion, float, float]:
-    """A :class:`ZBufferFusion` fitted to pairs' margins (M,), z-buffer answers (M, 4), their clouds'
-    noise cues (M, 2) and labels (M,) (1: visible) by Adam on the cross-entropy, with a
-    cosine-decayed learning rate.
+               steps: int = 3000, batch_size: int = 65536, seed: int = 0,
+               hidden: int = 32) -> tuple[ZBufferFusion, float, float]:
+    """A :class:`ZBufferFusion` of ``hidden`` units fitted to pairs' margins (M,), z-buffer answers
+    (M, 4), their clouds' noise cues (M, 2) and labels (M,) (1: visible) by Adam on the
+    cross-entropy, with a cosine-decayed learning rate.
 
     Returns:
         The fusion, and the cross-entropy of the margins alone and of the fused ones.
     """
     generator = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
-    fusion = ZBufferFusion()
+    fusion = ZBufferFusion(hidden)
     margins, inputs, noise = margins.float(), zbuffer_inputs(zbuffers.float()), noise.float()
     x = fusion_inputs(margins, inputs, noise)
     fusion.mean.copy_(x.mean(dim=0))
@@ -61,7 +62,7 @@ def fit_fusion(margins: torch.Tensor, zbuffers: torch.Tensor, noise: torch.Tenso
 
 def fuse(checkpoint: str | Path, data: list[str | Path], out: str | Path, clouds: int = 400, keep: int = 20000,
          seed: int = 1, min_points: int = 8192, max_points: int = 65536, noise: float = 0.02,
-         noise_prob: float = 0.5, steps: int = 3000, progress: bool = True) -> dict:
+         noise_prob: float = 0.5, steps: int = 3000, hidden: int = 32, progress: bool = True) -> dict:
     """Fits the fusion of ``checkpoint`` on scenes and writes the fused network to ``out``.
 
     Args:
@@ -76,6 +77,7 @@ def fuse(checkpoint: str | Path, data: list[str | Path], out: str | Path, clouds
         noise: largest noise level, a fraction of the median camera distance (as ``o3dvis eval --scenes``).
         noise_prob: share of clouds that get noise.
         steps: Adam steps of the fit.
+        hidden: width of the fusion's hidden layer (at most 128, what the C kernel takes).
         progress: show a progress bar.
 
     Returns:
@@ -91,6 +93,7 @@ def fuse(checkpoint: str | Path, data: list[str | Path], out: str | Path, clouds
     if clouds < 1 or keep < 1 or not 1 <= min_points <= max_points:
         raise ValueError(f"clouds and keep must be positive and 1 <= min_points <= max_points, got {clouds}, "
                          f"{keep}, {min_points}, {max_points}")
+    NetworkConfig(fusion=True, fusion_hidden=hidden)  # the width checked before the draw
     net = load_model(Path(checkpoint)).without("fusion")
     files = [f for d in data for f in list_samples(d)]
     if not files:
@@ -129,8 +132,9 @@ def fuse(checkpoint: str | Path, data: list[str | Path], out: str | Path, clouds
         bar.update()
     bar.close()
     fusion, before, after = fit_fusion(torch.cat(margins), torch.cat(zbuffers), torch.cat(cloud_cues),
-                                       torch.cat(labels), steps, seed=seed)
-    fused = VisibilityNetwork(NetworkConfig.from_dict({**asdict(net.config), "fusion": True}))
+                                       torch.cat(labels), steps, seed=seed, hidden=hidden)
+    fused = VisibilityNetwork(NetworkConfig.from_dict({**asdict(net.config), "fusion": True,
+                                                       "fusion_hidden": hidden}))
     fused.load_state_dict({**net.state_dict(), **{f"fusion.{k}": v for k, v in fusion.state_dict().items()}})
     summary = {"clouds": clouds, "samples": sum(len(m) for m in margins), "seed": seed,
                "data": [portable_path(d, Path.cwd()) for d in data],

@@ -680,10 +680,17 @@ def test_the_runtime_never_imports_training_code():
 
 
 def test_a_first_view_reads_the_features_from_the_leaves_and_later_queries_carry_them(vis, points):
-    """The drop-in's one view reads the features where they are stored, per octree leaf; a
-    later query carries them to every point once, and the answers do not change."""
-    field = vis.encode(points)
+    """The drop-in's one view of a dense cloud reads the features where they are stored, per
+    octree leaf; a later query carries them to every point once, and the answers do not change.
+    A cloud of few points a leaf has them carried at once."""
     camera = _camera(points)
+    sparse = vis.encode(points)
+    assert sparse.num_points < 4 * sparse._leaves.leaves.shape[1]
+    sparse.probabilities(camera)
+    assert sparse._features is not None
+    rng = np.random.default_rng(5)  # 16 points around each of the cloud's
+    points = np.repeat(points, 16, axis=0) + 1e-3 * rng.standard_normal((16 * len(points), 3))
+    field = vis.encode(points)
     first = field.probabilities(camera)
     assert field._features is None  # nothing carried to the points for one view
     again = field.probabilities(camera)

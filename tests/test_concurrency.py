@@ -180,7 +180,11 @@ def test_views_answered_side_by_side_on_the_threads_as_one_at_a_time(scenes, mon
 def test_one_view_answered_in_chunks_side_by_side(scenes, monkeypatch):
     """A single view of a cloud of several chunks has its chunks answered on the worker threads
     when o3dvis runs on several: the same answers as on the caller's thread alone, for a first
-    query (which reads the features from the leaves) and a later one (from the points)."""
+    query (made to read the features from the leaves, whatever their points a leaf) and a later
+    one (from the points)."""
+    import o3dvis.field
+
+    monkeypatch.setattr(o3dvis.field, "_LEAF_READ_POINTS", 0)
     pcd = scenes[0][0]
     view = _camera(pcd, 7)
     vis = o3dvis.NeuralVisibility.pretrained(precision="float32")

@@ -276,3 +276,15 @@ def test_without_drops_a_fitted_part_only():
     assert plain.without("fusion") is plain and fused.without("calibrated") is fused
     with pytest.raises(ValueError, match="option"):
         fused.without("footprints")
+
+
+def test_warm_start_drops_a_fusion():
+    """Training from a fused scene model (the GPU command's --init) starts from its network; its
+    fusion, fitted to the margins training changes, is left to o3dvis fuse."""
+    from o3dvis.training.train import warm_start
+
+    plain, fused = _fused_pair(4)
+    target = VisibilityNetwork(NetworkConfig(**SMALL)).eval()
+    warm_start(target, fused.state_dict())
+    for name, value in plain.state_dict().items():
+        torch.testing.assert_close(target.state_dict()[name], value)

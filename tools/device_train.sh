@@ -12,7 +12,8 @@
 #    MODEL is default, normals or scene; training starts from the shipped weights of MODEL (or
 #    from INIT, e.g. a carried checkpoint of an earlier call), stops after SECONDS (default 420)
 #    with a checkpoint, and leaves the run (last.safetensors, log.jsonl, config.json) in
-#    $OUT/MODEL. Evaluate it here with `o3dvis eval --model FILE` before publishing it.
+#    $OUT/MODEL. Evaluate it here with `o3dvis eval --model FILE` before publishing it (a scene
+#    model after `o3dvis fuse`, which fits its fusion with the z-buffer anew: training drops it).
 #    DEVICE=cpu runs the same steps on the CPU (a dry run of the command).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -34,7 +35,7 @@ init=${3:-o3dvis/weights/$model.safetensors}
 case "$model" in
     default) data="carry/objects carry/shapes"; extra="" ;;
     normals) data="carry/objects carry/shapes"; extra="--normals" ;;
-    scene) data="carry/scenes carry/objects"; extra="" ;;
+    scene) data="carry/scenes carry/objects"; extra="--footprints" ;;
     *) echo "unknown model $model: default, normals or scene" >&2; exit 2 ;;
 esac
 out=${OUT:-runs}/$model

@@ -60,15 +60,17 @@ def warm_start(net: VisibilityNetwork, state: dict[str, torch.Tensor]) -> None:
     Used to start a normals model from a default one, or a model with more view
     cues from an earlier one: weights over the added inputs start at zero, so
     ``net`` first computes what the source computed from the shared inputs.
-    A calibration in ``state`` is dropped (training changes the margins it was
-    fitted to; ``o3dvis calibrate`` fits it anew).
+    A calibration or a fusion in ``state`` that ``net`` lacks is dropped (training
+    changes the margins they were fitted to; ``o3dvis calibrate`` and ``o3dvis fuse``
+    fit them anew).
     """
     from ..nn.conv import _GatherMatmul
+    from ..nn.network import _FITTED
 
     target = net.state_dict()
     linear = {f"{name}.weight": m for name, m in net.named_modules() if isinstance(m, _GatherMatmul)}
     for name, value in state.items():
-        if name.startswith("calibration.") and name not in target:
+        if name.startswith(tuple(_FITTED.values())) and name not in target:
             continue
         dst = target[name]
         with torch.no_grad():

@@ -2,10 +2,11 @@
 
 A point that a camera sees faces it, so the cameras that see a point vote on
 the side of its normal; points no camera sees take their side from where they
-join voted ones along the surface. Plain NumPy and SciPy on (N, 3) arrays,
-shared by the two-pass encoding of :class:`o3dvis.NeuralVisibility` (normals
-from a plane fit to each point's nearest neighbours, :func:`voted_normals`)
-and the normal estimation of :mod:`o3dvis.apps.normals`.
+join voted ones along the surface. NumPy and SciPy on (N, 3) arrays (the plane
+fits in one pass of C where the package's kernels are built), shared by the
+two-pass encoding of :class:`o3dvis.NeuralVisibility` (normals from a plane
+fit to each point's nearest neighbours, :func:`voted_normals`) and the normal
+estimation of :mod:`o3dvis.apps.normals`.
 """
 
 from __future__ import annotations
@@ -14,9 +15,12 @@ import functools
 from collections.abc import Callable
 
 import numpy as np
+import torch
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from scipy.spatial import cKDTree
+
+from .nn import native
 
 __all__ = ["voted_normals", "fit_planes", "smallest_eigenvectors", "vote", "orient_by_vote",
            "complete_orientation", "row_chunks"]
@@ -33,7 +37,12 @@ def row_chunks(count: int, size: int = _CHUNK) -> list[slice]:
 def fit_planes(points: np.ndarray, neighbours: np.ndarray, weight: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals (M, 3) of weighted least-squares planes through rows of neighbours (M, K), and
-    (M,) whether each is defined: three neighbours of positive weight, not all on one line."""
+    (M,) whether each is defined: three neighbours of positive weight, not all on one line. One
+    pass of C where the kernels are built (``native.fit_planes``), else these numpy ops."""
+    if native.available():
+        normals, planar = native.fit_planes(*(torch.from_numpy(np.ascontiguousarray(a, dtype=t)) for a, t in (
+            (points, np.float64), (neighbours, np.int64), (weight, np.float64))))
+        return normals.numpy(), planar.numpy()
     # homogeneous coordinates, so that one product per neighbourhood gives the weighted sums of
     # the offsets, of their outer products and of the weights: [[S, s], [s^T, w]]; components
     # first, so that elementwise passes run along the neighbours

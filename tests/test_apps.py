@@ -239,6 +239,34 @@ def test_closed_form_eigenvectors_of_degenerate_matrices():
     assert abs(vectors[4][0]) < 1e-12  # any vector of the cigar's round section
 
 
+def test_native_plane_fits_match_the_numpy_ones(monkeypatch):
+    """The plane fits in C against the numpy ops they follow, degenerate neighbourhoods included:
+    duplicates, collinear points, rows without three positive weights."""
+    import o3dvis.orientation as orientation
+
+    if not orientation.native.available():
+        pytest.skip("the C kernels are not built")
+    rng = np.random.default_rng(8)
+    points = np.concatenate([rng.normal(size=(5000, 3)) * [1.0, 1.0, 0.05],
+                             np.zeros((4, 3)), np.outer(np.arange(4.0), [0.6, 0.0, 0.8]) + 1e6])
+    neighbours = rng.integers(0, 5000, size=(6000, 8))
+    neighbours[:4] = 5000 + np.arange(4)[:, None] % 4  # a point's duplicates
+    neighbours[4:8] = 5004 + np.arange(8) % 4  # a line, far from the origin
+    neighbours[12:20, 5:] = len(points)  # no point, of no weight (the padding of covisible fits)
+    weight = rng.random(neighbours.shape)
+    weight[8:12, 2:] = 0  # two neighbours that count
+    weight[12:20, 5:] = 0
+    fast, fast_fitted = fit_planes(points, neighbours, weight)
+    monkeypatch.setattr(orientation.native, "available", lambda: False)
+    slow, slow_fitted = fit_planes(points, neighbours, weight)
+    assert np.array_equal(fast_fitted, slow_fitted) and not fast_fitted[:12].any() and fast_fitted[12:].all()
+    assert np.isfinite(fast).all() and np.allclose(np.linalg.norm(fast, axis=1), 1)
+    assert np.abs(np.einsum("ij,ij->i", fast, slow))[12:].min() > 1 - 1e-9
+    with pytest.raises(IndexError, match="neighbours"):
+        orientation.native.fit_planes(torch.zeros(3, 3, dtype=torch.float64), torch.tensor([[0, 1, 4]]),
+                                      torch.ones(1, 3, dtype=torch.float64))
+
+
 def test_chunked_fit_and_vote_match_plain_formulas_across_chunks():
     rng = np.random.default_rng(6)
     points = rng.normal(size=(9000, 3)) * [1.0, 1.0, 0.05]  # more rows than one chunk

@@ -959,3 +959,87 @@ int o3dvis_fuse_margin(int64_t n, const int64_t *rows, int64_t start, const floa
     }
     return 0;
 }
+
+/* The unit eigenvector of the smallest eigenvalue of the symmetric matrix (xx xy xz; xy yy yz;
+ * xz yz zz), as o3dvis/orientation.py's smallest_eigenvectors finds it: the eigenvalues from the
+ * trigonometric solution of the characteristic cubic (entries scaled by the largest first); of
+ * the largest and the smallest, the one farther from the middle eigenvalue gets its vector as the
+ * longest cross product of two rows of A - lambda I, and the other two are those of A on the
+ * plane normal to it, by an angle. Returns whether the middle eigenvalue exceeds 1e-12 times the
+ * largest. */
+static int smallest_eigenvector(const double *a, double *out) {
+    double scale = 0.0;
+    for (int i = 0; i < 6; i++) scale = fmax(scale, fabs(a[i]));
+    const double r = scale > 0.0 ? scale : 1.0;
+    const double xx = a[0] / r, xy = a[1] / r, xz = a[2] / r, yy = a[3] / r, yz = a[4] / r, zz = a[5] / r;
+    const double third = (xx + yy + zz) / 3.0, dx = xx - third, dy = yy - third, dz = zz - third;
+    const double spread = sqrt((dx * dx + dy * dy + dz * dz + 2.0 * (xy * xy + xz * xz + yz * yz)) / 6.0);
+    const double det = dx * (dy * dz - yz * yz) - xy * (xy * dz - yz * xz) + xz * (xy * yz - dy * xz);
+    const double sp = spread > 0.0 ? spread : 1.0;
+    double half = det / (2.0 * sp * sp * sp);
+    half = half < -1.0 ? -1.0 : (half > 1.0 ? 1.0 : half);
+    const double angle = acos(half) / 3.0, largest = third + 2.0 * spread * cos(angle);
+    const int low = half < 0.0; /* then the smallest eigenvalue is the one far from the middle */
+    const double far = low ? third + 2.0 * spread * cos(angle + 2.0 * M_PI / 3.0) : largest;
+    const double rows[3][3] = {{xx - far, xy, xz}, {xy, yy - far, yz}, {xz, yz, zz - far}};
+    const int pairs[3][2] = {{0, 1}, {0, 2}, {1, 2}};
+    double best[3] = {0.0, 0.0, 0.0}, longest2 = -1.0;
+    for (int c = 0; c < 3; c++) { /* the first of equally long cross products, as argmax takes it */
+        const double *p = rows[pairs[c][0]], *q = rows[pairs[c][1]];
+        const double v[3] = {p[1] * q[2] - p[2] * q[1], p[2] * q[0] - p[0] * q[2], p[0] * q[1] - p[1] * q[0]};
+        const double l2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
+        if (l2 > longest2) longest2 = l2, best[0] = v[0], best[1] = v[1], best[2] = v[2];
+    }
+    const double longest = sqrt(longest2);
+    double axis[3] = {0.0, 0.0, 1.0};
+    if (longest > 0.0) axis[0] = best[0] / longest, axis[1] = best[1] / longest, axis[2] = best[2] / longest;
+    /* an orthonormal basis (u, v) of the plane normal to the axis, and the matrix on it */
+    const int tilted = fabs(axis[0]) < 0.9;
+    const double t[3] = {tilted ? 1.0 : 0.0, tilted ? 0.0 : 1.0, 0.0};
+    double u[3] = {axis[1] * t[2] - axis[2] * t[1], axis[2] * t[0] - axis[0] * t[2], axis[0] * t[1] - axis[1] * t[0]};
+    const double ul = sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
+    u[0] /= ul, u[1] /= ul, u[2] /= ul;
+    const double v[3] = {axis[1] * u[2] - axis[2] * u[1], axis[2] * u[0] - axis[0] * u[2],
+                         axis[0] * u[1] - axis[1] * u[0]};
+#define FORM(p, q) ((p)[0] * (xx * (q)[0] + xy * (q)[1] + xz * (q)[2]) + (p)[1] * (xy * (q)[0] + yy * (q)[1] + yz * (q)[2]) \
+                    + (p)[2] * (xz * (q)[0] + yz * (q)[1] + zz * (q)[2]))
+    const double uu = FORM(u, u), uv = FORM(u, v), vv = FORM(v, v);
+#undef FORM
+    const double turn = atan2(2.0 * uv, uu - vv) / 2.0, c = cos(turn), s = sin(turn);
+    const double mean = (uu + vv) / 2.0, radius = hypot((uu - vv) / 2.0, uv);
+    const double middle = low ? mean - radius : mean + radius;
+    for (int i = 0; i < 3; i++) out[i] = low ? axis[i] : c * v[i] - s * u[i];
+    return middle > 1e-12 * largest;
+}
+
+/* Unit normals of weighted least-squares planes through m rows of k neighbours (o3dvis/orientation.py,
+ * fit_planes, whose numpy ops this follows): the scatter of each row's points about their weighted
+ * mean, summed in double as offsets from the row's first neighbour, and its smallest eigenvector.
+ * points: (n, 3); neighbours: (m, k) rows of indices in [0, n] (checked by the caller), n standing
+ * for no point: as the numpy ops' padding column, a point at the origin whose homogeneous
+ * coordinate is 0 (callers give it weight 0); weight: (m, k). Writes normals (m, 3) and planar
+ * (m,): at least three neighbours of positive weight, not all on one line. */
+void o3dvis_fit_planes(int64_t n, int64_t m, int32_t k, const double *points, const int64_t *neighbours,
+                       const double *weight, double *normals, uint8_t *planar) {
+    static const double origin[3] = {0.0, 0.0, 0.0};
+    for (int64_t r = 0; r < m; r++) {
+        const int64_t *row = neighbours + r * k;
+        const double *w = weight + r * k, *o = row[0] < n ? points + 3 * row[0] : origin;
+        double sums[10] = {0}; /* xx xy xz yy yz zz, x y z, w */
+        int positive = 0;
+        for (int j = 0; j < k; j++) {
+            const double *p = row[j] < n ? points + 3 * row[j] : origin, h = row[j] < n ? 1.0 : 0.0;
+            const double x = p[0] - o[0], y = p[1] - o[1], z = p[2] - o[2], wj = w[j], wh = wj * h;
+            sums[0] += wj * x * x, sums[1] += wj * x * y, sums[2] += wj * x * z;
+            sums[3] += wj * y * y, sums[4] += wj * y * z, sums[5] += wj * z * z;
+            sums[6] += wh * x, sums[7] += wh * y, sums[8] += wh * z, sums[9] += wh * h;
+            positive += wj > 0.0;
+        }
+        const double mass = sums[9] > 1e-300 ? sums[9] : 1e-300;
+        const double scatter[6] = {sums[0] - sums[6] * sums[6] / mass, sums[1] - sums[6] * sums[7] / mass,
+                                   sums[2] - sums[6] * sums[8] / mass, sums[3] - sums[7] * sums[7] / mass,
+                                   sums[4] - sums[7] * sums[8] / mass, sums[5] - sums[8] * sums[8] / mass};
+        const int flat = smallest_eigenvector(scatter, normals + 3 * r);
+        planar[r] = (uint8_t)(flat && positive >= 3);
+    }
+}

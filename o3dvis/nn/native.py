@@ -24,7 +24,8 @@ from .. import clib
 from .features import LeafFeatures
 
 __all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "cell_moments", "project",
-           "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin"]
+           "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin",
+           "fit_planes"]
 
 _I64, _I32, _PTR = ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
 
@@ -52,6 +53,7 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_view_margin_bf16": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_view_margin_f32": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_fuse_margin": ([_I64, _PTR, _I64, _PTR, _PTR, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
+    "o3dvis_fit_planes": ([_I64, _I64, _I32, _PTR, _PTR, _PTR, _PTR, _PTR], None),
 }
 # the most points a view of the kernels takes: its depth buffers (about 1.4 values a point over four
 # scales) are then indexed by int32
@@ -407,3 +409,25 @@ def fuse_margin(rows: slice | Tensor, zbuffer: Tensor, margin: Tensor, mlp: Pack
                                          mlp.weights.data_ptr(), mlp.biases.data_ptr(), out.data_ptr()):
         raise ValueError(f"the MLP (sizes {mlp.sizes.tolist()}) does not take a pair's 6 inputs, or it has a "
                          f"layer wider than 128")
+
+
+def fit_planes(points: Tensor, neighbours: Tensor, weight: Tensor) -> tuple[Tensor, Tensor]:
+    """(M, 3) unit normals and (M,) bool: :func:`o3dvis.orientation.fit_planes` of ``points``
+    (N, 3) float64, rows of ``neighbours`` (M, K) int64 and ``weight`` (M, K) float64, in one pass
+    (an index N stands for no point, as the numpy ops' padding: give it weight 0).
+
+    Raises:
+        ValueError: tensors of the wrong shapes or types.
+        IndexError: neighbours out of range.
+    """
+    m, k = neighbours.shape
+    _check("points", points, (points.shape[0], 3), torch.float64)
+    _check("neighbours", neighbours, (m, k), torch.long)
+    _check("weight", weight, (m, k), torch.float64)
+    if neighbours.numel() and (int(neighbours.min()) < 0 or int(neighbours.max()) > points.shape[0]):
+        raise IndexError(f"neighbours must lie in [0, {points.shape[0]}]")
+    normals, planar = points.new_empty(m, 3), torch.empty(m, dtype=torch.uint8)
+    if m:
+        _LIBRARY.o3dvis_fit_planes(points.shape[0], m, k, points.data_ptr(), neighbours.data_ptr(),
+                                   weight.data_ptr(), normals.data_ptr(), planar.data_ptr())
+    return normals, planar.bool()

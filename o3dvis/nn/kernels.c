@@ -16,12 +16,14 @@
  * runs the fusion of its answer with the margin (o3dvis/nn/fusion.py) in one
  * pass. And for the encoding, o3dvis_morton_keys computes the octree's Morton
  * keys (o3dvis/nn/octree.py, cell_keys) in one pass instead of some twenty,
- * and o3dvis_cell_moments the noise cue's per-cell sums (o3dvis/nn/noise.py).
+ * and o3dvis_cell_moments the noise cue's per-cell sums (o3dvis/nn/noise.py);
+ * for oriented normals, o3dvis_fit_planes the plane fits of
+ * o3dvis/orientation.py.
  *
- * The arithmetic is torch's, op for op, but: sin, cos, log and atan2 are short
- * polynomials (a few float32 ulps off, with fused multiply-adds where the CPU
- * has them), and so are exp and tanh; asinh is log(|x| + sqrt(x^2 + 1)), or its series below 1/8, where
- * torch's log1p form loses digits; the pixel size enters as its reciprocal;
+ * The arithmetic is torch's, op for op, but: sin, cos, log, atan2, exp and tanh
+ * are short polynomials (a few float32 ulps off, with fused multiply-adds where
+ * the CPU has them); asinh is log(|x| + sqrt(x^2 + 1)), or its series below
+ * 1/8, where torch's log1p form loses digits; the pixel size enters as its reciprocal;
  * the mean view direction is summed in double. A point within an ulp of a
  * pixel border may thus land on the other side. The bfloat16 MLP rounds to
  * nearest even, as torch rounds.
@@ -996,12 +998,14 @@ static int smallest_eigenvector(const double *a, double *out) {
     /* an orthonormal basis (u, v) of the plane normal to the axis, and the matrix on it */
     const int tilted = fabs(axis[0]) < 0.9;
     const double t[3] = {tilted ? 1.0 : 0.0, tilted ? 0.0 : 1.0, 0.0};
-    double u[3] = {axis[1] * t[2] - axis[2] * t[1], axis[2] * t[0] - axis[0] * t[2], axis[0] * t[1] - axis[1] * t[0]};
+    double u[3] = {axis[1] * t[2] - axis[2] * t[1], axis[2] * t[0] - axis[0] * t[2],
+                   axis[0] * t[1] - axis[1] * t[0]};
     const double ul = sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
     u[0] /= ul, u[1] /= ul, u[2] /= ul;
     const double v[3] = {axis[1] * u[2] - axis[2] * u[1], axis[2] * u[0] - axis[0] * u[2],
                          axis[0] * u[1] - axis[1] * u[0]};
-#define FORM(p, q) ((p)[0] * (xx * (q)[0] + xy * (q)[1] + xz * (q)[2]) + (p)[1] * (xy * (q)[0] + yy * (q)[1] + yz * (q)[2]) \
+#define FORM(p, q) ((p)[0] * (xx * (q)[0] + xy * (q)[1] + xz * (q)[2]) \
+                    + (p)[1] * (xy * (q)[0] + yy * (q)[1] + yz * (q)[2]) \
                     + (p)[2] * (xz * (q)[0] + yz * (q)[1] + zz * (q)[2]))
     const double uu = FORM(u, u), uv = FORM(u, v), vv = FORM(v, v);
 #undef FORM
@@ -1039,7 +1043,7 @@ void o3dvis_fit_planes(int64_t n, int64_t m, int32_t k, const double *points, co
         const double scatter[6] = {sums[0] - sums[6] * sums[6] / mass, sums[1] - sums[6] * sums[7] / mass,
                                    sums[2] - sums[6] * sums[8] / mass, sums[3] - sums[7] * sums[7] / mass,
                                    sums[4] - sums[7] * sums[8] / mass, sums[5] - sums[8] * sums[8] / mass};
-        const int flat = smallest_eigenvector(scatter, normals + 3 * r);
-        planar[r] = (uint8_t)(flat && positive >= 3);
+        const int spans = smallest_eigenvector(scatter, normals + 3 * r); /* more than a line */
+        planar[r] = (uint8_t)(spans && positive >= 3);
     }
 }

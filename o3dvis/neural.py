@@ -32,8 +32,6 @@ __all__ = ["NeuralVisibility", "fixed_rotations", "random_rotation"]
 
 _NORMALS_MODEL = "normals"
 _SCENE_MODEL = "scene"
-"""Clouds of fewer points are encoded on one CPU thread (see :mod:`o3dvis.threads`): most of
-their octree's ops are too small to gain from splitting."""
 _FLAT_TOL = 1e-6
 """A cloud is flat along a direction when no point lies farther from its mean along it than this
 many bounding-box diagonals: below what the network's float32 coordinates (about 2^-23 of the box)

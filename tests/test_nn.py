@@ -74,28 +74,36 @@ def test_octree_of_morton_ordered_points_equals_the_sorted_build():
     assert torch.equal(shuffled.point_leaf[order], ordered.point_leaf)
 
 
+def _cell_lookup_neighbours(pts: torch.Tensor, level: int, batch: torch.Tensor | None = None,
+                            depth: int = 5) -> tuple[torch.Tensor, int]:
+    """The neighbours of ``level`` looked up among its cells, as levels up to the full depth are
+    (a full depth of ``level`` set after the build), and the level's number of nodes."""
+    tree = Octree(pts, batch, depth=depth, full_depth=2)
+    tree.full_depth = level
+    return tree.neighbours(level), tree.num_nodes(level)
+
+
 def test_neighbours_dense_and_sparse_lookup_agree(monkeypatch):
     torch.manual_seed(1)
     pts = torch.rand(2000, 3) * 2 - 1
-    dense = Octree(pts, depth=5, full_depth=2).neighbours(5)
+    dense, _ = _cell_lookup_neighbours(pts, 5)
     monkeypatch.setattr(octree_module, "_DENSE_CELLS", 0)
-    sparse = Octree(pts, depth=5, full_depth=2).neighbours(5)
+    sparse, _ = _cell_lookup_neighbours(pts, 5)
     assert torch.equal(dense, sparse)
+    assert torch.equal(Octree(pts, depth=5, full_depth=2).neighbours(5), dense)  # through the parents
 
 
 def test_neighbours_from_parents_equal_the_cell_table():
-    # below the full levels each neighbour is found through the parent's; the table of the
-    # level's cells (forced by a full depth above the level) is the reference
+    # below the full levels each neighbour is found through the parent's; the lookup among the
+    # level's cells is the reference
     torch.manual_seed(3)
     pts = torch.rand(4000, 3) * 2 - 1
     pts[:1500] *= 0.05  # a dense cluster beside sparse points: nodes with and without neighbours
     batch = torch.randint(0, 3, (4000,))
     built = Octree(pts, batch, depth=7, full_depth=2)
     for level in range(3, 8):
-        reference = Octree(pts, batch, depth=7, full_depth=2)
-        reference.full_depth = 8
-        expected = reference.neighbours(level)
-        assert (expected < reference.num_nodes(level)).float().mean() > 0.05  # not all missing
+        expected, nodes = _cell_lookup_neighbours(pts, level, batch, depth=7)
+        assert (expected < nodes).float().mean() > 0.05  # not all missing
         assert torch.equal(built.neighbours(level), expected)
 
 

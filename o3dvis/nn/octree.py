@@ -262,7 +262,8 @@ class Octree:
     def _neighbours_from_parents(self, level: int) -> Tensor:
         """:meth:`neighbours` of a level below the full ones, from those of its parents: each
         neighbour is a child of a neighbour of the node's parent (:func:`_parent_steps`), so no
-        table of the level's cells is built (at fine levels of small clouds, most of the time)."""
+        table of the level's cells is built (filling it was most of the time at the fine levels
+        of small clouds)."""
         above = self.neighbours(level - 1)  # (m, 27), m where missing
         octant = self.keys[level] & 7
         offset, child = _PARENT_OFFSET.to(self.device)[octant], _PARENT_OCTANT.to(self.device)[octant]

@@ -179,6 +179,30 @@ def test_conv_products_in_bfloat16_without_grad_only():
             torch.testing.assert_close(conv(x, o, 3), 2 * exact, rtol=0.05, atol=0.1)
 
 
+@pytest.mark.parametrize("conv", [OctreeConv, OctreeDownsample, OctreeUpsample])
+def test_batch_norm_folds_into_the_convolution_in_inference(conv):
+    """Eval mode without autograd folds the batch norm into the weight: the same answers as the
+    batch norm itself, and a change of its statistics (a load) is followed."""
+    from o3dvis.nn.conv import ConvBnRelu
+
+    torch.manual_seed(0)
+    o, _ = _full_grid_octree(3)
+    level = 2 if conv is OctreeUpsample else 3
+    layer = ConvBnRelu(8, 16, conv).eval()
+    with torch.no_grad():
+        for t in (layer.bn.weight, layer.bn.bias, layer.bn.running_mean):
+            t.normal_()
+        layer.bn.running_var.uniform_(0.5, 2)
+    x = torch.randn(o.num_nodes(level), 8)
+    for _ in range(2):  # the second time after a change of the statistics in place
+        with torch.no_grad():
+            folded = layer(x, o, level)
+        plain = layer.bn(layer.conv(x, o, level)).relu().detach()  # autograd on: not folded
+        assert "_fold" in layer.__dict__
+        torch.testing.assert_close(folded, plain, rtol=1e-5, atol=1e-5)
+        layer.load_state_dict({**layer.state_dict(), "bn.running_mean": torch.randn(16)})
+
+
 @pytest.mark.parametrize("frequencies", [0, 1, 6])
 @pytest.mark.parametrize("grad", [False, True])
 def test_embedding_matches_direct_sinusoids(frequencies, grad):

@@ -61,17 +61,27 @@ class _GatherMatmul(nn.Module):
         self.weight = nn.Parameter(torch.empty(taps * in_channels, out_channels))
         nn.init.normal_(self.weight, std=math.sqrt(2.0 / (taps * in_channels)))
 
-    def gather_matmul(self, x: Tensor, index: Tensor) -> Tensor:
-        """``x[index].reshape(n, -1) @ weight`` for an (n, taps) ``index``, in chunks of rows
-        (in the dtype of :func:`products_in`, where one is set and no gradient is asked for)."""
-        weight, dtype = self.weight, getattr(_PRODUCTS, "dtype", None)
-        reduced = dtype not in (None, x.dtype) and not torch.is_grad_enabled()
-        if reduced:
-            weight, x = self._weight_in(dtype), x.to(dtype)
+    def product_dtype(self, x: Tensor) -> torch.dtype:
+        """The dtype of this layer's matrix products for the input ``x``: that of
+        :func:`products_in` where one is set and no gradient is asked for, else ``x``'s."""
+        dtype = getattr(_PRODUCTS, "dtype", None)
+        return x.dtype if dtype is None or torch.is_grad_enabled() else dtype
+
+    def gather_matmul(self, x: Tensor, index: Tensor, weight: Tensor | None = None) -> Tensor:
+        """``x[index].reshape(n, -1) @ weight`` for an (n, taps) ``index``, in chunks of rows, in
+        :meth:`product_dtype` (the output in ``x``'s dtype).
+
+        ``weight``: another weight of this layer's shape, already in :meth:`product_dtype`
+        (default: the layer's own)."""
+        out_dtype = x.dtype
+        if weight is None:
+            dtype = self.product_dtype(x)
+            weight = self.weight if dtype == self.weight.dtype else self._weight_in(dtype)
+        x = x.to(weight.dtype)
         step = max(1, _CHUNK_ELEMENTS // (index.shape[1] * x.shape[1]))
         parts = [gather_rows(x, index[a:a + step]).flatten(1) @ weight for a in range(0, len(index), step)]
         out = parts[0] if len(parts) == 1 else torch.cat(parts)
-        return out.to(self.weight.dtype) if reduced else out
+        return out.to(out_dtype)
 
     def _weight_in(self, dtype: torch.dtype) -> Tensor:
         """The weight in ``dtype``, converted once per change of the weight."""
@@ -93,9 +103,9 @@ class OctreeConv(_GatherMatmul):
     def __init__(self, in_channels: int, out_channels: int):
         super().__init__(27, in_channels, out_channels)
 
-    def forward(self, x: Tensor, octree: Octree, level: int) -> Tensor:
+    def forward(self, x: Tensor, octree: Octree, level: int, weight: Tensor | None = None) -> Tensor:
         nbr = octree.neighbours(level)
-        return self.gather_matmul(_pad(x), nbr)
+        return self.gather_matmul(_pad(x), nbr, weight)
 
 
 class OctreeDownsample(_GatherMatmul):
@@ -104,10 +114,10 @@ class OctreeDownsample(_GatherMatmul):
     def __init__(self, in_channels: int, out_channels: int):
         super().__init__(8, in_channels, out_channels)
 
-    def forward(self, x: Tensor, octree: Octree, level: int) -> Tensor:
+    def forward(self, x: Tensor, octree: Octree, level: int, weight: Tensor | None = None) -> Tensor:
         children = octree.children[level - 1]
         children = torch.where(children < 0, torch.full_like(children, x.shape[0]), children)
-        return self.gather_matmul(_pad(x), children)
+        return self.gather_matmul(_pad(x), children, weight)
 
 
 class OctreeUpsample(_GatherMatmul):
@@ -116,12 +126,20 @@ class OctreeUpsample(_GatherMatmul):
     def __init__(self, in_channels: int, out_channels: int):
         super().__init__(1, in_channels, 8 * out_channels)
 
-    def forward(self, x: Tensor, octree: Octree, level: int) -> Tensor:
-        per_octant = (x @ self.weight).view(x.shape[0] * 8, self.out_channels // 8)
+    def product_dtype(self, x: Tensor) -> torch.dtype:
+        """Always ``x``'s: one product per coarse node, too few to round."""
+        return x.dtype
+
+    def forward(self, x: Tensor, octree: Octree, level: int, weight: Tensor | None = None) -> Tensor:
+        weight = self.weight if weight is None else weight
+        per_octant = (x @ weight).view(x.shape[0] * 8, self.out_channels // 8)
         return gather_rows(per_octant, octree.parent[level + 1] * 8 + (octree.keys[level + 1] & 7))
 
 
 class ConvBnRelu(nn.Module):
+    """A convolution, batch norm and ReLU; in inference (eval mode, no gradient) the batch norm is
+    folded into the convolution's weight, scaled per output channel, and a shift."""
+
     def __init__(self, in_channels: int, out_channels: int, conv: type[_GatherMatmul] = OctreeConv,
                  relu: bool = True):
         super().__init__()
@@ -130,8 +148,27 @@ class ConvBnRelu(nn.Module):
         self.relu = relu
 
     def forward(self, x: Tensor, octree: Octree, level: int) -> Tensor:
-        x = self.bn(self.conv(x, octree, level))
-        return torch.relu(x) if self.relu else x
+        if self.training or torch.is_grad_enabled():
+            x = self.bn(self.conv(x, octree, level))
+            return torch.relu(x) if self.relu else x
+        weight, shift = self._folded(self.conv.product_dtype(x))
+        x = self.conv(x, octree, level, weight).add_(shift)
+        return x.relu_() if self.relu else x
+
+    def _folded(self, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+        """The convolution's weight times the batch norm's scale (in ``dtype``) and the batch norm's
+        shift, computed once per change of either (an optimiser's step or a load included)."""
+        bn, weight = self.bn, self.conv.weight
+        tensors = (weight, bn.weight, bn.bias, bn.running_mean, bn.running_var)
+        key = (dtype, *((t._version, t.data_ptr()) for t in tensors))
+        cached = self.__dict__.get("_fold")
+        if cached is None or cached[0] != key:
+            scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
+            shift = bn.bias - bn.running_mean * scale
+            # an up-sampling's columns are (octant, channel): its scale repeats per octant
+            folded = (weight * scale.repeat(weight.shape[1] // scale.shape[0])).to(dtype)
+            cached = self.__dict__["_fold"] = (key, folded.detach(), shift.detach())
+        return cached[1], cached[2]
 
 
 class ResBlock(nn.Module):

@@ -12,7 +12,7 @@ estimation of :mod:`o3dvis.apps.normals`.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import torch
@@ -21,17 +21,108 @@ from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
 from .nn import native
+from .nn.octree import grid_cells, morton_encode, normalize_points
+from .threads import plan_threads, threaded_map
 
-__all__ = ["voted_normals", "fit_planes", "smallest_eigenvectors", "vote", "orient_by_vote",
+__all__ = ["voted_normals", "nearest_neighbours", "fit_planes", "smallest_eigenvectors", "vote", "orient_by_vote",
            "complete_orientation", "row_chunks"]
 
 _GRAPH_NEIGHBOURS = 10  # neighbours of a point in the graph that propagates orientation
 _CHUNK = 4096  # rows of neighbourhoods handled at once
+_GRID_DEPTH = 16  # the finest grid of the neighbour search
+_CELL_POINTS = 6  # points per occupied cell the neighbour search's grid aims at, at least
+_GRID_MIN_POINTS = 100_000  # smaller clouds are searched with a k-d tree (as fast there)
+_PARALLEL_ROWS = 8192  # rows below which the plane fits, the votes and the search run on one thread
+_BRUTE_FORCE_PAIRS = 1 << 26  # (row, point) distances the search again computes before taking a k-d tree
+_CHUNK_PAIRS = 1 << 22  # of those, at once
 
 
-def row_chunks(count: int, size: int = _CHUNK) -> list[slice]:
-    """Slices of ``size`` rows covering ``count``: per-neighbour temporaries of a chunk stay in cache."""
-    return [slice(start, min(start + size, count)) for start in range(0, count, size)]
+def row_chunks(count: int, size: int = _CHUNK, start: int = 0) -> list[slice]:
+    """Slices of ``size`` rows covering ``start..count``: per-neighbour temporaries of a chunk stay in cache."""
+    return [slice(first, min(first + size, count)) for first in range(start, count, size)]
+
+
+def _on_threads(fn: Callable[[slice], object], count: int) -> Iterator:
+    """``fn`` of a share of ``count`` rows on each of the threads the load allows (one below
+    :data:`_PARALLEL_ROWS` rows), in order: for C kernels and numpy ops, which let go of the GIL."""
+    workers = plan_threads(count, _PARALLEL_ROWS)
+    return threaded_map(fn, row_chunks(count, -(-count // workers) if count else 1), workers)
+
+
+def nearest_neighbours(points: np.ndarray, k: int) -> np.ndarray:
+    """(N, k) indices of the ``k`` nearest points to each point, itself included, nearest first (the
+    order of equally near ones is left open), as ``cKDTree(points).query(points, k)`` finds them.
+
+    Where the package's kernels are built, the points are bucketed in the cells of a grid with about
+    :data:`_CELL_POINTS` points in each occupied one and each point's neighbours are sought among
+    the 27 cells around it, in one pass of C (``native.grid_knn``); a point whose k-th neighbour is
+    not nearer than the border of those cells, in a sparse corner of the cloud, is searched again
+    among all points. The grid is the octree's (:func:`~o3dvis.nn.octree.normalize_points`), so
+    points in the order of an encoding are sorted by cell already. Small clouds and ``k`` over 64
+    take a k-d tree.
+
+    Args:
+        points: (N, 3) finite points.
+        k: neighbours per point (at most N).
+
+    Returns:
+        (N, k) int64 indices.
+    """
+    count = len(points)
+    if not (native.available() and count >= _GRID_MIN_POINTS and k <= 64):
+        return cKDTree(points, balanced_tree=False).query(points, k=k, workers=-1)[1].reshape(count, k)
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    normalised, center, scale = normalize_points(torch.from_numpy(points))
+    if float(scale) <= torch.finfo(torch.float64).tiny:  # one point, repeated
+        return np.broadcast_to(np.arange(k), (count, k)).copy()
+    fine = grid_cells(normalised, _GRID_DEPTH).numpy()
+    keys = morton_encode(torch.from_numpy(fine), _GRID_DEPTH).numpy()
+    order = np.argsort(keys, kind="stable")  # nearly sorted already in an encoding's order: fast
+    keys = keys[order]
+    level = 1  # the finest grid whose occupied cells hold _CELL_POINTS points on average
+    while level < _GRID_DEPTH and count >= _CELL_POINTS * _occupied(keys, 3 * (_GRID_DEPTH - level - 1)):
+        level += 1
+    cell_keys = keys >> (3 * (_GRID_DEPTH - level))
+    first = np.flatnonzero(np.diff(cell_keys, prepend=-1))
+    side = 2.0 / (1 << level)  # in the normalised coordinates of the grid
+    near, exact = torch.empty((count, k), dtype=torch.long), torch.empty(count, dtype=torch.uint8)
+    tensors = [torch.from_numpy(np.ascontiguousarray(a)) for a in (
+        normalised.numpy()[order], fine[order[first]] >> (_GRID_DEPTH - level), cell_keys[first],
+        np.append(first, count))]
+    tensors.append(native.key_table(tensors[2]))
+    corner = torch.full((3,), -1.0, dtype=torch.float64)
+    workers = plan_threads(count, 2 * _GRID_MIN_POINTS)
+    bounds = np.searchsorted(first, np.linspace(0, count, workers + 1)[1:-1]).tolist()
+    for _ in threaded_map(lambda cells: native.grid_knn(*tensors, level, corner, side, k, cells, near, exact),
+                          zip([0, *bounds], [*bounds, len(first)]), workers):
+        pass
+    result = np.empty((count, k), dtype=np.int64)
+    result[order] = order[near.numpy()]
+    again = order[exact.numpy() == 0]
+    if len(again):
+        result[again] = _nearest_by_search(points, again, k)
+    return result
+
+
+def _occupied(sorted_keys: np.ndarray, shift: int) -> int:
+    """How many cells the sorted fine ``sorted_keys`` occupy on the grid ``shift`` bits coarser."""
+    coarse = sorted_keys >> shift
+    return 1 + int(np.count_nonzero(coarse[1:] != coarse[:-1]))
+
+
+def _nearest_by_search(points: np.ndarray, rows: np.ndarray, k: int) -> np.ndarray:
+    """(len(rows), k) the ``k`` nearest points to ``points[rows]``, nearest first: by distances to all
+    points for a few rows, by a k-d tree for many."""
+    if len(rows) * len(points) > _BRUTE_FORCE_PAIRS:
+        return cKDTree(points, balanced_tree=False).query(points[rows], k=k, workers=-1)[1].reshape(-1, k)
+    squared = (points ** 2).sum(axis=1)
+    out = np.empty((len(rows), k), dtype=np.int64)
+    for chunk in row_chunks(len(rows), max(1, _CHUNK_PAIRS // len(points))):
+        query = points[rows[chunk]]
+        distance = squared[None] - 2 * query @ points.T  # the rows' own squared norm changes no order
+        part = np.argpartition(distance, k - 1, axis=1)[:, :k] if k < len(points) else np.indices(distance.shape)[1]
+        out[chunk] = np.take_along_axis(part, np.argsort(np.take_along_axis(distance, part, 1), axis=1), 1)
+    return out
 
 
 def fit_planes(points: np.ndarray, neighbours: np.ndarray, weight: np.ndarray
@@ -40,9 +131,11 @@ def fit_planes(points: np.ndarray, neighbours: np.ndarray, weight: np.ndarray
     (M,) whether each is defined: three neighbours of positive weight, not all on one line. One
     pass of C where the kernels are built (``native.fit_planes``), else these numpy ops."""
     if native.available():
-        normals, planar = native.fit_planes(*(torch.from_numpy(np.ascontiguousarray(a, dtype=t)) for a, t in (
-            (points, np.float64), (neighbours, np.int64), (weight, np.float64))))
-        return normals.numpy(), planar.numpy()
+        points, neighbours, weight = (torch.from_numpy(np.ascontiguousarray(a, dtype=t)) for a, t in (
+            (points, np.float64), (neighbours, np.int64), (weight, np.float64)))
+        parts = list(_on_threads(lambda rows: native.fit_planes(points, neighbours[rows], weight[rows]),
+                                 len(neighbours)))
+        return torch.cat([n for n, _ in parts]).numpy(), torch.cat([p for _, p in parts]).numpy()
     # homogeneous coordinates, so that one product per neighbourhood gives the weighted sums of
     # the offsets, of their outer products and of the weights: [[S, s], [s^T, w]]; components
     # first, so that elementwise passes run along the neighbours
@@ -125,12 +218,17 @@ def vote(points: np.ndarray, normals: np.ndarray, cameras: np.ndarray, visibilit
           ) -> np.ndarray:
     """Sum over the cameras that see each point of cos(normal, direction to the camera), (N,)."""
     vote = np.empty(len(points))
-    for rows in row_chunks(len(points)):  # (points, views) products, no per-view pass
+
+    def chunk(rows: slice) -> None:  # (points, views) products, no per-view pass
         p, n = points[rows], normals[rows]
         reach = n @ cameras.T - np.einsum("ij,ij->i", n, p)[:, None]  # n . (camera - p)
         distance = np.sqrt(np.maximum((cameras ** 2).sum(axis=1) - 2 * p @ cameras.T
                                       + (p ** 2).sum(axis=1)[:, None], 1e-300))
         vote[rows] = (visibility[:, rows].T * (reach / distance)).sum(axis=1)
+
+    for _ in _on_threads(lambda rows: [chunk(part) for part in row_chunks(rows.stop, start=rows.start)],
+                         len(points)):
+        pass
     return vote
 
 
@@ -254,10 +352,8 @@ def voted_normals(points: np.ndarray, cameras: np.ndarray, visibility: np.ndarra
     """
     if neighbours < 3:
         raise ValueError(f"a plane needs at least 3 neighbours, got {neighbours}")
-    tree = cKDTree(points, balanced_tree=False)  # sliding-midpoint splits: built in half the time
-    _, near = tree.query(points, k=min(neighbours, len(points)), workers=-1)
-    near = near.reshape(len(points), -1)
+    near = nearest_neighbours(points, min(neighbours, len(points)))
     normals, defined = fit_planes(points, near, np.ones(near.shape))
     if not defined.any():
         raise ValueError("no plane fits the points: they are fewer than 3 or all on one line")
-    return orient_by_vote(points, normals, defined, vote(points, normals, cameras, visibility), tree)
+    return orient_by_vote(points, normals, defined, vote(points, normals, cameras, visibility))

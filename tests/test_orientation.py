@@ -5,8 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from scipy.spatial import cKDTree
+
 from o3dvis.cameras import viewpoints_around
-from o3dvis.orientation import voted_normals
+from o3dvis.nn import native
+from o3dvis.orientation import nearest_neighbours, voted_normals
 
 
 def _sphere(count: int, seed: int = 0) -> np.ndarray:
@@ -53,6 +56,66 @@ def test_no_plane_to_fit_is_a_clear_error():
         voted_normals(line, cameras, np.ones((1, 50), dtype=bool))
     with pytest.raises(ValueError, match="at least 3 neighbours"):
         voted_normals(_sphere(100), cameras, np.ones((1, 100), dtype=bool), neighbours=2)
+
+
+def _clouds() -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(3)
+    line = np.c_[np.linspace(0, 1, 6000), np.zeros((6000, 2))]
+    return {"sphere": _sphere(20000, seed=4), "cube": rng.random((8000, 3)),
+            "repeated": np.repeat(rng.random((3000, 3)), 3, axis=0),  # ties everywhere
+            "line and far points": np.concatenate([line, rng.random((5, 3)) * 100]),  # searched again
+            "clusters": np.concatenate([rng.normal(size=(5000, 3)) * 1e-3 + c for c in np.eye(3) * 1e3])}
+
+
+@pytest.fixture
+def grid_search(monkeypatch):
+    """The grid search for clouds of every size (it takes only large ones)."""
+    monkeypatch.setattr("o3dvis.orientation._GRID_MIN_POINTS", 1)
+
+
+@pytest.mark.parametrize("name", list(_clouds()))
+@pytest.mark.parametrize("k", [1, 8, 64])
+def test_nearest_neighbours_are_those_of_a_kd_tree(grid_search, name, k):
+    """As far as the distances go (equally near points may come in another order)."""
+    points = _clouds()[name]
+    near = nearest_neighbours(points, k)
+    distance, _ = cKDTree(points).query(points, k=k)
+    found = np.linalg.norm(points[near] - points[:, None], axis=2)
+    assert near.shape == (len(points), k) and near.dtype == np.int64
+    np.testing.assert_allclose(found, distance.reshape(len(points), k), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("by_tree", [False, True])
+def test_nearest_neighbours_search_again_where_the_grid_is_too_coarse(grid_search, monkeypatch, by_tree):
+    """A dense cluster and a sparse shell: the shell's points have no k neighbours in the 27 cells
+    around them, and get their exact ones all the same (by distances to all points, or with many
+    such points by a k-d tree)."""
+    if by_tree:
+        monkeypatch.setattr("o3dvis.orientation._BRUTE_FORCE_PAIRS", 0)
+    rng = np.random.default_rng(5)
+    points = np.concatenate([rng.normal(size=(20000, 3)) * 0.01, _sphere(300, seed=6) * 10])
+    near = nearest_neighbours(points, 8)
+    distance, _ = cKDTree(points).query(points, k=8)
+    np.testing.assert_allclose(np.linalg.norm(points[near] - points[:, None], axis=2), distance, atol=1e-12)
+
+
+@pytest.mark.skipif(not native.available(), reason="C kernels turned off (O3DVIS_NATIVE=0)")
+def test_grid_search_checks_its_arguments():
+    import torch
+
+    long = torch.zeros(2, dtype=torch.long)
+    args = (torch.zeros(1, 3, dtype=torch.float64), torch.zeros(1, 3, dtype=torch.long), long[:1], long)
+    table = native.key_table(long[:1])
+    out = (torch.empty(1, 8, dtype=torch.long), torch.empty(1, dtype=torch.uint8))
+    with pytest.raises(ValueError, match="k must lie"):
+        native.grid_knn(*args, table, 1, torch.zeros(3, dtype=torch.float64), 1.0, 65, (0, 1), *out)
+    with pytest.raises(ValueError, match="power of two"):
+        native.grid_knn(*args, table[:1], 1, torch.zeros(3, dtype=torch.float64), 1.0, 8, (0, 1), *out)
+    with pytest.raises(ValueError, match="cell range"):
+        native.grid_knn(*args, table, 1, torch.zeros(3, dtype=torch.float64), 1.0, 8, (0, 2), *out)
+    with pytest.raises(ValueError, match="points must be"):
+        native.grid_knn(args[0].float(), *args[1:], table, 1, torch.zeros(3, dtype=torch.float64), 1.0, 8, (0, 1),
+                        *out)
 
 
 def test_training_draws_the_first_pass_normals_for_the_share_asked(tmp_path):

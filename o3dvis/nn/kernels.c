@@ -18,7 +18,8 @@
  * keys (o3dvis/nn/octree.py, cell_keys) in one pass instead of some twenty,
  * and o3dvis_cell_moments the noise cue's per-cell sums (o3dvis/nn/noise.py);
  * for oriented normals, o3dvis_fit_planes the plane fits of
- * o3dvis/orientation.py.
+ * o3dvis/orientation.py, and o3dvis_grid_knn the nearest neighbours it fits
+ * them to, sought in the cells of a grid (o3dvis_key_table hashes the cells).
  *
  * The arithmetic is torch's, op for op, but: sin, cos, log, atan2, exp and tanh
  * are short polynomials (a few float32 ulps off, with fused multiply-adds where
@@ -1045,5 +1046,126 @@ void o3dvis_fit_planes(int64_t n, int64_t m, int32_t k, const double *points, co
                                    sums[4] - sums[7] * sums[8] / mass, sums[5] - sums[8] * sums[8] / mass};
         const int spans = smallest_eigenvector(scatter, normals + 3 * r); /* more than a line */
         planar[r] = (uint8_t)(spans && positive >= 3);
+    }
+}
+
+/* The slot of key in an open-addressing table of size (a power of two) slots, by multiplicative hashing
+ * and linear probing: where it is, or the empty slot (-1) where it would go. */
+static inline int64_t key_slot(const int64_t *table, int64_t size, const int64_t *keys, int64_t key) {
+    const int bits = __builtin_ctzll((unsigned long long)size);
+    int64_t slot = bits ? (int64_t)(((uint64_t)key * 0x9E3779B97F4A7C15ull) >> (64 - bits)) : 0;
+    while (table[slot] >= 0 && keys[table[slot]] != key) slot = (slot + 1) & (size - 1);
+    return slot;
+}
+
+/* Fills table (size slots, a power of two above m, all -1) with the indices of the m distinct keys. */
+void o3dvis_key_table(int64_t m, const int64_t *keys, int64_t size, int64_t *table) {
+    for (int64_t j = 0; j < m; j++) table[key_slot(table, size, keys, keys[j])] = j;
+}
+
+#define KNN_CHUNK 512 /* candidates gathered at once (the cell's points run over them while in cache) */
+
+/* Inserts the count candidates of squared distances d and indices index into the found (of k) nearest
+ * so far, best (their squared distances) and row (their indices), nearest first; ties keep the earlier.
+ * Blocks of 16 none of which is nearer than the k-th are passed at once. Returns how many are found. */
+static int insert_nearest(const double *restrict d, const int64_t *restrict index, int count, int k,
+                          double *restrict best, int64_t *restrict row, int found) {
+    for (int t0 = 0; t0 < count; t0 += 16) {
+        const int end = t0 + 16 < count ? t0 + 16 : count;
+        if (found == k) {
+            const double worst = best[k - 1];
+            int any = 0;
+            for (int t = t0; t < end; t++) any |= d[t] < worst;
+            if (!any) continue;
+        }
+        for (int t = t0; t < end; t++) {
+            const double dt = d[t];
+            if (found == k && dt >= best[k - 1]) continue;
+            int s = found < k ? found++ : k - 1;
+            for (; s > 0 && best[s - 1] > dt; s--) best[s] = best[s - 1], row[s] = row[s - 1];
+            best[s] = dt, row[s] = index[t];
+        }
+    }
+    return found;
+}
+
+/* The k nearest points to each point of the cells first..last - 1, itself included, nearest first
+ * (o3dvis/orientation.py, nearest_neighbours), among the points of its cell and the 26 around it.
+ * points: (n, 3) sorted by cell, the cells of a 2^level grid of side `side` from the corner lo;
+ * cells: (m, 3) the integer coordinates of the occupied cells, keys their Morton keys, starts
+ * (m + 1) where each cell's points begin, table their o3dvis_key_table of size slots. A point's
+ * answer is exact when it has k candidates and its k-th is nearer than the border of the 27
+ * cells (a side on the grid's border has nothing beyond it): exact is set to 0 elsewhere, for the
+ * caller to search again. Ties keep the earlier point. k <= 64 (checked by the caller). */
+void o3dvis_grid_knn(const double *points, const int64_t *cells, const int64_t *keys, const int64_t *starts,
+                     int64_t size, const int64_t *table, int32_t level, const double *lo, double side, int32_t k,
+                     int64_t first, int64_t last, int64_t *neighbours, uint8_t *exact) {
+    const int64_t top = ((int64_t)1 << level) - 1;
+    for (int64_t c = first; c < last; c++) {
+        const int64_t *cell = cells + 3 * c;
+        int64_t from[27], to[27];
+        int runs = 0;
+        for (int dx = -1; dx <= 1; dx++)
+            for (int dy = -1; dy <= 1; dy++)
+                for (int dz = -1; dz <= 1; dz++) {
+                    const int64_t x = cell[0] + dx, y = cell[1] + dy, z = cell[2] + dz;
+                    if (x < 0 || y < 0 || z < 0 || x > top || y > top || z > top) continue;
+                    const int64_t key = (int64_t)(spread_bits((uint64_t)x) << 2 | spread_bits((uint64_t)y) << 1 |
+                                                  spread_bits((uint64_t)z));
+                    const int64_t j = table[key_slot(table, size, keys, key)];
+                    if (j >= 0) from[runs] = starts[j], to[runs++] = starts[j + 1];
+                }
+        for (int r = 1; r < runs; r++) /* its own cell first: the nearest come first, few are inserted */
+            if (from[r] == starts[c]) {
+                const int64_t f = from[r], t = to[r];
+                from[r] = from[0], to[r] = to[0], from[0] = f, to[0] = t;
+            }
+        double low[3], high[3]; /* the block's faces, infinitely far on the grid's border */
+        for (int a = 0; a < 3; a++) {
+            low[a] = cell[a] > 0 ? lo[a] + (double)(cell[a] - 1) * side : -INFINITY;
+            high[a] = cell[a] < top ? lo[a] + (double)(cell[a] + 2) * side : INFINITY;
+        }
+        int64_t total = 0;
+        for (int r = 0; r < runs; r++) total += to[r] - from[r];
+        for (int64_t chunk = 0; chunk < total; chunk += KNN_CHUNK) { /* the candidates, a chunk at a time */
+            double x[KNN_CHUNK], y[KNN_CHUNK], z[KNN_CHUNK], d[KNN_CHUNK];
+            int64_t index[KNN_CHUNK];
+            int count = 0;
+            int64_t skip = 0;
+            for (int r = 0; r < runs && count < KNN_CHUNK; r++) {
+                const int64_t size = to[r] - from[r];
+                if (skip + size <= chunk) { skip += size; continue; }
+                for (int64_t j = from[r] + (chunk > skip ? chunk - skip : 0); j < to[r] && count < KNN_CHUNK; j++)
+                    x[count] = points[3 * j], y[count] = points[3 * j + 1], z[count] = points[3 * j + 2],
+                    index[count++] = j;
+                skip += size;
+            }
+            for (int64_t i = starts[c]; i < starts[c + 1]; i++) {
+                const double *p = points + 3 * i;
+                double best[64];
+                int64_t row[64];
+                int found = chunk < k ? (int)chunk : k;
+                for (int s = 0; s < found; s++) { /* the nearest of the chunks before */
+                    const double *q = points + 3 * (row[s] = neighbours[i * k + s]);
+                    const double u = q[0] - p[0], v = q[1] - p[1], w = q[2] - p[2];
+                    best[s] = u * u + v * v + w * w;
+                }
+                for (int t = 0; t < count; t++) {
+                    const double u = x[t] - p[0], v = y[t] - p[1], w = z[t] - p[2];
+                    d[t] = u * u + v * v + w * w;
+                }
+                found = insert_nearest(d, index, count, k, best, row, found);
+                for (int s = found; s < k; s++) row[s] = i;
+                memcpy(neighbours + i * k, row, (size_t)k * sizeof(int64_t));
+                if (chunk + count < total) continue;
+                double margin = INFINITY;
+                for (int a = 0; a < 3; a++) {
+                    const double below = p[a] - low[a], above = high[a] - p[a];
+                    margin = fmin(margin, fmin(below, above));
+                }
+                margin = fmax(margin, 0.0); /* a point a rounding outside its cell: searched again */
+                exact[i] = (uint8_t)(found == k && best[k - 1] < margin * margin * (1.0 - 1e-9));
+            }
+        }
     }
 }

@@ -25,7 +25,7 @@ from .features import LeafFeatures
 
 __all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "cell_moments", "project",
            "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin",
-           "fit_planes"]
+           "fit_planes", "key_table", "grid_knn"]
 
 _I64, _I32, _PTR = ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
 
@@ -54,6 +54,9 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_view_margin_f32": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_fuse_margin": ([_I64, _PTR, _I64, _PTR, _PTR, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_fit_planes": ([_I64, _I64, _I32, _PTR, _PTR, _PTR, _PTR, _PTR], None),
+    "o3dvis_key_table": ([_I64, _PTR, _I64, _PTR], None),
+    "o3dvis_grid_knn": ([_PTR, _PTR, _PTR, _PTR, _I64, _PTR, _I32, _PTR, ctypes.c_double, _I32, _I64, _I64, _PTR,
+                         _PTR], None),
 }
 # the most points a view of the kernels takes: its depth buffers (about 1.4 values a point over four
 # scales) are then indexed by int32
@@ -431,3 +434,48 @@ def fit_planes(points: Tensor, neighbours: Tensor, weight: Tensor) -> tuple[Tens
         _LIBRARY.o3dvis_fit_planes(points.shape[0], m, k, points.data_ptr(), neighbours.data_ptr(),
                                    weight.data_ptr(), normals.data_ptr(), planar.data_ptr())
     return normals, planar.bool()
+
+
+def key_table(keys: Tensor) -> Tensor:
+    """An open-addressing hash table of distinct int64 ``keys`` (M,): (S,) int64, S a power of two of
+    at least 2 M, each slot -1 or the index of the key hashed there (what :func:`grid_knn` reads)."""
+    _check("keys", keys, (keys.shape[0],), torch.long)
+    table = torch.full((1 << max(1, 2 * keys.shape[0] - 1).bit_length(),), -1, dtype=torch.long)
+    _LIBRARY.o3dvis_key_table(keys.shape[0], keys.data_ptr(), table.shape[0], table.data_ptr())
+    return table
+
+
+def grid_knn(points: Tensor, cells: Tensor, keys: Tensor, starts: Tensor, table: Tensor, level: int, lo: Tensor,
+             side: float, k: int, cell_range: tuple[int, int], neighbours: Tensor, exact: Tensor) -> None:
+    """The ``k`` nearest of ``points`` to each point of the cells ``cell_range`` among the 27 cells
+    around it, written to rows of ``neighbours`` (N, k) int64 and ``exact`` (N,) uint8 (see
+    ``o3dvis_grid_knn`` in kernels.c; :func:`o3dvis.orientation.nearest_neighbours` prepares them).
+
+    Args:
+        points: (N, 3) float64, sorted by cell.
+        cells: (M, 3) int64 integer coordinates of the occupied cells of a ``2^level`` grid.
+        keys: (M,) int64 their Morton keys, distinct.
+        starts: (M + 1,) int64 where each cell's points begin, then N.
+        table: the :func:`key_table` of ``keys``.
+        lo: (3,) float64 the grid's corner; side: its cells' side.
+
+    Raises:
+        ValueError: tensors of the wrong shapes or types, or ``k`` outside [1, 64].
+    """
+    n, m = points.shape[0], cells.shape[0]
+    if not 1 <= k <= 64:
+        raise ValueError(f"k must lie in [1, 64], got {k}")
+    size = table.shape[0]
+    if size < 2 * m or size & (size - 1):
+        raise ValueError(f"table must have a power of two of at least {2 * m} slots, got {size}")
+    for name, t, shape, dtype in (("points", points, (n, 3), torch.float64), ("cells", cells, (m, 3), torch.long),
+                                  ("keys", keys, (m,), torch.long), ("starts", starts, (m + 1,), torch.long),
+                                  ("table", table, (size,), torch.long), ("lo", lo, (3,), torch.float64),
+                                  ("neighbours", neighbours, (n, k), torch.long), ("exact", exact, (n,), torch.uint8)):
+        _check(name, t, shape, dtype)
+    first, last = cell_range
+    if not 0 <= first <= last <= m:
+        raise ValueError(f"cell range {cell_range} outside [0, {m}]")
+    _LIBRARY.o3dvis_grid_knn(points.data_ptr(), cells.data_ptr(), keys.data_ptr(), starts.data_ptr(), size,
+                             table.data_ptr(), level, lo.data_ptr(), side, k, first, last, neighbours.data_ptr(),
+                             exact.data_ptr())

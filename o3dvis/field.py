@@ -375,17 +375,19 @@ class VisibilityField:
         return torch.sigmoid(margin)
 
     def _batches(self, views: Views, rows: Tensor | None = None,
-                 finish: Callable[[Tensor], Tensor] | None = None) -> Iterator[tuple[slice, Tensor]]:
+                 finish: Callable[[Tensor], Tensor] | None = None, stored: bool = False
+                 ) -> Iterator[tuple[slice, Tensor]]:
         """Yields ``(views slice, (v, M) probabilities)`` of the points ``rows`` (None: all),
         with frustum culling applied, or ``finish`` of them (done on the thread that answered
-        the views). Every point occludes, whichever rows are asked for."""
+        the views). Every point occludes, whichever rows are asked for. ``stored``: all points,
+        in the order they are stored in (along the Morton curve), not the cloud's."""
         cameras, directions, orthographic = self._normalised(views)
         clear = self._off_the_hull(views)
         n, total = self.num_points if rows is None else len(rows), len(views)
         unsort = None  # the columns, in the cloud's order, of an answer for all stored rows
         if self.rank is not None:
             if rows is None:
-                unsort = self.rank
+                unsort = None if stored else self.rank
             else:
                 rows = self.rank[rows]
         if n == 0:
@@ -437,6 +439,21 @@ class VisibilityField:
             with torch_threads(threads) if cpu else contextlib.nullcontext():
                 result = probabilities_of(batch)
             yield batch, result
+
+    def stored_probabilities(self, cameras) -> Tensor:
+        """(V, N) :meth:`probabilities` of camera positions, with the points in the order they are
+        stored in (along the Morton curve: ``rank`` maps the cloud's order to it), for callers that
+        work in that order: no permutation either way."""
+        views = as_views(cameras, None)
+        with torch.inference_mode():
+            parts = [(index, torch.cat([probs for _, probs in field._batches(part, stored=True)]))
+                     for field, index, part in self._parts(views)]
+            if len(parts) == 1:
+                return parts[0][1]
+            out = parts[0][1].new_empty(len(views), self.num_points)
+            for index, probs in parts:
+                out[torch.from_numpy(index).to(out.device)] = probs
+            return out
 
     def probabilities(self, cameras=None, direction=None, *, frustum: bool = True,
                       indices=None, max_range: float | None = None) -> Tensor:

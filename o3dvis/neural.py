@@ -84,7 +84,7 @@ def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray
         (N, 3) unit normals.
     """
     cameras = viewpoints_around(points, _ORIENTING_VIEWS)
-    visibility = field.probabilities(cameras).cpu().numpy()
+    visibility = field.stored_probabilities(cameras).cpu().numpy()
     if field.rank is None:
         return voted_normals(points, cameras, visibility, _PLANE_NEIGHBOURS)
     # in the field's order along the Morton curve: neighbours close in memory make the KNN search
@@ -92,7 +92,7 @@ def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray
     rank = field.rank.cpu().numpy()
     order = np.empty_like(rank)
     order[rank] = np.arange(len(rank))
-    return voted_normals(points[order], cameras, visibility[:, order], _PLANE_NEIGHBOURS)[rank]
+    return voted_normals(points[order], cameras, visibility, _PLANE_NEIGHBOURS)[rank]
 
 
 def _normalize(points: Tensor, bounds: tuple[Tensor, Tensor] | None = None

@@ -21,7 +21,7 @@ from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
 from .nn import native
-from .nn.octree import grid_cells, morton_encode, normalize_points
+from .nn.octree import cell_keys, morton_decode, normalize_points
 from .threads import plan_threads, threaded_map
 
 __all__ = ["voted_normals", "nearest_neighbours", "fit_planes", "smallest_eigenvectors", "vote", "orient_by_vote",
@@ -32,6 +32,7 @@ _CHUNK = 4096  # rows of neighbourhoods handled at once
 _GRID_DEPTH = 16  # the finest grid of the neighbour search
 _CELL_POINTS = 6  # points per occupied cell the neighbour search's grid aims at, at least
 _GRID_MIN_POINTS = 100_000  # smaller clouds are searched with a k-d tree (as fast there)
+_KEY_SLACK = 1e-6  # how far off its cell float32 keys may put a point, in normalised coordinates
 _PARALLEL_ROWS = 8192  # rows below which the plane fits, the votes and the search run on one thread
 _BRUTE_FORCE_PAIRS = 1 << 26  # (row, point) distances the search again computes before taking a k-d tree
 _CHUNK_PAIRS = 1 << 22  # of those, at once
@@ -57,9 +58,9 @@ def nearest_neighbours(points: np.ndarray, k: int) -> np.ndarray:
     :data:`_CELL_POINTS` points in each occupied one and each point's neighbours are sought among
     the 27 cells around it, in one pass of C (``native.grid_knn``); a point whose k-th neighbour is
     not nearer than the border of those cells, in a sparse corner of the cloud, is searched again
-    among all points. The grid is the octree's (:func:`~o3dvis.nn.octree.normalize_points`), so
-    points in the order of an encoding are sorted by cell already. Small clouds and ``k`` over 64
-    take a k-d tree.
+    among all points. The grid is the octree's (:func:`~o3dvis.nn.octree.cell_keys`), so points in
+    the order of an encoding are sorted by cell already and are not moved. Small clouds and ``k``
+    over 64 take a k-d tree.
 
     Args:
         points: (N, 3) finite points.
@@ -72,34 +73,37 @@ def nearest_neighbours(points: np.ndarray, k: int) -> np.ndarray:
     if not (native.available() and count >= _GRID_MIN_POINTS and k <= 64):
         return cKDTree(points, balanced_tree=False).query(points, k=k, workers=-1)[1].reshape(count, k)
     points = np.ascontiguousarray(points, dtype=np.float64)
-    normalised, center, scale = normalize_points(torch.from_numpy(points))
+    normalised, _, scale = normalize_points(torch.from_numpy(points))
     if float(scale) <= torch.finfo(torch.float64).tiny:  # one point, repeated
         return np.broadcast_to(np.arange(k), (count, k)).copy()
-    fine = grid_cells(normalised, _GRID_DEPTH).numpy()
-    keys = morton_encode(torch.from_numpy(fine), _GRID_DEPTH).numpy()
-    order = np.argsort(keys, kind="stable")  # nearly sorted already in an encoding's order: fast
-    keys = keys[order]
+    keys = cell_keys(normalised.float(), _GRID_DEPTH).numpy()  # as the octree's: an encoding's order sorts them
+    order = np.argsort(keys, kind="stable")
+    ordered = bool((order[1:] > order[:-1]).all())
+    sorted_points = normalised.numpy() if ordered else normalised.numpy()[order]
+    keys = keys if ordered else keys[order]
     level = 1  # the finest grid whose occupied cells hold _CELL_POINTS points on average
     while level < _GRID_DEPTH and count >= _CELL_POINTS * _occupied(keys, 3 * (_GRID_DEPTH - level - 1)):
         level += 1
-    cell_keys = keys >> (3 * (_GRID_DEPTH - level))
-    first = np.flatnonzero(np.diff(cell_keys, prepend=-1))
-    side = 2.0 / (1 << level)  # in the normalised coordinates of the grid
+    coarse = keys >> (3 * (_GRID_DEPTH - level))
+    first = np.flatnonzero(np.diff(coarse, prepend=-1))
+    unique = torch.from_numpy(coarse[first])
     near, exact = torch.empty((count, k), dtype=torch.long), torch.empty(count, dtype=torch.uint8)
-    tensors = [torch.from_numpy(np.ascontiguousarray(a)) for a in (
-        normalised.numpy()[order], fine[order[first]] >> (_GRID_DEPTH - level), cell_keys[first],
-        np.append(first, count))]
-    tensors.append(native.key_table(tensors[2]))
+    tensors = [torch.from_numpy(sorted_points), morton_decode(unique, level), unique,
+               torch.from_numpy(np.append(first, count)), native.key_table(unique)]
     corner = torch.full((3,), -1.0, dtype=torch.float64)
-    workers = plan_threads(count, 2 * _GRID_MIN_POINTS)
+    workers = plan_threads(count, 2 * _PARALLEL_ROWS)
     bounds = np.searchsorted(first, np.linspace(0, count, workers + 1)[1:-1]).tolist()
-    for _ in threaded_map(lambda cells: native.grid_knn(*tensors, level, corner, side, k, cells, near, exact),
-                          zip([0, *bounds], [*bounds, len(first)]), workers):
+    side = 2.0 / (1 << level)
+    for _ in threaded_map(lambda cells: native.grid_knn(*tensors, level, corner, side, _KEY_SLACK, k, cells, near,
+                                                        exact), zip([0, *bounds], [*bounds, len(first)]), workers):
         pass
-    result = np.empty((count, k), dtype=np.int64)
-    result[order] = order[near.numpy()]
-    again = order[exact.numpy() == 0]
+    result = near.numpy()
+    if not ordered:
+        result = np.empty_like(result)
+        result[order] = order[near.numpy()]
+    again = np.flatnonzero(exact.numpy() == 0)
     if len(again):
+        again = again if ordered else order[again]
         result[again] = _nearest_by_search(points, again, k)
     return result
 

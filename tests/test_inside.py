@@ -154,6 +154,20 @@ def test_scene_model_answers_the_cameras_inside(room):
         o3dvis.NeuralVisibility(default, scene_network=VisibilityNetwork(NetworkConfig(use_normals=True)))
 
 
+def test_stored_probabilities_are_the_probabilities_in_the_stored_order(room):
+    """Cameras outside and inside, answered by their fields, the points along the Morton curve."""
+    points, _ = room
+    torch.manual_seed(0)
+    scene = VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 8, 8, 8), feature_channels=8,
+                                            num_frequencies=2, hidden=(16,)))
+    field = o3dvis.NeuralVisibility(shared_pretrained().network, scene_network=scene).encode(points)
+    cameras = np.vstack([[[20.0, 2.0, 1.5]], CAMERAS[:2], [[-9.0, -9.0, 9.0]]])
+    order = torch.argsort(field.rank)
+    assert not torch.equal(order, torch.arange(len(points)))  # the cloud is not in Morton order
+    torch.testing.assert_close(field.stored_probabilities(cameras), field.probabilities(cameras)[:, order],
+                               rtol=0, atol=1e-6)
+
+
 def test_rotations_average_the_scene_model_too(room):
     """num_rotations turns the cloud for the scene model as for the default: the cameras inside
     get the scene model's mean over the rotations, from a field and from the drop-in alike."""

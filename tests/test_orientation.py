@@ -5,10 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import torch
 from scipy.spatial import cKDTree
 
 from o3dvis.cameras import viewpoints_around
 from o3dvis.nn import native
+from o3dvis.nn.octree import morton_order, normalize_points
 from o3dvis.orientation import nearest_neighbours, voted_normals
 
 
@@ -61,7 +63,9 @@ def test_no_plane_to_fit_is_a_clear_error():
 def _clouds() -> dict[str, np.ndarray]:
     rng = np.random.default_rng(3)
     line = np.c_[np.linspace(0, 1, 6000), np.zeros((6000, 2))]
-    return {"sphere": _sphere(20000, seed=4), "cube": rng.random((8000, 3)),
+    sphere = _sphere(20000, seed=4)
+    along_curve = sphere[morton_order(normalize_points(torch.from_numpy(sphere))[0].float()).numpy()]
+    return {"sphere": sphere, "sphere in an encoding's order": along_curve, "cube": rng.random((8000, 3)),
             "repeated": np.repeat(rng.random((3000, 3)), 3, axis=0),  # ties everywhere
             "line and far points": np.concatenate([line, rng.random((5, 3)) * 100]),  # searched again
             "clusters": np.concatenate([rng.normal(size=(5000, 3)) * 1e-3 + c for c in np.eye(3) * 1e3])}
@@ -101,21 +105,19 @@ def test_nearest_neighbours_search_again_where_the_grid_is_too_coarse(grid_searc
 
 @pytest.mark.skipif(not native.available(), reason="C kernels turned off (O3DVIS_NATIVE=0)")
 def test_grid_search_checks_its_arguments():
-    import torch
-
     long = torch.zeros(2, dtype=torch.long)
     args = (torch.zeros(1, 3, dtype=torch.float64), torch.zeros(1, 3, dtype=torch.long), long[:1], long)
     table = native.key_table(long[:1])
     out = (torch.empty(1, 8, dtype=torch.long), torch.empty(1, dtype=torch.uint8))
     with pytest.raises(ValueError, match="k must lie"):
-        native.grid_knn(*args, table, 1, torch.zeros(3, dtype=torch.float64), 1.0, 65, (0, 1), *out)
+        native.grid_knn(*args, table, 1, torch.zeros(3, dtype=torch.float64), 1.0, 0.0, 65, (0, 1), *out)
     with pytest.raises(ValueError, match="power of two"):
-        native.grid_knn(*args, table[:1], 1, torch.zeros(3, dtype=torch.float64), 1.0, 8, (0, 1), *out)
+        native.grid_knn(*args, table[:1], 1, torch.zeros(3, dtype=torch.float64), 1.0, 0.0, 8, (0, 1), *out)
     with pytest.raises(ValueError, match="cell range"):
-        native.grid_knn(*args, table, 1, torch.zeros(3, dtype=torch.float64), 1.0, 8, (0, 2), *out)
+        native.grid_knn(*args, table, 1, torch.zeros(3, dtype=torch.float64), 1.0, 0.0, 8, (0, 2), *out)
     with pytest.raises(ValueError, match="points must be"):
-        native.grid_knn(args[0].float(), *args[1:], table, 1, torch.zeros(3, dtype=torch.float64), 1.0, 8, (0, 1),
-                        *out)
+        native.grid_knn(args[0].float(), *args[1:], table, 1, torch.zeros(3, dtype=torch.float64), 1.0, 0.0, 8,
+                        (0, 1), *out)
 
 
 def test_training_draws_the_first_pass_normals_for_the_share_asked(tmp_path):

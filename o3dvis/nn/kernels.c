@@ -1095,11 +1095,12 @@ static int insert_nearest(const double *restrict d, const int64_t *restrict inde
  * cells: (m, 3) the integer coordinates of the occupied cells, keys their Morton keys, starts
  * (m + 1) where each cell's points begin, table their o3dvis_key_table of size slots. A point's
  * answer is exact when it has k candidates and its k-th is nearer than the border of the 27
- * cells (a side on the grid's border has nothing beyond it): exact is set to 0 elsewhere, for the
- * caller to search again. Ties keep the earlier point. k <= 64 (checked by the caller). */
+ * cells, less slack (a side on the grid's border has nothing beyond it; points may lie up to slack
+ * outside the cell they are put in): exact is set to 0 elsewhere, for the caller to search again.
+ * Ties keep the earlier point. k <= 64 (checked by the caller). */
 void o3dvis_grid_knn(const double *points, const int64_t *cells, const int64_t *keys, const int64_t *starts,
-                     int64_t size, const int64_t *table, int32_t level, const double *lo, double side, int32_t k,
-                     int64_t first, int64_t last, int64_t *neighbours, uint8_t *exact) {
+                     int64_t size, const int64_t *table, int32_t level, const double *lo, double side,
+                     double slack, int32_t k, int64_t first, int64_t last, int64_t *neighbours, uint8_t *exact) {
     const int64_t top = ((int64_t)1 << level) - 1;
     for (int64_t c = first; c < last; c++) {
         const int64_t *cell = cells + 3 * c;
@@ -1163,7 +1164,7 @@ void o3dvis_grid_knn(const double *points, const int64_t *cells, const int64_t *
                     const double below = p[a] - low[a], above = high[a] - p[a];
                     margin = fmin(margin, fmin(below, above));
                 }
-                margin = fmax(margin, 0.0); /* a point a rounding outside its cell: searched again */
+                margin = fmax(margin - slack, 0.0); /* points up to slack off their cell may lie beyond */
                 exact[i] = (uint8_t)(found == k && best[k - 1] < margin * margin * (1.0 - 1e-9));
             }
         }

@@ -55,8 +55,8 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_fuse_margin": ([_I64, _PTR, _I64, _PTR, _PTR, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_fit_planes": ([_I64, _I64, _I32, _PTR, _PTR, _PTR, _PTR, _PTR], None),
     "o3dvis_key_table": ([_I64, _PTR, _I64, _PTR], None),
-    "o3dvis_grid_knn": ([_PTR, _PTR, _PTR, _PTR, _I64, _PTR, _I32, _PTR, ctypes.c_double, _I32, _I64, _I64, _PTR,
-                         _PTR], None),
+    "o3dvis_grid_knn": ([_PTR, _PTR, _PTR, _PTR, _I64, _PTR, _I32, _PTR, ctypes.c_double, ctypes.c_double, _I32,
+                         _I64, _I64, _PTR, _PTR], None),
 }
 # the most points a view of the kernels takes: its depth buffers (about 1.4 values a point over four
 # scales) are then indexed by int32
@@ -446,7 +446,8 @@ def key_table(keys: Tensor) -> Tensor:
 
 
 def grid_knn(points: Tensor, cells: Tensor, keys: Tensor, starts: Tensor, table: Tensor, level: int, lo: Tensor,
-             side: float, k: int, cell_range: tuple[int, int], neighbours: Tensor, exact: Tensor) -> None:
+             side: float, slack: float, k: int, cell_range: tuple[int, int], neighbours: Tensor,
+             exact: Tensor) -> None:
     """The ``k`` nearest of ``points`` to each point of the cells ``cell_range`` among the 27 cells
     around it, written to rows of ``neighbours`` (N, k) int64 and ``exact`` (N,) uint8 (see
     ``o3dvis_grid_knn`` in kernels.c; :func:`o3dvis.orientation.nearest_neighbours` prepares them).
@@ -458,6 +459,7 @@ def grid_knn(points: Tensor, cells: Tensor, keys: Tensor, starts: Tensor, table:
         starts: (M + 1,) int64 where each cell's points begin, then N.
         table: the :func:`key_table` of ``keys``.
         lo: (3,) float64 the grid's corner; side: its cells' side.
+        slack: how far from its cell a point may lie (keys computed in a lower precision).
 
     Raises:
         ValueError: tensors of the wrong shapes or types, or ``k`` outside [1, 64].
@@ -477,5 +479,5 @@ def grid_knn(points: Tensor, cells: Tensor, keys: Tensor, starts: Tensor, table:
     if not 0 <= first <= last <= m:
         raise ValueError(f"cell range {cell_range} outside [0, {m}]")
     _LIBRARY.o3dvis_grid_knn(points.data_ptr(), cells.data_ptr(), keys.data_ptr(), starts.data_ptr(), size,
-                             table.data_ptr(), level, lo.data_ptr(), side, k, first, last, neighbours.data_ptr(),
-                             exact.data_ptr())
+                             table.data_ptr(), level, lo.data_ptr(), side, slack, k, first, last,
+                             neighbours.data_ptr(), exact.data_ptr())

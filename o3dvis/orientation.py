@@ -129,17 +129,20 @@ def _nearest_by_search(points: np.ndarray, rows: np.ndarray, k: int) -> np.ndarr
     return out
 
 
-def fit_planes(points: np.ndarray, neighbours: np.ndarray, weight: np.ndarray
+def fit_planes(points: np.ndarray, neighbours: np.ndarray, weight: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals (M, 3) of weighted least-squares planes through rows of neighbours (M, K), and
     (M,) whether each is defined: three neighbours of positive weight, not all on one line. One
-    pass of C where the kernels are built (``native.fit_planes``), else these numpy ops."""
+    pass of C where the kernels are built (``native.fit_planes``), else these numpy ops.
+    ``weight``: (M, K), None for all 1."""
     if native.available():
-        points, neighbours, weight = (torch.from_numpy(np.ascontiguousarray(a, dtype=t)) for a, t in (
-            (points, np.float64), (neighbours, np.int64), (weight, np.float64)))
-        parts = list(_on_threads(lambda rows: native.fit_planes(points, neighbours[rows], weight[rows]),
-                                 len(neighbours)))
+        points, neighbours = (torch.from_numpy(np.ascontiguousarray(a, dtype=t)) for a, t in (
+            (points, np.float64), (neighbours, np.int64)))
+        weight = None if weight is None else torch.from_numpy(np.ascontiguousarray(weight, dtype=np.float64))
+        parts = list(_on_threads(lambda rows: native.fit_planes(
+            points, neighbours[rows], None if weight is None else weight[rows]), len(neighbours)))
         return torch.cat([n for n, _ in parts]).numpy(), torch.cat([p for _, p in parts]).numpy()
+    weight = np.ones(neighbours.shape) if weight is None else weight
     # homogeneous coordinates, so that one product per neighbourhood gives the weighted sums of
     # the offsets, of their outer products and of the weights: [[S, s], [s^T, w]]; components
     # first, so that elementwise passes run along the neighbours
@@ -357,7 +360,7 @@ def voted_normals(points: np.ndarray, cameras: np.ndarray, visibility: np.ndarra
     if neighbours < 3:
         raise ValueError(f"a plane needs at least 3 neighbours, got {neighbours}")
     near = nearest_neighbours(points, min(neighbours, len(points)))
-    normals, defined = fit_planes(points, near, np.ones(near.shape))
+    normals, defined = fit_planes(points, near)
     if not defined.any():
         raise ValueError("no plane fits the points: they are fewer than 3 or all on one line")
     return orient_by_vote(points, normals, defined, vote(points, normals, cameras, visibility))

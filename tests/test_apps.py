@@ -262,6 +262,10 @@ def test_native_plane_fits_match_the_numpy_ones(monkeypatch):
     assert np.array_equal(fast_fitted, slow_fitted) and not fast_fitted[:12].any() and fast_fitted[12:].all()
     assert np.isfinite(fast).all() and np.allclose(np.linalg.norm(fast, axis=1), 1)
     assert np.abs(np.einsum("ij,ij->i", fast, slow))[12:].min() > 1 - 1e-9
+    monkeypatch.undo()
+    for unweighted, ones in zip(fit_planes(points, neighbours[20:]),  # None: every neighbour weighs 1
+                                fit_planes(points, neighbours[20:], np.ones((5980, 8)))):
+        assert np.array_equal(unweighted, ones)
     with pytest.raises(IndexError, match="neighbours"):
         orientation.native.fit_planes(torch.zeros(3, 3, dtype=torch.float64), torch.tensor([[0, 1, 4]]),
                                       torch.ones(1, 3, dtype=torch.float64))

@@ -193,7 +193,7 @@ def multiview_normals(points: np.ndarray, method, num_views: int = 26, refine_vi
     if len(loose):  # a plane through the nearest points, its side taken from the triangulated ones
         _, neighbours = tree.query(points[loose], k=min(_FIT_NEIGHBOURS, len(points)), workers=-1)
         neighbours = neighbours.reshape(len(loose), -1)
-        normals[loose], defined[loose] = fit_planes(points, neighbours, np.ones(neighbours.shape))
+        normals[loose], defined[loose] = fit_planes(points, neighbours)
     return complete_orientation(points, normals, known, defined, tree)
 
 

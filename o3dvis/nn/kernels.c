@@ -1022,19 +1022,19 @@ static int smallest_eigenvector(const double *a, double *out) {
  * mean, summed in double as offsets from the row's first neighbour, and its smallest eigenvector.
  * points: (n, 3); neighbours: (m, k) rows of indices in [0, n] (checked by the caller), n standing
  * for no point: as the numpy ops' padding column, a point at the origin whose homogeneous
- * coordinate is 0 (callers give it weight 0); weight: (m, k). Writes normals (m, 3) and planar
- * (m,): at least three neighbours of positive weight, not all on one line. */
+ * coordinate is 0 (callers give it weight 0); weight: (m, k), or NULL for all 1. Writes normals
+ * (m, 3) and planar (m,): at least three neighbours of positive weight, not all on one line. */
 void o3dvis_fit_planes(int64_t n, int64_t m, int32_t k, const double *points, const int64_t *neighbours,
                        const double *weight, double *normals, uint8_t *planar) {
     static const double origin[3] = {0.0, 0.0, 0.0};
     for (int64_t r = 0; r < m; r++) {
         const int64_t *row = neighbours + r * k;
-        const double *w = weight + r * k, *o = row[0] < n ? points + 3 * row[0] : origin;
+        const double *w = weight ? weight + r * k : NULL, *o = row[0] < n ? points + 3 * row[0] : origin;
         double sums[10] = {0}; /* xx xy xz yy yz zz, x y z, w */
         int positive = 0;
         for (int j = 0; j < k; j++) {
             const double *p = row[j] < n ? points + 3 * row[j] : origin, h = row[j] < n ? 1.0 : 0.0;
-            const double x = p[0] - o[0], y = p[1] - o[1], z = p[2] - o[2], wj = w[j], wh = wj * h;
+            const double x = p[0] - o[0], y = p[1] - o[1], z = p[2] - o[2], wj = w ? w[j] : 1.0, wh = wj * h;
             sums[0] += wj * x * x, sums[1] += wj * x * y, sums[2] += wj * x * z;
             sums[3] += wj * y * y, sums[4] += wj * y * z, sums[5] += wj * z * z;
             sums[6] += wh * x, sums[7] += wh * y, sums[8] += wh * z, sums[9] += wh * h;

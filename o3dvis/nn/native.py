@@ -414,10 +414,10 @@ def fuse_margin(rows: slice | Tensor, zbuffer: Tensor, margin: Tensor, mlp: Pack
                          f"layer wider than 128")
 
 
-def fit_planes(points: Tensor, neighbours: Tensor, weight: Tensor) -> tuple[Tensor, Tensor]:
+def fit_planes(points: Tensor, neighbours: Tensor, weight: Tensor | None) -> tuple[Tensor, Tensor]:
     """(M, 3) unit normals and (M,) bool: :func:`o3dvis.orientation.fit_planes` of ``points``
-    (N, 3) float64, rows of ``neighbours`` (M, K) int64 and ``weight`` (M, K) float64, in one pass
-    (an index N stands for no point, as the numpy ops' padding: give it weight 0).
+    (N, 3) float64, rows of ``neighbours`` (M, K) int64 and ``weight`` (M, K) float64 (None: all
+    1), in one pass (an index N stands for no point, as the numpy ops' padding: give it weight 0).
 
     Raises:
         ValueError: tensors of the wrong shapes or types.
@@ -426,13 +426,15 @@ def fit_planes(points: Tensor, neighbours: Tensor, weight: Tensor) -> tuple[Tens
     m, k = neighbours.shape
     _check("points", points, (points.shape[0], 3), torch.float64)
     _check("neighbours", neighbours, (m, k), torch.long)
-    _check("weight", weight, (m, k), torch.float64)
+    if weight is not None:
+        _check("weight", weight, (m, k), torch.float64)
     if neighbours.numel() and (int(neighbours.min()) < 0 or int(neighbours.max()) > points.shape[0]):
         raise IndexError(f"neighbours must lie in [0, {points.shape[0]}]")
     normals, planar = points.new_empty(m, 3), torch.empty(m, dtype=torch.uint8)
     if m:
         _LIBRARY.o3dvis_fit_planes(points.shape[0], m, k, points.data_ptr(), neighbours.data_ptr(),
-                                   weight.data_ptr(), normals.data_ptr(), planar.data_ptr())
+                                   None if weight is None else weight.data_ptr(), normals.data_ptr(),
+                                   planar.data_ptr())
     return normals, planar.bool()
 
 

@@ -379,15 +379,15 @@ class VisibilityField:
                  ) -> Iterator[tuple[slice, Tensor]]:
         """Yields ``(views slice, (v, M) probabilities)`` of the points ``rows`` (None: all),
         with frustum culling applied, or ``finish`` of them (done on the thread that answered
-        the views). Every point occludes, whichever rows are asked for. ``stored``: all points,
-        in the order they are stored in (along the Morton curve), not the cloud's."""
+        the views). Every point occludes, whichever rows are asked for. ``stored``: ``rows`` and
+        the answers in the order the points are stored in (along the Morton curve), not the cloud's."""
         cameras, directions, orthographic = self._normalised(views)
         clear = self._off_the_hull(views)
         n, total = self.num_points if rows is None else len(rows), len(views)
         unsort = None  # the columns, in the cloud's order, of an answer for all stored rows
-        if self.rank is not None:
+        if self.rank is not None and not stored:
             if rows is None:
-                unsort = None if stored else self.rank
+                unsort = self.rank
             else:
                 rows = self.rank[rows]
         if n == 0:
@@ -440,17 +440,19 @@ class VisibilityField:
                 result = probabilities_of(batch)
             yield batch, result
 
-    def stored_probabilities(self, cameras) -> Tensor:
+    def stored_probabilities(self, cameras, rows=None) -> Tensor:
         """(V, N) :meth:`probabilities` of camera positions, with the points in the order they are
         stored in (along the Morton curve: ``rank`` maps the cloud's order to it), for callers that
-        work in that order: no permutation either way."""
+        work in that order: no permutation either way. ``rows``: only these points, by their
+        place in that order ((V, len(rows)); every point still occludes)."""
         views = as_views(cameras, None)
+        rows = self._checked_indices(rows)
         with torch.inference_mode():
-            parts = [(index, torch.cat([probs for _, probs in field._batches(part, stored=True)]))
+            parts = [(index, torch.cat([probs for _, probs in field._batches(part, rows, stored=True)]))
                      for field, index, part in self._parts(views)]
             if len(parts) == 1:
                 return parts[0][1]
-            out = parts[0][1].new_empty(len(views), self.num_points)
+            out = parts[0][1].new_empty(len(views), parts[0][1].shape[1])
             for index, probs in parts:
                 out[torch.from_numpy(index).to(out.device)] = probs
             return out

@@ -39,6 +39,10 @@ resolve, so such a cloud is answered as the exactly flat one."""
 # the two-pass encoding: cameras whose first-pass answers orient the normals, points per plane fit
 _ORIENTING_VIEWS = 14
 _PLANE_NEIGHBOURS = 8
+# the vote of every other camera that settles a point's side: the other cameras answer only for the
+# points under it (on the validation meshes 41 % of them at 8-81 k points; the accuracy changed by
+# less than 0.01 point)
+_SETTLED_VOTE = 1.0
 # where normals="estimate" takes two passes: at least this many points (below, a plane through 8
 # neighbours spans sharp features and thin parts too often) and a noise cue below this many point
 # spacings (noise tilts the fitted planes; see o3dvis.nn.noise)
@@ -74,7 +78,8 @@ def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray
     nearest neighbours, oriented by a vote of what ``field`` (the first pass) sees from a few
     cameras around the cloud (:func:`o3dvis.orientation.voted_normals`), each view's vote
     weighted by the probability that it sees the point: a view that sees it barely, as both
-    sides of a thin wall are seen, votes little.
+    sides of a thin wall are seen, votes little. Half the cameras vote first; the others answer
+    only for the points whose side that leaves open.
 
     Args:
         field: a points-only model's encoding of the cloud.
@@ -84,15 +89,18 @@ def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray
         (N, 3) unit normals.
     """
     cameras = viewpoints_around(points, _ORIENTING_VIEWS)
-    visibility = field.stored_probabilities(cameras).cpu().numpy()
+
+    def visibility(views: slice, rows: np.ndarray | None) -> np.ndarray:
+        return field.stored_probabilities(cameras[views], rows).cpu().numpy()
+
     if field.rank is None:
-        return voted_normals(points, cameras, visibility, _PLANE_NEIGHBOURS)
+        return voted_normals(points, cameras, visibility, _PLANE_NEIGHBOURS, _SETTLED_VOTE)
     # in the field's order along the Morton curve: neighbours close in memory make the KNN search
     # and the plane fits cache-friendly (at 200 k points 380 -> 245 ms)
     rank = field.rank.cpu().numpy()
     order = np.empty_like(rank)
     order[rank] = np.arange(len(rank))
-    return voted_normals(points[order], cameras, visibility, _PLANE_NEIGHBOURS)[rank]
+    return voted_normals(points[order], cameras, visibility, _PLANE_NEIGHBOURS, _SETTLED_VOTE)[rank]
 
 
 def _normalize(points: Tensor, bounds: tuple[Tensor, Tensor] | None = None

@@ -334,8 +334,9 @@ def _propagate(points: np.ndarray, normals: np.ndarray, oriented: np.ndarray, tr
     return normals * side[:, None], top & ~oriented
 
 
-def voted_normals(points: np.ndarray, cameras: np.ndarray, visibility: np.ndarray,
-                  neighbours: int = 8) -> np.ndarray:
+def voted_normals(points: np.ndarray, cameras: np.ndarray,
+                  visibility: np.ndarray | Callable[[slice, np.ndarray | None], np.ndarray], neighbours: int = 8,
+                  settled: float | None = None) -> np.ndarray:
     """Oriented unit normals: planes through each point's nearest neighbours, voted by the cameras.
 
     Each normal is that of the least-squares plane through the point's
@@ -347,8 +348,12 @@ def voted_normals(points: np.ndarray, cameras: np.ndarray, visibility: np.ndarra
     Args:
         points: (N, 3) points.
         cameras: (V, 3) camera positions.
-        visibility: (V, N) which points each camera sees (bool, or weights >= 0).
+        visibility: (V, N) which points each camera sees (bool, or weights >= 0); or a function
+            of a slice of the cameras and the rows of some points (None: all) that gives theirs.
         neighbours: points per plane fit, the point included (at least 3).
+        settled: None: every camera votes on every point. Else every other camera votes first,
+            and the others only on the points whose vote is still under ``settled`` in magnitude:
+            with a function, only their visibility is asked.
 
     Returns:
         (N, 3) unit normals.
@@ -363,4 +368,14 @@ def voted_normals(points: np.ndarray, cameras: np.ndarray, visibility: np.ndarra
     normals, defined = fit_planes(points, near)
     if not defined.any():
         raise ValueError("no plane fits the points: they are fewer than 3 or all on one line")
-    return orient_by_vote(points, normals, defined, vote(points, normals, cameras, visibility))
+    if not callable(visibility):
+        table = visibility
+        visibility = lambda views, rows: table[views] if rows is None else table[views][:, rows]  # noqa: E731
+    first = slice(None) if settled is None else slice(0, None, 2)
+    votes = vote(points, normals, cameras[first], visibility(first, None))
+    if settled is not None and len(cameras) > 1:
+        rows = np.flatnonzero(np.abs(votes) < settled)
+        if len(rows):
+            second = slice(1, None, 2)
+            votes[rows] += vote(points[rows], normals[rows], cameras[second], visibility(second, rows))
+    return orient_by_vote(points, normals, defined, votes)

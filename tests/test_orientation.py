@@ -51,6 +51,25 @@ def test_the_vote_decides_the_side():
     assert (np.einsum("ij,ij->i", normals, points) < -0.95).all()
 
 
+def test_settled_votes_ask_the_other_cameras_only_where_the_side_is_open():
+    """Every other camera votes first; the rest answer only for the points whose vote is under
+    ``settled``: the sides are those of every camera voting."""
+    points = _sphere(4000, seed=7)
+    cameras = viewpoints_around(points, 8)
+    seen = _seen(points, cameras).astype(float)
+    asked = []
+
+    def visibility(views, rows):
+        asked.append((views, None if rows is None else len(rows)))
+        return seen[views] if rows is None else seen[views][:, rows]
+
+    normals = voted_normals(points, cameras, visibility, settled=1.0)
+    assert asked[0] == (slice(0, None, 2), None) and asked[1][0] == slice(1, None, 2)
+    assert 0 < asked[1][1] < len(points)  # the second half asked for some points, not all
+    assert (np.einsum("ij,ij->i", normals, points) > 0.95).all()
+    assert np.allclose(normals, voted_normals(points, cameras, seen))
+
+
 def test_no_plane_to_fit_is_a_clear_error():
     line = np.linspace(0, 1, 50)[:, None] * np.array([[1.0, 2.0, 3.0]])
     cameras = np.array([[5.0, 0.0, 0.0]])

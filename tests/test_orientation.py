@@ -87,6 +87,7 @@ def _clouds() -> dict[str, np.ndarray]:
     return {"sphere": sphere, "sphere in an encoding's order": along_curve, "cube": rng.random((8000, 3)),
             "repeated": np.repeat(rng.random((3000, 3)), 3, axis=0),  # ties everywhere
             "line and far points": np.concatenate([line, rng.random((5, 3)) * 100]),  # searched again
+            "a dense blob": np.concatenate([rng.normal(size=(2000, 3)) * 1e-4 + 0.5, rng.random((1000, 3))]),
             "clusters": np.concatenate([rng.normal(size=(5000, 3)) * 1e-3 + c for c in np.eye(3) * 1e3])}
 
 

@@ -1134,12 +1134,12 @@ void o3dvis_grid_knn(const double *points, const int64_t *cells, const int64_t *
             int count = 0;
             int64_t skip = 0;
             for (int r = 0; r < runs && count < KNN_CHUNK; r++) {
-                const int64_t size = to[r] - from[r];
-                if (skip + size <= chunk) { skip += size; continue; }
+                const int64_t length = to[r] - from[r];
+                if (skip + length <= chunk) { skip += length; continue; }
                 for (int64_t j = from[r] + (chunk > skip ? chunk - skip : 0); j < to[r] && count < KNN_CHUNK; j++)
                     x[count] = points[3 * j], y[count] = points[3 * j + 1], z[count] = points[3 * j + 2],
                     index[count++] = j;
-                skip += size;
+                skip += length;
             }
             for (int64_t i = starts[c]; i < starts[c + 1]; i++) {
                 const double *p = points + 3 * i;

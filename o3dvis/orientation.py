@@ -34,8 +34,8 @@ _CELL_POINTS = 6  # points per occupied cell the neighbour search's grid aims at
 _GRID_MIN_POINTS = 100_000  # smaller clouds are searched with a k-d tree (as fast there)
 _KEY_SLACK = 1e-6  # how far off its cell float32 keys may put a point, in normalised coordinates
 _PARALLEL_ROWS = 8192  # rows below which the plane fits, the votes and the search run on one thread
-_BRUTE_FORCE_PAIRS = 1 << 26  # (row, point) distances the search again computes before taking a k-d tree
-_CHUNK_PAIRS = 1 << 22  # of those, at once
+_BRUTE_FORCE_PAIRS = 1 << 22  # (row, point) distances the search again computes before taking a k-d tree
+_CHUNK_PAIRS = 1 << 18  # of those, at once
 
 
 def row_chunks(count: int, size: int = _CHUNK, start: int = 0) -> list[slice]:
@@ -119,11 +119,10 @@ def _nearest_by_search(points: np.ndarray, rows: np.ndarray, k: int) -> np.ndarr
     points for a few rows, by a k-d tree for many."""
     if len(rows) * len(points) > _BRUTE_FORCE_PAIRS:
         return cKDTree(points, balanced_tree=False).query(points[rows], k=k, workers=-1)[1].reshape(-1, k)
-    squared = (points ** 2).sum(axis=1)
     out = np.empty((len(rows), k), dtype=np.int64)
     for chunk in row_chunks(len(rows), max(1, _CHUNK_PAIRS // len(points))):
-        query = points[rows[chunk]]
-        distance = squared[None] - 2 * query @ points.T  # the rows' own squared norm changes no order
+        # differences, not |p|^2 - 2 p.q + |q|^2: no cancellation far from the origin
+        distance = np.square(points[None] - points[rows[chunk], None]).sum(axis=2)
         part = np.argpartition(distance, k - 1, axis=1)[:, :k] if k < len(points) else np.indices(distance.shape)[1]
         out[chunk] = np.take_along_axis(part, np.argsort(np.take_along_axis(distance, part, 1), axis=1), 1)
     return out

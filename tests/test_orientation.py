@@ -114,8 +114,7 @@ def test_nearest_neighbours_search_again_where_the_grid_is_too_coarse(grid_searc
     """A dense cluster and a sparse shell: the shell's points have no k neighbours in the 27 cells
     around them, and get their exact ones all the same (by distances to all points, or with many
     such points by a k-d tree)."""
-    if by_tree:
-        monkeypatch.setattr("o3dvis.orientation._BRUTE_FORCE_PAIRS", 0)
+    monkeypatch.setattr("o3dvis.orientation._BRUTE_FORCE_PAIRS", 0 if by_tree else 1 << 40)
     rng = np.random.default_rng(5)
     points = np.concatenate([rng.normal(size=(20000, 3)) * 0.01, _sphere(300, seed=6) * 10])
     near = nearest_neighbours(points, 8)

@@ -369,7 +369,10 @@ def voted_normals(points: np.ndarray, cameras: np.ndarray,
         raise ValueError("no plane fits the points: they are fewer than 3 or all on one line")
     if not callable(visibility):
         table = visibility
-        visibility = lambda views, rows: table[views] if rows is None else table[views][:, rows]  # noqa: E731
+
+        def visibility(views: slice, rows: np.ndarray | None) -> np.ndarray:
+            return table[views] if rows is None else table[views][:, rows]
+
     first = slice(None) if settled is None else slice(0, None, 2)
     votes = vote(points, normals, cameras[first], visibility(first, None))
     if settled is not None and len(cameras) > 1:

@@ -61,7 +61,7 @@ def _settings(model: "NeuralVisibility", normals, points: Tensor, camera: Tensor
 def _tensors(model: "NeuralVisibility") -> list[tuple[Tensor, int, int]]:
     """Each parameter and buffer of the networks of ``model``, with its version (bumped by every
     in-place change, an optimiser's step included) and its storage's address."""
-    return [(t, t._version, t.data_ptr()) for net in (model.network, model.normals_network) if net is not None
+    return [(t, t._version, t.data_ptr()) for net in model.networks()
             for module in net.modules() for table in (module._parameters, module._buffers)
             for t in table.values() if t is not None]
 

@@ -552,6 +552,28 @@ def test_select_visible_keeps_colours_and_normals(vis, pcd, points):
     np.testing.assert_array_equal(np.asarray(arrays.points), points[index])
 
 
+def test_small_clouds_without_normals_go_to_the_small_model(network, points):
+    """Under 4 000 points, a cloud without normals is encoded by the small network (the shipped one
+    on a depth-6 octree, loaded by pretrained()); larger ones, and clouds with normals, are not."""
+    torch.manual_seed(6)
+    small = VisibilityNetwork(NetworkConfig(**SMALL))
+    normals_net = VisibilityNetwork(NetworkConfig(**SMALL, use_normals=True))
+    vis = o3dvis.NeuralVisibility(network, normals_net, small_network=small)
+    rng = np.random.default_rng(0)
+    few, many = rng.normal(size=(3999, 3)), rng.normal(size=(4000, 3))
+    assert vis.encode(few).network is small and vis.encode(many).network is network
+    assert vis.encode(few, normals=few).network is normals_net
+    assert "small model" in repr(vis) and small in vis.networks()
+    with pytest.raises(ValueError, match="small_network must be a model that takes no normals"):
+        o3dvis.NeuralVisibility(network, small_network=normals_net)
+    shipped = o3dvis.NeuralVisibility.pretrained()
+    assert shipped.small_network is not None and shipped.small_network.config.depth == 6
+    assert o3dvis.NeuralVisibility.pretrained(use_small=False).small_network is None
+    assert o3dvis.NeuralVisibility.pretrained("small").small_network is None  # a companion of the default only
+    small.train()
+    assert vis.to("cpu") is vis and not small.training  # to() puts a network left in train mode back in eval
+
+
 def test_normals_are_used_automatically_when_a_normals_model_exists(network, points):
     torch.manual_seed(5)
     normals_net = VisibilityNetwork(NetworkConfig(**SMALL, use_normals=True))

@@ -187,7 +187,7 @@ def test_one_view_answered_in_chunks_side_by_side(scenes, monkeypatch):
     monkeypatch.setattr(o3dvis.field, "_LEAF_READ_POINTS", 0)
     pcd = scenes[0][0]
     view = _camera(pcd, 7)
-    vis = o3dvis.NeuralVisibility.pretrained(precision="float32")
+    vis = o3dvis.NeuralVisibility.pretrained(precision="float32", use_small=False)  # the network spied on
     ran_on = []
     margin = vis.network.view_margin
 

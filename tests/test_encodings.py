@@ -105,6 +105,13 @@ def test_another_model_or_changed_weights_are_encoded_anew(scene, counted):
     mine.chunk_size = 1000
     o3dvis.hidden_point_removal_neural(pcd, cameras[1], model=mine)
     assert len(counted) == 5
+    network = mine.small_network  # the one that encodes these 3 000 points
+    network.unet.head = torch.nn.Linear(32, 32)  # a module put in: new tensors
+    o3dvis.hidden_point_removal_neural(pcd, cameras[1], model=mine)
+    network.unet.head.bias = torch.nn.Parameter(torch.zeros(32))  # a parameter put in
+    o3dvis.hidden_point_removal_neural(pcd, cameras[1], model=mine)
+    o3dvis.hidden_point_removal_neural(pcd, cameras[2], model=mine)
+    assert len(counted) == 7
 
 
 def test_large_clouds_are_not_kept(scene, counted, monkeypatch):

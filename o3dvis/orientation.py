@@ -47,7 +47,12 @@ def _on_threads(fn: Callable[[slice], object], count: int) -> Iterator:
     """``fn`` of a share of ``count`` rows on each of the threads the load allows (one below
     :data:`_PARALLEL_ROWS` rows), in order: for C kernels and numpy ops, which let go of the GIL."""
     workers = plan_threads(count, _PARALLEL_ROWS)
-    return threaded_map(fn, row_chunks(count, -(-count // workers) if count else 1), workers)
+    return _side_by_side(fn, row_chunks(count, -(-count // workers) if count else 1), workers)
+
+
+def _side_by_side(fn: Callable, items: list, workers: int) -> Iterator:
+    """``map(fn, items)``: on ``workers`` threads, or on the caller's alone for one."""
+    return map(fn, items) if workers == 1 else threaded_map(fn, items, workers)
 
 
 def nearest_neighbours(points: np.ndarray, k: int) -> np.ndarray:
@@ -94,8 +99,9 @@ def nearest_neighbours(points: np.ndarray, k: int) -> np.ndarray:
     workers = plan_threads(count, 2 * _PARALLEL_ROWS)
     bounds = np.searchsorted(first, np.linspace(0, count, workers + 1)[1:-1]).tolist()
     side = 2.0 / (1 << level)
-    for _ in threaded_map(lambda cells: native.grid_knn(*tensors, level, corner, side, _KEY_SLACK, k, cells, near,
-                                                        exact), zip([0, *bounds], [*bounds, len(first)]), workers):
+    cell_ranges = list(zip([0, *bounds], [*bounds, len(first)]))
+    for _ in _side_by_side(lambda cells: native.grid_knn(*tensors, level, corner, side, _KEY_SLACK, k, cells, near,
+                                                         exact), cell_ranges, workers):
         pass
     result = near.numpy()
     if not ordered:

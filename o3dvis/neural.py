@@ -45,15 +45,14 @@ resolve, so such a cloud is answered as the exactly flat one."""
 # the two-pass encoding: cameras whose first-pass answers orient the normals, points per plane fit
 _ORIENTING_VIEWS = 14
 _PLANE_NEIGHBOURS = 8
-# the vote (weights: _vote_weight) of every other camera that settles a point's side: the other
-# cameras answer only for the points under it (on the validation meshes 19 % of them at 8-81 k
-# points; against a bar of 1.0, 0.01 point less accurate and the orientation 7-13 % faster)
-_SETTLED_VOTE = 0.5
-# where normals="estimate" takes two passes: at least this many points (below, a plane through 8
-# neighbours spans sharp features and thin parts too often) and a noise cue below this many point
-# spacings (noise tilts the fitted planes; see o3dvis.nn.noise)
+# where normals="estimate" takes two passes: at least this many points and a noise cue below this
+# many point spacings (noise tilts the fitted planes; see o3dvis.nn.noise). On the validation meshes,
+# clean, two passes measured 0.2-0.5 point above one at 1-4 k points, 0.7-1.3 at 8-81 k; but the cue
+# tells noise from sharp detail only from about 8 k points, and below that noisy clouds lost 0.2-2
+# points. At 8-81 k points a bar of 0.2 spacings let through clouds with 0.25-0.5 % noise (0.6-1.2
+# points lost), 0.1 almost none (0.1 at most), keeping 0.7-0.9 point of the clean clouds' gain
 _ESTIMATE_MIN_POINTS = 8_000
-_ESTIMATE_MAX_NOISE = 0.2
+_ESTIMATE_MAX_NOISE = 0.1
 
 
 def _flat_hull(points: Tensor, diagonal: Tensor) -> tuple[Tensor, Tensor] | None:
@@ -79,19 +78,11 @@ def _flat_hull(points: Tensor, diagonal: Tensor) -> tuple[Tensor, Tensor] | None
     return None if bool(spans.all()) else (centre, vt[spans])
 
 
-def _vote_weight(probabilities: Tensor) -> Tensor:
-    """How much a view votes on the side of the points it answers for: by how much more likely it
-    sees each point than not, ``max(0, 2 p - 1)``. A view that sees a point barely, as both sides of
-    a thin wall are seen, votes little, and one more likely not to see it not at all."""
-    return probabilities.mul(2).sub_(1).clamp_(min=0)
-
-
 def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray:
     """The normals ``normals="estimate"`` gives the normals model: a plane through each point's
-    nearest neighbours, oriented by a vote of what ``field`` (the first pass) sees from a few
-    cameras around the cloud (:func:`o3dvis.orientation.voted_normals`), each view's vote
-    weighted by :func:`_vote_weight`. Half the cameras vote first; the others answer
-    only for the points whose side that leaves open.
+    nearest neighbours, those the first pass sees alike from a few cameras around the cloud
+    weighing most, oriented by the vote of those cameras
+    (:func:`o3dvis.orientation.voted_normals` of what ``field`` answers).
 
     Args:
         field: a points-only model's encoding of the cloud.
@@ -101,18 +92,15 @@ def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray
         (N, 3) unit normals.
     """
     cameras = viewpoints_around(points, _ORIENTING_VIEWS)
-
-    def visibility(views: slice, rows: np.ndarray | None) -> np.ndarray:
-        return _vote_weight(field.stored_probabilities(cameras[views], rows)).cpu().numpy()
-
+    visibility = field.stored_probabilities(cameras).cpu().numpy()
     if field.rank is None:
-        return voted_normals(points, cameras, visibility, _PLANE_NEIGHBOURS, _SETTLED_VOTE)
+        return voted_normals(points, cameras, visibility, _PLANE_NEIGHBOURS)
     # in the field's order along the Morton curve: neighbours close in memory make the KNN search
     # and the plane fits cache-friendly (at 200 k points 380 -> 245 ms)
     rank = field.rank.cpu().numpy()
     order = np.empty_like(rank)
     order[rank] = np.arange(len(rank))
-    return voted_normals(points[order], cameras, visibility, _PLANE_NEIGHBOURS, _SETTLED_VOTE)[rank]
+    return voted_normals(points[order], cameras, visibility, _PLANE_NEIGHBOURS)[rank]
 
 
 def _normalize(points: Tensor, bounds: tuple[Tensor, Tensor] | None = None
@@ -294,11 +282,11 @@ class NeuralVisibility:
         With ``normals="estimate"``, a dense clean cloud is encoded in two
         passes: the network without normals answers for 14 cameras around the
         cloud; each point's normal is the plane through its 8 nearest points,
-        turned to face the cameras that see the point
-        (:func:`o3dvis.orientation.voted_normals`); the normals model then
-        encodes the cloud with those normals. That is more accurate on clouds
-        of at least 8 000 points with little noise, and costs a second
-        encoding, 14 views and the plane fits; on sparser or noisier clouds
+        those the cameras see alike weighing most, turned to face the cameras
+        that see the point (:func:`o3dvis.orientation.voted_normals`); the
+        normals model then encodes the cloud with those normals. That is more
+        accurate on clouds of at least 8 000 points with little noise, and
+        costs a second encoding, 14 views and the plane fits; on sparser or noisier clouds
         (the network's noise cue, see :mod:`o3dvis.nn.noise`), where estimated
         normals measured less accurate than none, and on flat clouds, it is one
         pass without normals.

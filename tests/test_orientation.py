@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 from o3dvis.cameras import viewpoints_around
 from o3dvis.nn import native
 from o3dvis.nn.octree import morton_order, normalize_points
-from o3dvis.orientation import nearest_neighbours, voted_normals
+from o3dvis.orientation import nearest_neighbours, visibility_affinity, vote, voted_normals
 
 
 def _sphere(count: int, seed: int = 0) -> np.ndarray:
@@ -51,23 +51,43 @@ def test_the_vote_decides_the_side():
     assert (np.einsum("ij,ij->i", normals, points) < -0.95).all()
 
 
-def test_settled_votes_ask_the_other_cameras_only_where_the_side_is_open():
-    """Every other camera votes first; the rest answer only for the points whose vote is under
-    ``settled``: the sides are those of every camera voting."""
-    points = _sphere(4000, seed=7)
-    cameras = viewpoints_around(points, 8)
-    seen = _seen(points, cameras).astype(float)
-    asked = []
+def test_a_camera_more_likely_not_to_see_a_point_does_not_vote():
+    points = _sphere(500, seed=7)
+    cameras = viewpoints_around(points, 6)
+    outward = points.copy()
+    seen = _seen(points, cameras)
+    probable = np.where(seen, 0.9, 0.0)
+    unlikely = np.where(seen, 0.9, 0.4)  # every camera half sure it sees the points it faces away from
+    assert np.allclose(vote(points, outward, cameras, probable), vote(points, outward, cameras, unlikely))
+    assert np.allclose(vote(points, outward, cameras, seen), vote(points, outward, cameras, probable) / 0.8)
 
-    def visibility(views, rows):
-        asked.append((views, None if rows is None else len(rows)))
-        return seen[views] if rows is None else seen[views][:, rows]
 
-    normals = voted_normals(points, cameras, visibility, settled=1.0)
-    assert asked[0] == (slice(0, None, 2), None) and asked[1][0] == slice(1, None, 2)
-    assert 0 < asked[1][1] < len(points)  # the second half asked for some points, not all
-    assert (np.einsum("ij,ij->i", normals, points) > 0.95).all()
-    assert np.allclose(normals, voted_normals(points, cameras, seen))
+def _roof(count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the two faces of a roof (a ridge along x) and their faces' unit normals."""
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(-1, 1, (count, 2))
+    side = np.where(u[:, 1] < 0, -1.0, 1.0)
+    points = np.stack([u[:, 0], u[:, 1], 1 - np.abs(u[:, 1])], axis=1)
+    normals = np.stack([np.zeros(count), side, np.ones(count)], axis=1) / np.sqrt(2)
+    return points, normals
+
+
+def test_neighbours_seen_alike_weigh_most_at_a_sharp_edge():
+    points, truth = _roof(3000)
+    cameras = np.array([[0.0, -3.0, 3.0], [0.0, 3.0, 3.0], [2.0, -3.0, 2.0], [2.0, 3.0, 2.0]])
+    seen = np.einsum("ij,vij->vi", truth, cameras[:, None] - points[None]) > 0  # each face by its side
+    assert not seen.all(axis=0).any()
+    edge = np.abs(points[:, 1]) < 0.05
+    plain = voted_normals(points, cameras, seen, affinity=None)
+    weighted = voted_normals(points, cameras, seen)
+    # within 0.99 of their face's normal: along the edge, plain fits span both faces
+    assert (np.einsum("ij,ij->i", plain[edge], truth[edge]) > 0.99).mean() < 0.5
+    assert (np.einsum("ij,ij->i", weighted[edge], truth[edge]) > 0.99).mean() > 0.9
+    assert (np.einsum("ij,ij->i", weighted, truth) > 0.99).mean() > 0.99
+    weights = visibility_affinity(seen, nearest_neighbours(points, 8))
+    assert weights.shape == (3000, 8) and np.allclose(weights[:, 0], 1)
+    with pytest.raises(ValueError, match="scale"):
+        visibility_affinity(seen, nearest_neighbours(points, 8), 0.0)
 
 
 def test_no_plane_to_fit_is_a_clear_error():

@@ -25,7 +25,7 @@ from .nn.network import VisibilityNetwork
 from .nn.octree import bounding_box, morton_order, normalize_points
 from .nn.conv import products_in
 from .nn.predictor import resolve_precision
-from .orientation import voted_normals
+from .orientation import nearest_neighbours, oriented_planes, surface_variation
 from .threads import plan_threads, torch_threads
 
 __all__ = ["NeuralVisibility", "fixed_rotations", "random_rotation"]
@@ -45,14 +45,16 @@ resolve, so such a cloud is answered as the exactly flat one."""
 # the two-pass encoding: cameras whose first-pass answers orient the normals, points per plane fit
 _ORIENTING_VIEWS = 14
 _PLANE_NEIGHBOURS = 8
-# where normals="estimate" takes two passes: at least this many points and a noise cue below this
-# many point spacings (noise tilts the fitted planes; see o3dvis.nn.noise). On the validation meshes,
-# clean, two passes measured 0.2-0.5 point above one at 1-4 k points, 0.7-1.3 at 8-81 k; but the cue
-# tells noise from sharp detail only from about 8 k points, and below that noisy clouds lost 0.2-2
-# points. At 8-81 k points a bar of 0.2 spacings let through clouds with 0.25-0.5 % noise (0.6-1.2
-# points lost), 0.1 almost none (0.1 at most), keeping 0.7-0.9 point of the clean clouds' gain
-_ESTIMATE_MIN_POINTS = 8_000
-_ESTIMATE_MAX_NOISE = 0.1
+# where normals="estimate" takes two passes: at least this many points, and a median surface
+# variation of the plane fits' neighbourhoods (o3dvis.orientation.surface_variation, over an even
+# sample of this many of them) under this bar. On the validation meshes, two passes measured 0.3-0.9
+# point above one on clean clouds of 1-81 k points, but 0.1-3.6 points below on noisy ones that took
+# them; with this bar no noisy column (0.25-2 % noise) lost anything, and the clean ones kept 0.3-0.9
+# point (a bar of 0.01: 0.1 point lost at 2 k points with 0.5 % noise; the noise cue, which tells
+# noise from detail only from about 8 k points, lost up to 1.2 points where it let noise through)
+_ESTIMATE_MIN_POINTS = 1_000
+_ESTIMATE_MAX_VARIATION = 0.005
+_VARIATION_SAMPLE = 4096
 
 
 def _flat_hull(points: Tensor, diagonal: Tensor) -> tuple[Tensor, Tensor] | None:
@@ -78,29 +80,34 @@ def _flat_hull(points: Tensor, diagonal: Tensor) -> tuple[Tensor, Tensor] | None
     return None if bool(spans.all()) else (centre, vt[spans])
 
 
-def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray:
+def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray | None:
     """The normals ``normals="estimate"`` gives the normals model: a plane through each point's
     nearest neighbours, those the first pass sees alike from a few cameras around the cloud
     weighing most, oriented by the vote of those cameras
-    (:func:`o3dvis.orientation.voted_normals` of what ``field`` answers).
+    (:func:`o3dvis.orientation.oriented_planes` of what ``field`` answers); None where the
+    neighbourhoods are too far from planes for that to pay (see :data:`_ESTIMATE_MAX_VARIATION`).
 
     Args:
         field: a points-only model's encoding of the cloud.
         points: (N, 3) the cloud's points, in its order.
 
     Returns:
-        (N, 3) unit normals.
+        (N, 3) unit normals, or None.
     """
-    cameras = viewpoints_around(points, _ORIENTING_VIEWS)
-    visibility = field.stored_probabilities(cameras).cpu().numpy()
-    if field.rank is None:
-        return voted_normals(points, cameras, visibility, _PLANE_NEIGHBOURS)
     # in the field's order along the Morton curve: neighbours close in memory make the KNN search
     # and the plane fits cache-friendly (at 200 k points 380 -> 245 ms)
-    rank = field.rank.cpu().numpy()
-    order = np.empty_like(rank)
-    order[rank] = np.arange(len(rank))
-    return voted_normals(points[order], cameras, visibility, _PLANE_NEIGHBOURS)[rank]
+    rank = None if field.rank is None else field.rank.cpu().numpy()
+    if rank is not None:
+        order = np.empty_like(rank)
+        order[rank] = np.arange(len(rank))
+        points = points[order]
+    near = nearest_neighbours(points, _PLANE_NEIGHBOURS)
+    sample = near[::max(1, len(near) // _VARIATION_SAMPLE)]
+    if np.median(surface_variation(points, sample)) >= _ESTIMATE_MAX_VARIATION:
+        return None
+    cameras = viewpoints_around(points, _ORIENTING_VIEWS)
+    normals = oriented_planes(points, near, cameras, field.stored_probabilities(cameras).cpu().numpy())
+    return normals if rank is None else normals[rank]
 
 
 def _normalize(points: Tensor, bounds: tuple[Tensor, Tensor] | None = None
@@ -279,17 +286,16 @@ class NeuralVisibility:
     def encode(self, pcd, normals=None) -> VisibilityField:
         """Runs the U-Net over a cloud: once, or twice to estimate oriented normals first.
 
-        With ``normals="estimate"``, a dense clean cloud is encoded in two
-        passes: the network without normals answers for 14 cameras around the
-        cloud; each point's normal is the plane through its 8 nearest points,
-        those the cameras see alike weighing most, turned to face the cameras
-        that see the point (:func:`o3dvis.orientation.voted_normals`); the
-        normals model then encodes the cloud with those normals. That is more
-        accurate on clouds of at least 8 000 points with little noise, and
-        costs a second encoding, 14 views and the plane fits; on sparser or noisier clouds
-        (the network's noise cue, see :mod:`o3dvis.nn.noise`), where estimated
-        normals measured less accurate than none, and on flat clouds, it is one
-        pass without normals.
+        With ``normals="estimate"``, a cloud is encoded in two passes where
+        that measured more accurate: the network without normals answers for
+        14 cameras around the cloud; each point's normal is the plane through
+        its 8 nearest points, those the cameras see alike weighing most,
+        turned to face the cameras that see the point
+        (:func:`o3dvis.orientation.voted_normals`); the normals model then
+        encodes the cloud with those normals. It costs a second encoding, the
+        14 views and the plane fits. Clouds of fewer than 1 000 points, flat
+        ones, and those whose neighbourhoods lie far from planes (noise, see
+        :func:`first_pass_normals`) keep the first pass, without normals.
 
         On the CPU, its ops split over the threads that :mod:`o3dvis.threads`
         plans (one for small clouds or a busy machine).
@@ -357,13 +363,14 @@ class NeuralVisibility:
             if camera is not None and inside_box(camera.to(lo)[None], (lo, hi))[0]:
                 return self._field(self.scene_network, None, *frame)
             scene = functools.partial(self._field, self.scene_network, None, *frame)
+        field = self._field(network, unit, *frame, scene=scene)
         # a flat cloud hides nothing from off its plane: one pass is exact there
-        if (estimate and hull is None and len(normalized) >= _ESTIMATE_MIN_POINTS
-                and float(VisibilityNetwork.cloud_noise(normalized, ordered=True)[0, 0]) < _ESTIMATE_MAX_NOISE):
-            normals = first_pass_normals(self._field(network, None, *frame), points.detach().cpu().double().numpy())
-            unit = torch.from_numpy(normals).to(self.device).index_select(0, order).float()
-            network = self.normals_network
-        return self._field(network, unit, *frame, scene=scene)
+        if estimate and hull is None and len(normalized) >= _ESTIMATE_MIN_POINTS:
+            normals = first_pass_normals(field, points.detach().cpu().double().numpy())
+            if normals is not None:
+                unit = torch.from_numpy(normals).to(self.device).index_select(0, order).float()
+                field = self._field(self.normals_network, unit, *frame, scene=scene)
+        return field
 
     def _field(self, network: VisibilityNetwork, unit: Tensor | None, normalized: Tensor, center: Tensor,
                scale: Tensor, bounds: tuple[Tensor, Tensor], hull: tuple[Tensor, Tensor] | None, rank: Tensor,

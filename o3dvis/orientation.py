@@ -24,8 +24,8 @@ from .nn import native
 from .nn.octree import cell_keys, morton_decode, normalize_points
 from .threads import plan_threads, threaded_map
 
-__all__ = ["voted_normals", "nearest_neighbours", "fit_planes", "smallest_eigenvectors", "vote",
-           "visibility_affinity", "orient_by_vote", "complete_orientation", "row_chunks"]
+__all__ = ["voted_normals", "oriented_planes", "nearest_neighbours", "fit_planes", "smallest_eigenvectors", "vote",
+           "visibility_affinity", "surface_variation", "orient_by_vote", "complete_orientation", "row_chunks"]
 
 _GRAPH_NEIGHBOURS = 10  # neighbours of a point in the graph that propagates orientation
 _CHUNK = 4096  # rows of neighbourhoods handled at once
@@ -408,8 +408,31 @@ def voted_normals(points: np.ndarray, cameras: np.ndarray, visibility: np.ndarra
     if neighbours < 3:
         raise ValueError(f"a plane needs at least 3 neighbours, got {neighbours}")
     near = nearest_neighbours(points, min(neighbours, len(points)))
-    weight = None if affinity is None else visibility_affinity(visibility, near, affinity)
-    normals, defined = fit_planes(points, near, weight)
+    return oriented_planes(points, near, cameras, visibility, affinity)
+
+
+def oriented_planes(points: np.ndarray, neighbours: np.ndarray, cameras: np.ndarray, visibility: np.ndarray,
+                    affinity: float | None = _AFFINITY_SCALE) -> np.ndarray:
+    """:func:`voted_normals` of points whose neighbours are found already: (N, K) indices, as
+    :func:`nearest_neighbours` gives them."""
+    weight = None if affinity is None else visibility_affinity(visibility, neighbours, affinity)
+    normals, defined = fit_planes(points, neighbours, weight)
     if not defined.any():
         raise ValueError("no plane fits the points: they are fewer than 3 or all on one line")
     return orient_by_vote(points, normals, defined, vote(points, normals, cameras, visibility))
+
+
+def surface_variation(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+    """(M,) the surface variation of rows of neighbours (M, K): the least eigenvalue of their
+    covariance over the sum of the three, 0 where they lie on a plane and 1/3 where they scatter
+    alike in every direction. Noise raises it everywhere, curvature and edges only where they are.
+
+    Raises:
+        ValueError: fewer than 3 neighbours a row.
+    """
+    if neighbours.shape[1] < 3:
+        raise ValueError(f"a surface variation needs at least 3 neighbours, got {neighbours.shape[1]}")
+    near = points[neighbours]
+    near = near - near.mean(axis=1, keepdims=True)
+    eigenvalues = np.linalg.eigvalsh(np.einsum("mki,mkj->mij", near, near))
+    return eigenvalues[:, 0] / np.maximum(eigenvalues.sum(axis=1), 1e-300)

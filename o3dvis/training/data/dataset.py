@@ -30,8 +30,8 @@ class Augmentation:
         estimated_normals: share of clouds whose normals are those that
             ``normals="estimate"`` computes (the shipped default's first pass,
             :func:`o3dvis.neural.first_pass_normals`), with their flips and angle
-            errors, instead of the exact ones: for a normals model that answers
-            on estimated normals.
+            errors, instead of the exact ones (which a cloud keeps where two passes
+            would not be taken): for a normals model that answers on estimated normals.
     """
 
     min_points: int = 2048
@@ -119,7 +119,8 @@ class VisibilityDataset(torch.utils.data.Dataset):
             from ...neural import first_pass_normals  # with the runtime, which needs Open3D
             from ...pretrained import shared_pretrained
 
-            normals = first_pass_normals(shared_pretrained().encode(points), points)
+            estimated = first_pass_normals(shared_pretrained().encode(points), points)
+            normals = normals if estimated is None else estimated  # None: two passes would not be taken
         pts, center, scale = normalize_points(torch.from_numpy(points))
         cams = (torch.from_numpy(cameras.astype(np.float64)) - center) / scale
         return (pts.float(), torch.from_numpy(np.ascontiguousarray(normals)).float(), cams.float(),

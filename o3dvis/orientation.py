@@ -262,7 +262,8 @@ def visibility_affinity(visibility: np.ndarray, neighbours: np.ndarray, scale: f
     """(N, K) weights of each point's neighbours in its plane fit: ``exp(-d^2 / scale^2)``, with
     ``d^2`` the mean over the cameras of the squared difference between the probabilities that
     each sees the point and the neighbour (``visibility``, (V, N), bool or in [0, 1]), and at
-    least :data:`_AFFINITY_FLOOR`.
+    least :data:`_AFFINITY_FLOOR`. One pass of C where the kernels are built
+    (``native.visibility_affinity``), else numpy ops.
 
     Neighbours the cameras see alike lie on the point's side of a thin wall and on its face of
     an edge; the others, on the far side or the next face, barely tilt the plane.
@@ -272,6 +273,13 @@ def visibility_affinity(visibility: np.ndarray, neighbours: np.ndarray, scale: f
     """
     if not scale > 0:
         raise ValueError(f"scale must be positive, got {scale}")
+    if not len(visibility):  # no camera tells any two points apart
+        return np.ones(neighbours.shape)
+    if native.available():
+        table = native.affinity_table(torch.from_numpy(np.asarray(visibility, dtype=np.float32)))
+        near = torch.from_numpy(np.ascontiguousarray(neighbours, dtype=np.int64))
+        return torch.cat(list(_on_threads(lambda rows: native.visibility_affinity(
+            table, len(visibility), near[rows], rows.start, scale, _AFFINITY_FLOOR), len(neighbours)))).numpy()
     table = np.ascontiguousarray(visibility.T, dtype=np.float32)  # (N, V): a point's answers together
     weight = np.empty(neighbours.shape, dtype=np.float64)
 

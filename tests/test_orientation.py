@@ -175,6 +175,34 @@ def test_grid_search_checks_its_arguments():
                         (0, 1), *out)
 
 
+@pytest.mark.skipif(not native.available(), reason="C kernels turned off (O3DVIS_NATIVE=0)")
+@pytest.mark.parametrize("cameras", [1, 14, 16, 33])
+def test_affinity_kernel_matches_the_numpy_ops(monkeypatch, cameras):
+    rng = np.random.default_rng(cameras)
+    points = rng.random((9000, 3))  # more rows than a thread's share: the kernel runs on row offsets
+    visibility = rng.random((cameras, 9000)).astype(np.float32)
+    visibility[:, :100] = visibility[:, :100] > 0.5  # exact answers too: weights down to the floor
+    near = nearest_neighbours(points, 8)
+    fast = visibility_affinity(visibility, near)
+    monkeypatch.setattr(native, "available", lambda: False)
+    slow = visibility_affinity(visibility, near)
+    np.testing.assert_allclose(fast, slow, rtol=1e-6, atol=1e-7)
+    assert fast.min() >= 0.01 - 1e-7 and fast.max() <= 1.0
+
+
+@pytest.mark.skipif(not native.available(), reason="C kernels turned off (O3DVIS_NATIVE=0)")
+def test_affinity_kernel_checks_its_arguments():
+    table = native.affinity_table(torch.rand(3, 10))
+    assert table.shape == (10, 16) and not table[:, 3:].any()
+    near = torch.zeros(4, 2, dtype=torch.long)
+    with pytest.raises(ValueError, match="multiple of 16"):
+        native.visibility_affinity(table[:, :8].contiguous(), 3, near, 0, 0.1, 0.01)
+    with pytest.raises(ValueError, match="past the table"):
+        native.visibility_affinity(table, 3, near, 7, 0.1, 0.01)
+    with pytest.raises(IndexError, match="neighbours"):
+        native.visibility_affinity(table, 3, near + 10, 0, 0.1, 0.01)
+
+
 def test_training_draws_the_first_pass_normals_for_the_share_asked(tmp_path):
     """Augmentation(estimated_normals=1) gives each cloud the normals normals='estimate' computes
     (unit, mostly on the side of the exact ones, not equal to them: 5 000 points of a procedural

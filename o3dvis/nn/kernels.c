@@ -18,7 +18,7 @@
  * keys (o3dvis/nn/octree.py, cell_keys) in one pass instead of some twenty,
  * and o3dvis_cell_moments the noise cue's per-cell sums (o3dvis/nn/noise.py);
  * for oriented normals, o3dvis_fit_planes the plane fits of
- * o3dvis/orientation.py, and o3dvis_grid_knn the nearest neighbours it fits
+ * o3dvis/orientation.py, o3dvis_visibility_affinity their neighbours' weights, and o3dvis_grid_knn the nearest neighbours it fits
  * them to, sought in the cells of a grid (o3dvis_key_table hashes the cells).
  *
  * The arithmetic is torch's, op for op, but: sin, cos, log, atan2, exp and tanh
@@ -1046,6 +1046,34 @@ void o3dvis_fit_planes(int64_t n, int64_t m, int32_t k, const double *points, co
                                    sums[4] - sums[7] * sums[8] / mass, sums[5] - sums[8] * sums[8] / mass};
         const int spans = smallest_eigenvector(scatter, normals + 3 * r); /* more than a line */
         planar[r] = (uint8_t)(spans && positive >= 3);
+    }
+}
+
+/* The weights of rows of neighbours in their plane fits by how alike the cameras see them
+ * (o3dvis/orientation.py, visibility_affinity): exp(-d2 * rate), at least floor, with d2 the mean
+ * over the v cameras of the squared difference between the answers of the row's point and of the
+ * neighbour. table: (n, stride) each point's answers, padded with zeros to a stride of a multiple
+ * of 16 (whole vectors); neighbours: (m, k) rows of indices in [0, n) (checked by the caller), row r
+ * that of point first + r. Writes weight (m, k). */
+void o3dvis_visibility_affinity(int64_t m, int32_t k, int32_t v, int32_t stride, int64_t first, const float *table,
+                                const int64_t *neighbours, float rate, float floor, double *weight) {
+    const float per_camera = rate / (float)v, lowest = -20.0f; /* exp_neg's range; exp(-20) < floor */
+    for (int64_t r = 0; r < m; r++) {
+        const float *a = table + (first + r) * stride;
+        for (int j = 0; j < k; j++) {
+            const float *b = table + neighbours[r * k + j] * stride;
+            float lanes[16] = {0};
+            for (int c0 = 0; c0 < stride; c0 += 16)
+                for (int c = 0; c < 16; c++) {
+                    const float d = a[c0 + c] - b[c0 + c];
+                    lanes[c] += d * d;
+                }
+            float sum = 0.0f;
+            for (int c = 0; c < 16; c++)
+                sum += lanes[c];
+            const float y = -sum * per_camera, w = exp_neg(y > lowest ? y : lowest);
+            weight[r * k + j] = w > floor ? w : floor;
+        }
     }
 }
 

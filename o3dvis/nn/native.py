@@ -25,7 +25,8 @@ from .features import LeafFeatures
 
 __all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "cell_moments", "project",
            "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin",
-           "fit_planes", "key_table", "grid_knn"]
+           "fit_planes", "visibility_affinity", "affinity_table", "key_table",
+           "grid_knn"]
 
 _I64, _I32, _PTR = ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
 
@@ -54,6 +55,8 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_view_margin_f32": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_fuse_margin": ([_I64, _PTR, _I64, _PTR, _PTR, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_fit_planes": ([_I64, _I64, _I32, _PTR, _PTR, _PTR, _PTR, _PTR], None),
+    "o3dvis_visibility_affinity": ([_I64, _I32, _I32, _I32, _I64, _PTR, _PTR, ctypes.c_float, ctypes.c_float, _PTR],
+                                   None),
     "o3dvis_key_table": ([_I64, _PTR, _I64, _PTR], None),
     "o3dvis_grid_knn": ([_PTR, _PTR, _PTR, _PTR, _I64, _PTR, _I32, _PTR, ctypes.c_double, ctypes.c_double, _I32,
                          _I64, _I64, _PTR, _PTR], None),
@@ -436,6 +439,43 @@ def fit_planes(points: Tensor, neighbours: Tensor, weight: Tensor | None) -> tup
                                    None if weight is None else weight.data_ptr(), normals.data_ptr(),
                                    planar.data_ptr())
     return normals, planar.bool()
+
+
+def visibility_affinity(table: Tensor, cameras: int, neighbours: Tensor, first: int, scale: float, floor: float
+                        ) -> Tensor:
+    """(M, K) float64: :func:`o3dvis.orientation.visibility_affinity` of the points
+    ``first .. first + M`` and their rows of ``neighbours`` (M, K) int64, from ``table`` (N, S)
+    float32: a row a point, its answers from the ``cameras`` cameras then zeros up to S, a
+    multiple of 16 (what :func:`affinity_table` makes); in one pass.
+
+    Raises:
+        ValueError: tensors of the wrong shapes or types, or rows past the table.
+        IndexError: neighbours out of range.
+    """
+    (n, stride), (m, k) = table.shape, neighbours.shape
+    _check("table", table, (n, stride))
+    _check("neighbours", neighbours, (m, k), torch.long)
+    if stride % 16 or not 0 < cameras <= stride:
+        raise ValueError(f"the table's rows must hold the {cameras} cameras' answers padded to a multiple "
+                         f"of 16, got {stride}")
+    if not 0 <= first <= n - m:
+        raise ValueError(f"rows {first}..{first + m} lie past the table's {n}")
+    if neighbours.numel() and (int(neighbours.min()) < 0 or int(neighbours.max()) >= n):
+        raise IndexError(f"neighbours must lie in [0, {n})")
+    weight = torch.empty(m, k, dtype=torch.float64)
+    if m:
+        _LIBRARY.o3dvis_visibility_affinity(m, k, cameras, stride, first, table.data_ptr(), neighbours.data_ptr(),
+                                            1.0 / scale ** 2, floor, weight.data_ptr())
+    return weight
+
+
+def affinity_table(visibility: Tensor) -> Tensor:
+    """The (N, S) table :func:`visibility_affinity` reads of answers ``visibility`` (V, N): each
+    point's row, padded with zeros to S, the multiple of 16 from V up."""
+    v, n = visibility.shape
+    table = visibility.new_zeros(n, -(-v // 16) * 16, dtype=torch.float32)
+    table[:, :v] = visibility.T
+    return table
 
 
 def key_table(keys: Tensor) -> Tensor:

@@ -294,7 +294,7 @@ def visibility_affinity(visibility: np.ndarray, neighbours: np.ndarray, scale: f
 
 
 def orient_by_vote(points: np.ndarray, normals: np.ndarray, defined: np.ndarray, votes: np.ndarray,
-                   tree: cKDTree | None = None) -> np.ndarray:
+                   tree: cKDTree | None = None, neighbours: np.ndarray | None = None) -> np.ndarray:
     """``normals`` turned to the side their votes give, the unvoted ones completed by :func:`complete_orientation`.
 
     Args:
@@ -304,27 +304,31 @@ def orient_by_vote(points: np.ndarray, normals: np.ndarray, defined: np.ndarray,
             voted defined point's normal replaces it).
         votes: (N,) from :func:`vote`; 0: no camera voted.
         tree: a ``cKDTree`` of ``points`` to reuse (None: built if needed).
+        neighbours: see :func:`complete_orientation`.
 
     Returns:
         (N, 3) oriented unit normals.
     """
     normals = np.where(votes[:, None] < 0, -normals, normals)
-    return complete_orientation(points, normals, (votes != 0) & defined, defined, tree)
+    return complete_orientation(points, normals, (votes != 0) & defined, defined, tree, neighbours)
 
 
 def complete_orientation(points: np.ndarray, normals: np.ndarray, oriented: np.ndarray,
-                         defined: np.ndarray, tree: cKDTree | None) -> np.ndarray:
+                         defined: np.ndarray, tree: cKDTree | None, neighbours: np.ndarray | None = None
+                         ) -> np.ndarray:
     """``normals`` completed from the ``oriented`` ones, (N, 3).
 
     Rows neither oriented nor ``defined`` take the nearest oriented point's normal;
     the defined ones keep their own, turned to the side :func:`_propagate` gives,
     or, with no path to an oriented point, to the side of the nearest oriented one.
+    ``neighbours``: (N, K) each point's nearest points, itself included, found already: the
+    propagation's graph joins each loose point to them (None: to its 10 nearest, searched here).
     """
     nearest = _nearest_among(points, oriented)
     normals = normals.copy()
     filled = ~oriented & ~defined
     normals[filled] = normals[nearest(filled)]
-    normals, unreached = _propagate(points, normals, oriented | ~defined, tree)
+    normals, unreached = _propagate(points, normals, oriented | ~defined, tree, neighbours)
     away = np.einsum("ij,ij->i", normals[unreached], normals[nearest(unreached)]) < 0
     normals[np.flatnonzero(unreached)[away]] *= -1
     return normals
@@ -347,8 +351,8 @@ def _nearest_among(points: np.ndarray, chosen: np.ndarray) -> Callable[[np.ndarr
     return nearest
 
 
-def _propagate(points: np.ndarray, normals: np.ndarray, oriented: np.ndarray, tree: cKDTree | None
-               ) -> tuple[np.ndarray, np.ndarray]:
+def _propagate(points: np.ndarray, normals: np.ndarray, oriented: np.ndarray, tree: cKDTree | None,
+               neighbours: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``normals`` with the rows not ``oriented`` flipped to agree with the oriented ones, (N, 3),
     and which of those rows have no path to an oriented one (left as they were), (N,) bool.
 
@@ -359,15 +363,19 @@ def _propagate(points: np.ndarray, normals: np.ndarray, oriented: np.ndarray, tr
     side of its parent. A surface seen nowhere thus takes its side from where
     it joins a seen one, not from the nearest seen point, which may lie across
     a gap and face the other way. ``tree``: a ``cKDTree`` of ``points`` (None:
-    built here when there is something to propagate).
+    built here when there is something to propagate); ``neighbours``: as in
+    :func:`complete_orientation`.
     """
     loose = np.flatnonzero(~oriented)
     count = len(points)
     if not len(loose) or len(loose) == count:
         return normals, np.zeros(count, dtype=bool)
-    k = min(_GRAPH_NEIGHBOURS + 1, count)
-    _, near = (cKDTree(points) if tree is None else tree).query(points[loose], k=k, workers=-1)
-    a, b = np.repeat(loose, k), near.reshape(len(loose), k).ravel()
+    if neighbours is None:
+        k = min(_GRAPH_NEIGHBOURS + 1, count)
+        near = (cKDTree(points) if tree is None else tree).query(points[loose], k=k, workers=-1)[1].reshape(-1, k)
+    else:
+        near = neighbours[loose]
+    a, b = np.repeat(loose, near.shape[1]), near.ravel()
     pairs = np.sort(np.minimum(a, b) * count + np.maximum(a, b))  # np.unique is 20x slower here
     a, b = np.divmod(pairs[np.append(True, pairs[1:] != pairs[:-1])], count)
     a, b = a[a != b], b[a != b]  # no loops (a point is its own nearest neighbour)
@@ -427,7 +435,8 @@ def oriented_planes(points: np.ndarray, neighbours: np.ndarray, cameras: np.ndar
     normals, defined = fit_planes(points, neighbours, weight)
     if not defined.any():
         raise ValueError("no plane fits the points: they are fewer than 3 or all on one line")
-    return orient_by_vote(points, normals, defined, vote(points, normals, cameras, visibility))
+    return orient_by_vote(points, normals, defined, vote(points, normals, cameras, visibility),
+                          neighbours=neighbours)
 
 
 def surface_variation(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:

@@ -2,10 +2,12 @@
 
 A point that a camera sees faces it, so the cameras that see a point vote on
 the side of its normal; points no camera sees take their side from where they
-join voted ones along the surface. NumPy and SciPy on (N, 3) arrays (the plane
-fits in one pass of C where the package's kernels are built), shared by the
+join voted ones along the surface; and neighbours that the cameras see alike
+lie on one side of a wall and one face of an edge, so they weigh most in a
+point's plane fit. NumPy and SciPy on (N, 3) arrays (the plane fits and their
+weights in one pass of C where the package's kernels are built), shared by the
 two-pass encoding of :class:`o3dvis.NeuralVisibility` (normals from a plane
-fit to each point's nearest neighbours, :func:`voted_normals`) and the normal
+fit to each point's nearest neighbours, :func:`oriented_planes`) and the normal
 estimation of :mod:`o3dvis.apps.normals`.
 """
 

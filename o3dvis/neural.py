@@ -85,7 +85,8 @@ def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray
     nearest neighbours, those the first pass sees alike from a few cameras around the cloud
     weighing most, oriented by the vote of those cameras
     (:func:`o3dvis.orientation.oriented_planes` of what ``field`` answers); None where the
-    neighbourhoods are too far from planes for that to pay (see :data:`_ESTIMATE_MAX_VARIATION`).
+    neighbourhoods are too far from planes for that to pay (see :data:`_ESTIMATE_MAX_VARIATION`)
+    or no plane fits any of them.
 
     Args:
         field: a points-only model's encoding of the cloud.
@@ -106,7 +107,11 @@ def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray
     if np.median(surface_variation(points, sample)) >= _ESTIMATE_MAX_VARIATION:
         return None
     cameras = viewpoints_around(points, _ORIENTING_VIEWS)
-    normals = oriented_planes(points, near, cameras, field.stored_probabilities(cameras).cpu().numpy())
+    visibility = field.stored_probabilities(cameras).cpu().numpy()
+    try:
+        normals = oriented_planes(points, near, cameras, visibility)
+    except ValueError:  # no plane fits anywhere: every neighbourhood is one point repeated, or a line
+        return None
     return normals if rank is None else normals[rank]
 
 

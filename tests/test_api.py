@@ -618,6 +618,8 @@ def test_normals_estimated_in_a_first_pass_for_dense_clean_clouds(network):
     assert paired.encode(sphere[:900], normals="estimate").network is network  # too sparse
     plane = sphere * [1, 1, 0]
     assert paired.encode(plane, normals="estimate").network is network  # flat: one pass is exact
+    corners = np.repeat(np.eye(4, 3), 500, axis=0)  # 3-D, but every neighbourhood one point repeated
+    assert paired.encode(corners, normals="estimate").network is network
     with pytest.raises(ValueError, match="needs a normals model"):
         o3dvis.NeuralVisibility(network).encode(sphere, normals="estimate")
     with pytest.raises(ValueError, match="got 'estimated'"):

@@ -22,10 +22,11 @@ from .field import DEFAULT_CHUNK, RotatedEncoding, VisibilityField, inside_box
 from .models import available_models, load_model, torch_device
 from .nn.calibration import calibration_terms
 from .nn.network import VisibilityNetwork
+from .nn.noise import noise_cues
 from .nn.octree import bounding_box, morton_order, normalize_points
 from .nn.conv import products_in
 from .nn.predictor import resolve_precision
-from .orientation import nearest_neighbours, oriented_planes, surface_variation
+from .orientation import LAYER_NEIGHBOURS, nearest_neighbours, oriented_planes, surface_variation
 from .threads import plan_threads, torch_threads
 
 __all__ = ["NeuralVisibility", "fixed_rotations", "random_rotation"]
@@ -45,15 +46,19 @@ resolve, so such a cloud is answered as the exactly flat one."""
 # the two-pass encoding: cameras whose first-pass answers orient the normals, points per plane fit
 _ORIENTING_VIEWS = 14
 _PLANE_NEIGHBOURS = 8
-# where normals="estimate" takes two passes: at least this many points, and a median surface
-# variation of the plane fits' neighbourhoods (o3dvis.orientation.surface_variation, over an even
-# sample of this many of them) under this bar. On the validation meshes, two passes measured 0.3-0.9
-# point above one on clean clouds of 1-81 k points, but 0.1-3.6 points below on noisy ones that took
-# them; with this bar no noisy column (0.25-2 % noise) lost anything, and the clean ones kept 0.3-0.9
-# point (a bar of 0.01: 0.1 point lost at 2 k points with 0.5 % noise; the noise cue, which tells
-# noise from detail only from about 8 k points, lost up to 1.2 points where it let noise through)
+# where normals="estimate" takes two passes: clouds of at least _ESTIMATE_MIN_POINTS points whose
+# noise cue (the cell thickness in spacings of o3dvis.nn.noise) is under _ESTIMATE_MAX_NOISE and,
+# below _CUE_ALONE_POINTS points, where the cue cannot see noise finer than the spacing, whose
+# plane fits' neighbourhoods have a lower quartile of surface variation
+# (o3dvis.orientation.surface_variation, over an even sample of _VARIATION_SAMPLE of them) under
+# _ESTIMATE_MAX_VARIATION. On the validation meshes two passes everywhere gained 1-2 points on
+# clean clouds and lost 0.5-5 points on those with 0.5-2 % noise; with this rule the clean
+# columns (2-81 k points) kept all but 0.1-0.2 point of the gain, and the noisy ones lost at most
+# 0.3 point (0.5 % noise at 8 k points)
 _ESTIMATE_MIN_POINTS = 1_000
-_ESTIMATE_MAX_VARIATION = 0.005
+_ESTIMATE_MAX_NOISE = 0.2
+_CUE_ALONE_POINTS = 65_536
+_ESTIMATE_MAX_VARIATION = 0.01
 _VARIATION_SAMPLE = 4096
 
 
@@ -83,10 +88,10 @@ def _flat_hull(points: Tensor, diagonal: Tensor) -> tuple[Tensor, Tensor] | None
 def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray | None:
     """The normals ``normals="estimate"`` gives the normals model: a plane through each point's
     nearest neighbours, those the first pass sees alike from a few cameras around the cloud
-    weighing most, oriented by the vote of those cameras
-    (:func:`o3dvis.orientation.oriented_planes` of what ``field`` answers); None where the
-    neighbourhoods are too far from planes for that to pay (see :data:`_ESTIMATE_MAX_VARIATION`)
-    or no plane fits any of them.
+    weighing most, oriented by the vote of those cameras, or where they split, by the side of its
+    neighbours the point lies on (:func:`o3dvis.orientation.oriented_planes` of what ``field``
+    answers); None where the cloud looks too noisy for that to pay (see :data:`_ESTIMATE_MAX_NOISE`)
+    or no plane fits any of its neighbourhoods.
 
     Args:
         field: a points-only model's encoding of the cloud.
@@ -95,6 +100,9 @@ def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray
     Returns:
         (N, 3) unit normals, or None.
     """
+    noise = field.noise if field.noise is not None else noise_cues(field.points, ordered=True)
+    if float(noise[0]) >= _ESTIMATE_MAX_NOISE:
+        return None
     # in the field's order along the Morton curve: neighbours close in memory make the KNN search
     # and the plane fits cache-friendly (at 200 k points 380 -> 245 ms)
     rank = None if field.rank is None else field.rank.cpu().numpy()
@@ -102,14 +110,15 @@ def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray
         order = np.empty_like(rank)
         order[rank] = np.arange(len(rank))
         points = points[order]
-    near = nearest_neighbours(points, _PLANE_NEIGHBOURS)
-    sample = near[::max(1, len(near) // _VARIATION_SAMPLE)]
-    if np.median(surface_variation(points, sample)) >= _ESTIMATE_MAX_VARIATION:
-        return None
+    near = nearest_neighbours(points, LAYER_NEIGHBOURS)
+    if len(points) < _CUE_ALONE_POINTS:
+        sample = near[::max(1, len(near) // _VARIATION_SAMPLE), :_PLANE_NEIGHBOURS]
+        if np.quantile(surface_variation(points, sample), 0.25) >= _ESTIMATE_MAX_VARIATION:
+            return None
     cameras = viewpoints_around(points, _ORIENTING_VIEWS)
     visibility = field.stored_probabilities(cameras).cpu().numpy()
     try:
-        normals = oriented_planes(points, near, cameras, visibility)
+        normals = oriented_planes(points, near, cameras, visibility, fit=_PLANE_NEIGHBOURS)
     except ValueError:  # no plane fits anywhere: every neighbourhood is one point repeated, or a line
         return None
     return normals if rank is None else normals[rank]
@@ -295,12 +304,13 @@ class NeuralVisibility:
         that measured more accurate: the network without normals answers for
         14 cameras around the cloud; each point's normal is the plane through
         its 8 nearest points, those the cameras see alike weighing most,
-        turned to face the cameras that see the point
-        (:func:`o3dvis.orientation.voted_normals`); the normals model then
-        encodes the cloud with those normals. It costs a second encoding, the
-        14 views and the plane fits. Clouds of fewer than 1 000 points, flat
-        ones, and those whose neighbourhoods lie far from planes (noise, see
-        :func:`first_pass_normals`) keep the first pass, without normals.
+        turned to face the cameras that see the point, or where they split
+        (the two faces of a thin wall), to the side of its 16 nearest points
+        it lies on (:func:`o3dvis.orientation.voted_normals`); the normals
+        model then encodes the cloud with those normals. It costs a second
+        encoding, the 14 views and the plane fits. Clouds of fewer than 1 000
+        points, flat ones, and noisy ones (see :func:`first_pass_normals`)
+        keep the first pass, without normals.
 
         On the CPU, its ops split over the threads that :mod:`o3dvis.threads`
         plans (one for small clouds or a busy machine).

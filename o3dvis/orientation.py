@@ -4,7 +4,7 @@ A point that a camera sees faces it, so the cameras that see a point vote on
 the side of its normal; where they split, as on the two faces of a wall
 thinner than the points' spacing, or none votes, the side of its neighbours a
 point lies on decides; points without a plane of their own take their side
-from where they join voted ones along the surface; and neighbours that the
+from where they join oriented ones along the surface; and neighbours that the
 cameras see alike lie on one side of a wall and one face of an edge, so they
 weigh most in a point's plane fit. NumPy and SciPy on (N, 3) arrays (the plane fits and their
 weights in one pass of C where the package's kernels are built), shared by the
@@ -487,7 +487,8 @@ def oriented_planes(points: np.ndarray, neighbours: np.ndarray, cameras: np.ndar
     if not defined.any():
         raise ValueError("no plane fits the points: they are fewer than 3 or all on one line")
     votes, agreement = _votes(points, normals, cameras, visibility)
-    normals = orient_by_vote(points, normals, defined, votes, neighbours=near)
+    normals = np.where(votes[:, None] < 0, -normals, normals)
+    oriented = (votes != 0) & defined
     # where the cameras split (both faces of a wall thinner than the spacing look seen) or none
     # votes, a plane through all K neighbours, unweighted, turned to the side of their centroid
     # that the point lies on, tells the faces apart
@@ -496,7 +497,8 @@ def oriented_planes(points: np.ndarray, neighbours: np.ndarray, cameras: np.ndar
     sides = layer_sides(points, neighbours[weak], planes)
     turned = fitted & (sides != 0)
     normals[weak[turned]] = planes[turned] * sides[turned, None]
-    return normals
+    oriented[weak[turned]] = True
+    return complete_orientation(points, normals, oriented, defined | oriented, None, near)
 
 
 def surface_variation(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:

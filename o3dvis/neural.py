@@ -51,9 +51,9 @@ _PLANE_NEIGHBOURS = 8
 # below _CUE_ALONE_POINTS points, where the cue cannot see noise finer than the spacing, whose
 # plane fits' neighbourhoods have a lower quartile of surface variation
 # (o3dvis.orientation.surface_variation, over an even sample of _VARIATION_SAMPLE of them) under
-# _ESTIMATE_MAX_VARIATION. On the validation meshes two passes everywhere gained 1-2 points on
-# clean clouds and lost 0.5-5 points on those with 0.5-2 % noise; with this rule the clean
-# columns (2-81 k points) kept all but 0.1-0.2 point of the gain, and the noisy ones lost at most
+# _ESTIMATE_MAX_VARIATION. On the validation meshes two passes everywhere gained 1.1-2.0 points on
+# clean clouds and lost 0.2-5.2 points on those with 0.5-2 % noise; with this rule the clean
+# columns (2-81 k points) came within 0.2 point of that gain, and the noisy ones lost at most
 # 0.3 point (0.5 % noise at 8 k points)
 _ESTIMATE_MIN_POINTS = 1_000
 _ESTIMATE_MAX_NOISE = 0.2

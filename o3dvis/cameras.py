@@ -19,13 +19,17 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import open3d as o3d
 import torch
 from torch import Tensor
 
+from ._open3d import is_open3d, require_open3d
 from .geometry import fibonacci_sphere
+
+if TYPE_CHECKING:
+    import open3d as o3d
 
 __all__ = ["Frustum", "Views", "as_views", "as_vectors", "as_camera_location", "real_array", "frustum_from_pinhole", "intrinsic_matrix",
            "View", "make_view", "look_at", "fibonacci_sphere", "viewpoints_around", "camera_location_of"]
@@ -118,7 +122,7 @@ def as_vectors(value, name: str = "camera") -> Tensor:
         TypeError: not an array-like of real numbers (bool, complex, strings...).
         ValueError: wrong shape, no vectors, NaN or Inf.
     """
-    if isinstance(value, o3d.core.Tensor):
+    if is_open3d(value, "core.Tensor"):
         value = torch.utils.dlpack.from_dlpack(value.contiguous().to_dlpack())
     if isinstance(value, Tensor):
         if value.dtype == torch.bool or value.is_complex():
@@ -186,7 +190,7 @@ def intrinsic_matrix(intrinsic) -> np.ndarray:
         ValueError: not 3x3, not finite, not of that form, or a focal length
             that is not positive (a negative one turns the image by 180 degrees).
     """
-    if isinstance(intrinsic, o3d.camera.PinholeCameraIntrinsic):
+    if is_open3d(intrinsic, "camera.PinholeCameraIntrinsic"):
         intrinsic = intrinsic.intrinsic_matrix
     k = real_array(intrinsic, "intrinsic", "a 3x3 matrix")
     if k.shape != (3, 3) or not np.isfinite(k).all():
@@ -234,12 +238,12 @@ def frustum_from_pinhole(params: o3d.camera.PinholeCameraParameters) -> tuple[Te
 
 
 def _pinholes(cameras) -> Sequence[o3d.camera.PinholeCameraParameters] | None:
-    if isinstance(cameras, o3d.camera.PinholeCameraParameters):
+    if is_open3d(cameras, "camera.PinholeCameraParameters"):
         return [cameras]
-    if isinstance(cameras, o3d.camera.PinholeCameraTrajectory):
+    if is_open3d(cameras, "camera.PinholeCameraTrajectory"):
         return list(cameras.parameters)
     if isinstance(cameras, (list, tuple)) and cameras and all(
-            isinstance(c, o3d.camera.PinholeCameraParameters) for c in cameras):
+            is_open3d(c, "camera.PinholeCameraParameters") for c in cameras):
         return list(cameras)
     return None
 
@@ -356,6 +360,7 @@ class View(Frustum):
 
     def to_open3d(self) -> o3d.camera.PinholeCameraParameters:
         """The same camera as Open3D ``PinholeCameraParameters``."""
+        o3d = require_open3d("View.to_open3d")
         params = o3d.camera.PinholeCameraParameters()
         k = self.intrinsic
         params.intrinsic = o3d.camera.PinholeCameraIntrinsic(
@@ -371,11 +376,11 @@ def camera_location_of(camera) -> np.ndarray:
 
 def _extrinsic_of(camera) -> tuple[np.ndarray, np.ndarray | None, Frustum | None]:
     """(location, extrinsic or None for a bare location, pinhole frustum or None)."""
-    if isinstance(camera, o3d.camera.PinholeCameraParameters):
+    if is_open3d(camera, "camera.PinholeCameraParameters"):
         location, frustum = frustum_from_pinhole(camera)
         return location.numpy(), np.asarray(camera.extrinsic, dtype=np.float64), frustum
     if isinstance(camera, (list, tuple, np.ndarray)) and np.shape(camera) == (4, 4):
-        params = o3d.camera.PinholeCameraParameters()
+        params = require_open3d("a camera given as an extrinsic").camera.PinholeCameraParameters()
         params.extrinsic = np.asarray(camera, dtype=np.float64)
         return frustum_from_pinhole(params)[0].numpy(), params.extrinsic, None
     return as_camera_location(camera, "camera"), None, None
@@ -417,7 +422,7 @@ def make_view(points: np.ndarray, camera, width: int | None = None, height: int 
         extrinsic = look_at(location, (lo + hi) / 2, up)
     if intrinsic is None and frustum is not None:
         intrinsic, width, height = frustum.intrinsic, frustum.width, frustum.height
-    if isinstance(intrinsic, o3d.camera.PinholeCameraIntrinsic):
+    if is_open3d(intrinsic, "camera.PinholeCameraIntrinsic"):
         width, height = intrinsic.width, intrinsic.height
     if width is None or height is None or int(width) < 1 or int(height) < 1:
         raise ValueError(f"the image needs a positive width and height, got {width} x {height}")

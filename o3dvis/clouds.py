@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import open3d as o3d
 import torch
 from torch import Tensor
 
+from ._open3d import is_open3d, require_open3d
 from .cameras import as_vectors
+
+if TYPE_CHECKING:
+    import open3d as o3d
 
 __all__ = ["cloud_arrays", "cloud_points", "cloud_normals", "set_cloud_normals", "legacy_cloud",
            "cloud_device", "unit_normals"]
@@ -29,17 +34,17 @@ def cloud_arrays(pcd) -> tuple[Tensor, Tensor | None]:
         ValueError: an empty cloud, a wrong shape, NaN or Inf coordinates.
     """
     normals = None
-    if isinstance(pcd, o3d.geometry.PointCloud):
+    if is_open3d(pcd, "geometry.PointCloud"):
         points = np.asarray(pcd.points)
         if pcd.has_normals():
             normals = np.asarray(pcd.normals)
-    elif isinstance(pcd, o3d.t.geometry.PointCloud):
+    elif is_open3d(pcd, "t.geometry.PointCloud"):
         if pcd.is_empty():
             raise ValueError("point cloud is empty")
         points = pcd.point.positions
         if "normals" in pcd.point:
             normals = pcd.point.normals
-    elif isinstance(pcd, (np.ndarray, Tensor, o3d.core.Tensor)):
+    elif isinstance(pcd, (np.ndarray, Tensor)) or is_open3d(pcd, "core.Tensor"):
         points = pcd
     else:
         raise TypeError(f"expected an Open3D PointCloud or an (N, 3) array, got {type(pcd).__name__}")
@@ -59,24 +64,25 @@ def cloud_points(pcd) -> np.ndarray:
 
 def legacy_cloud(pcd) -> o3d.geometry.PointCloud:
     """The legacy PointCloud of a legacy or tensor one."""
-    if isinstance(pcd, o3d.t.geometry.PointCloud):
+    if is_open3d(pcd, "t.geometry.PointCloud"):
         return pcd.to_legacy()
-    if isinstance(pcd, o3d.geometry.PointCloud):
+    if is_open3d(pcd, "geometry.PointCloud"):
         return pcd
     raise TypeError(f"expected an open3d PointCloud, got {type(pcd).__name__}")
 
 
 def cloud_normals(pcd) -> np.ndarray | None:
     """The cloud's (N, 3) float64 normals, None when it has none; TypeError for anything but a PointCloud."""
-    if isinstance(pcd, o3d.geometry.PointCloud):
+    if is_open3d(pcd, "geometry.PointCloud"):
         return np.asarray(pcd.normals) if pcd.has_normals() else None
-    if isinstance(pcd, o3d.t.geometry.PointCloud):
+    if is_open3d(pcd, "t.geometry.PointCloud"):
         return pcd.point.normals.numpy().astype(np.float64) if "normals" in pcd.point else None
     raise TypeError(f"expected an open3d PointCloud, got {type(pcd).__name__}")
 
 
 def set_cloud_normals(pcd, normals: np.ndarray) -> None:
     """Sets the normals of a legacy or tensor cloud (in the dtype of a tensor cloud's positions)."""
+    o3d = require_open3d("setting a cloud's normals")
     if isinstance(pcd, o3d.geometry.PointCloud):
         pcd.normals = o3d.utility.Vector3dVector(normals)
     else:
@@ -112,7 +118,7 @@ def cloud_device(pcd) -> torch.device:
     """The torch device where a cloud's data lives (CPU for legacy clouds and numpy)."""
     if isinstance(pcd, Tensor):
         return pcd.device
-    tensor = pcd.point.positions if isinstance(pcd, o3d.t.geometry.PointCloud) and not pcd.is_empty() else pcd
-    if isinstance(tensor, o3d.core.Tensor) and tensor.device.get_type() == o3d.core.Device.DeviceType.CUDA:
+    tensor = pcd.point.positions if is_open3d(pcd, "t.geometry.PointCloud") and not pcd.is_empty() else pcd
+    if is_open3d(tensor, "core.Tensor") and tensor.device.get_type().name == "CUDA":
         return torch.device("cuda", tensor.device.get_id())
     return torch.device("cpu")

@@ -672,16 +672,6 @@ def test_cli_visible_writes_the_visible_points(tmp_path, network, pcd, points, c
         args.func(args)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
-def test_cuda_matches_cpu(network, points):
-    camera = _camera(points)
-    cpu = o3dvis.NeuralVisibility(network).encode(points).probabilities(camera)
-    gpu = o3dvis.NeuralVisibility(network, device="cuda").encode(torch.tensor(points)).probabilities(camera)
-    assert gpu.device.type == "cuda"
-    torch.testing.assert_close(gpu.cpu(), cpu, atol=1e-4, rtol=1e-4)
-    network.to("cpu")
-
-
 def test_the_runtime_never_imports_training_code():
     """Every module outside o3dvis.training and the command line imports without o3dvis.training."""
     import subprocess

@@ -116,7 +116,7 @@ class VisibilityDataset(torch.utils.data.Dataset):
         if a.noise > 0 and rng.random() < a.noise_prob:
             points = add_noise(points, rng.uniform(0, a.noise), diagonal(points), rng)
         if a.estimated_normals > 0 and rng.random() < a.estimated_normals:
-            from ...neural import first_pass_normals  # with the runtime, which needs Open3D
+            from ...neural import first_pass_normals  # the runtime's, imported where it is asked for
             from ...pretrained import shared_pretrained
 
             estimated = first_pass_normals(shared_pretrained().encode(points), points)

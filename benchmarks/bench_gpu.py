@@ -8,8 +8,11 @@ with the device synchronised around each:
 
 Encode = Morton order, octree, noise cues and the U-Net (``VisibilityNetwork.encode``); one view
 = its projection and depth buffers and the predictor on every point
-(``VisibilityNetwork.view`` + ``view_margin``), in float32 and in bfloat16 products. Points are a
-Fibonacci sphere seen from outside (a camera at 3 radii). Medians of ``--repeats`` after a warm-up.
+(``VisibilityNetwork.view`` + ``view_margin``), in float32 and in bfloat16 products. Then the same
+through the public API, as a user calls it with a numpy cloud (``NeuralVisibility.pretrained``
+on the device): ``encode``, ``query`` of one camera and of 26, and the two-pass
+``encode(normals="estimate")`` (its orientation runs on the CPU). Points are a Fibonacci sphere
+seen from outside (cameras at 3 radii). Medians of ``--repeats`` after a warm-up.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from o3dvis.geometry import fibonacci_sphere  # noqa: E402
+from o3dvis.neural import NeuralVisibility  # noqa: E402
 from o3dvis.nn import VisibilityNetwork, morton_order, normalize_points  # noqa: E402
 from o3dvis.nn.conv import products_in  # noqa: E402
 
@@ -63,6 +67,8 @@ def main() -> int:
     device = torch.device(args.device)
     net = VisibilityNetwork.load(WEIGHTS, device).eval()
     camera = torch.tensor([0.0, 0.0, 3.0], device=device)
+    vis = NeuralVisibility.pretrained(device=device)
+    cameras = 3 * fibonacci_sphere(26)
     rows = []
     with torch.no_grad():
         for n in (int(p) for p in args.points.split(",")):
@@ -80,6 +86,13 @@ def main() -> int:
                 record[f"view_ms_{name}"] = round(timed(
                     lambda: net.view_margin([net.view(points, camera)], slice(None), features, None, dtype),
                     device, args.repeats), 2)
+            cloud = fibonacci_sphere(n)
+            field = vis.encode(cloud)
+            record["api_encode_ms"] = round(timed(lambda: vis.encode(cloud), device, args.repeats), 2)
+            record["api_view_ms"] = round(timed(lambda: field.query(cameras[:1]), device, args.repeats), 2)
+            record["api_26_views_ms"] = round(timed(lambda: field.query(cameras), device, args.repeats), 2)
+            record["api_two_pass_encode_ms"] = round(
+                timed(lambda: vis.encode(cloud, normals="estimate"), device, args.repeats), 2)
             if device.type == "cuda":
                 record["peak_gib"] = round(torch.cuda.max_memory_allocated(device) / 2**30, 2)
             rows.append(record)

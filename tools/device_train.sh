@@ -9,11 +9,15 @@
 #    that travels, tracked files included, must stay under 64 MiB).
 # 2. On the GPU machine, from the repository root, with carry/ carried:
 #      bash tools/device_train.sh MODEL [SECONDS] [INIT]
-#    MODEL is default, normals or scene; training starts from the shipped weights of MODEL (or
+#    MODEL is default, normals or scene (the normals model half on exact normals, half on those
+#    normals="estimate" computes, which the data loader's workers estimate with the shipped
+#    default on the CPU); training starts from the shipped weights of MODEL (or
 #    from INIT, e.g. a carried checkpoint of an earlier call), stops after SECONDS (default 420)
 #    with a checkpoint, and leaves the run (last.safetensors, log.jsonl, config.json) in
 #    $OUT/MODEL. Evaluate it here with `o3dvis eval --model FILE` before publishing it (a scene
 #    model after `o3dvis fuse`, which fits its fusion with the z-buffer anew: training drops it).
+#    The step is bound by kernel launches more than by its clouds: BATCH (clouds a step, default
+#    16) and STEPS (the length of the learning-rate schedule, default 4000) size a run to its call.
 #    DEVICE=cpu runs the same steps on the CPU (a dry run of the command).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -34,16 +38,18 @@ seconds=${2:-420}
 init=${3:-o3dvis/weights/$model.safetensors}
 case "$model" in
     default) data="carry/objects carry/shapes"; extra="" ;;
-    normals) data="carry/objects carry/shapes"; extra="--normals" ;;
+    normals) data="carry/objects carry/shapes"; extra="--normals --estimated-normals 0.5" ;;
     scene) data="carry/scenes carry/objects"; extra="--footprints" ;;
     *) echo "unknown model $model: default, normals or scene" >&2; exit 2 ;;
 esac
 out=${OUT:-runs}/$model
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
+python3 setup.py -q build_ext --inplace >/dev/null || echo "no C build: the Python fallbacks run" >&2
+workers=$(( $(nproc) > 4 ? $(nproc) - 2 : 0 ))
 [ "${DEVICE:-cuda}" = cpu ] || nvidia-smi --query-gpu=name,memory.total --format=csv,noheader || true
 # shellcheck disable=SC2086
 python3 -m o3dvis train $data --out "$out" --device "${DEVICE:-cuda}" --init "$init" $extra --noise-cues \
-    --steps 4000 --batch-size 16 --lr 5e-4 --min-points 2048 --max-points 12288 --views 8 \
-    --val-every 500 --time-limit "$seconds" --seed 17
+    --steps "${STEPS:-4000}" --batch-size "${BATCH:-16}" --lr 5e-4 --min-points 2048 --max-points 12288 --views 8 \
+    --val-every 500 --time-limit "$seconds" --seed 17 --workers "$workers"
 rm -f "$out/last_state.pt" "$out/best.safetensors"  # the optimiser state is over what comes back; no val here
 ls -l "$out"

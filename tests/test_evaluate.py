@@ -372,3 +372,24 @@ def test_neural_estimate_encodes_with_normals_estimated_first(monkeypatch):
     methods["neural"][""].encode(np.zeros((4, 3)))
     assert asked[0] == "estimate" and asked[1] is False
     assert "estimated normals" in methods["neural-estimate"][""].__name__
+
+
+def test_a_normals_checkpoint_answers_the_second_pass_after_the_shipped_first(tmp_path):
+    pytest.importorskip("o3dvis.neural")
+    import torch
+
+    from o3dvis.models import load_model
+    from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
+    from o3dvis.training.methods import resolve_methods
+
+    ckpt = tmp_path / "normals.safetensors"
+    VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 8), feature_channels=8, hidden=(8,),
+                                    use_normals=True)).save(ckpt)
+    methods, absent = resolve_methods(["neural-estimate", "neural-normals", "neural"], ckpt)
+    assert "neural" in absent and "need normals" in absent["neural"]
+    two_pass = methods["neural-estimate"][""].visibility
+    assert two_pass.normals_network.config.channels == (8, 8)
+    shipped = load_model("default")
+    assert two_pass.network.config == shipped.config
+    torch.testing.assert_close(next(two_pass.network.parameters()), next(shipped.parameters()))
+    assert methods["neural-normals"][""].visibility.network.config.use_normals

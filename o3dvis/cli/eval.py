@@ -49,8 +49,10 @@ def _add_method_args(p: argparse.ArgumentParser, default: str) -> None:
                         f"with -x<K> appended averages K rotations of each cloud, e.g. neural-x8 "
                         f"(default: {default})")
     p.add_argument("--model", "--checkpoint", dest="checkpoint", default=None, metavar="MODEL",
-                   help="shipped model name or .safetensors checkpoint for 'neural' "
-                        "(default: the shipped default; --checkpoint is the older name)")
+                   help="shipped model name or .safetensors checkpoint for 'neural' (a model that "
+                        "takes normals: for 'neural-normals', and for 'neural-estimate' after the "
+                        "shipped default's first pass; default: the shipped default; --checkpoint "
+                        "is the older name)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads (default: 2)")
 
 

@@ -83,7 +83,8 @@ def neural_method(checkpoint: str | Path | None = None, device: str | None = Non
 
     Args:
         checkpoint: a ``.safetensors`` file saved by ``VisibilityNetwork.save``;
-            None for ``NeuralVisibility.pretrained()``.
+            None for ``NeuralVisibility.pretrained()``. With ``estimate``, a model that
+            takes normals answers the second pass after the shipped default's first.
         device: torch device (default: the API's choice).
         use_normals: give the network the cloud's normals (a model that takes them is needed).
         num_rotations, precision: see ``NeuralVisibility``.
@@ -111,8 +112,15 @@ def neural_method(checkpoint: str | Path | None = None, device: str | None = Non
             if not path.is_file():
                 raise FileNotFoundError(f"checkpoint {path} not found")
             digest = hashlib.sha256(path.read_bytes()).hexdigest()[:12]
-            visibility = NeuralVisibility(VisibilityNetwork.load(path), device=device,
-                                          num_rotations=num_rotations, precision=precision)
+            network = VisibilityNetwork.load(path)
+            if network.config.use_normals and estimate:  # a normals model's second pass, after the shipped first
+                shipped = NeuralVisibility.pretrained(device=device, use_normals=False)
+                visibility = NeuralVisibility(shipped.network, network, device=device, num_rotations=num_rotations,
+                                              precision=precision, scene_network=shipped.scene_network,
+                                              small_network=shipped.small_network)
+            else:
+                visibility = NeuralVisibility(network, device=device, num_rotations=num_rotations,
+                                              precision=precision)
             identity = f"{path.name}@{digest}"
     except (FileNotFoundError, ValueError, KeyError, RuntimeError) as e:
         raise LookupError(f"no network weights could be loaded: {e}") from e

@@ -199,3 +199,19 @@ def test_a_time_limited_run_without_open3d_stops_with_a_checkpoint_and_resumes(p
     _finish(_o3dvis("train", str(prepared), "--out", str(run), *TRAIN))
     assert _steps(run) == [1, 2, 4, 6, 8]
     _assert_same_weights(_weights(run / "last.safetensors"), _weights(reference_run / "last.safetensors"))
+
+
+def test_an_orientation_head_trains_beside_the_network_and_resumes(prepared, reference_run, tmp_path):
+    """--orientation-weight changes what the U-Net learns, saves nothing into the network, and a
+    run stopped part way goes on with the head where it was (the same weights as a run never
+    stopped)."""
+    args = [*TRAIN, "--orientation-weight", "0.5"]
+    whole, parts = tmp_path / "whole", tmp_path / "parts"
+    _finish(_o3dvis("train", str(prepared), "--out", str(whole), *args))
+    _finish(_o3dvis("train", str(prepared), "--out", str(parts), *args, "--time-limit", "0"))
+    assert _steps(parts) == [1]
+    _finish(_o3dvis("train", str(prepared), "--out", str(parts), *args))
+    _assert_same_weights(_weights(parts / "last.safetensors"), _weights(whole / "last.safetensors"))
+    with_head, without = _weights(whole / "last.safetensors"), _weights(reference_run / "last.safetensors")
+    assert with_head.keys() == without.keys()
+    assert any(not torch.equal(with_head[k], without[k]) for k in with_head if k.startswith("unet."))

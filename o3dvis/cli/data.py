@@ -58,7 +58,7 @@ def _train(args) -> int:
     cfg = TrainConfig(
         data=args.data, out=args.out, val=args.val, steps=args.steps, batch_size=args.batch_size,
         lr=args.lr, val_every=args.val_every, workers=args.workers, seed=args.seed, device=args.device,
-        network=network, init=args.init, time_limit=args.time_limit,
+        network=network, init=args.init, time_limit=args.time_limit, orientation_weight=args.orientation_weight,
         augmentation={"min_points": args.min_points, "max_points": args.max_points,
                       "views": args.views, "noise": args.noise, "noise_prob": args.noise_prob,
                       "estimated_normals": args.estimated_normals})
@@ -187,6 +187,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--init", help="start from this checkpoint (extra input channels start at zero)")
     p.add_argument("--time-limit", type=float, metavar="SECONDS",
                    help="checkpoint and stop after this many seconds of training (run again to resume)")
+    p.add_argument("--orientation-weight", type=float, default=0.0, metavar="W",
+                   help="also train a linear head on the U-Net's point features to give each point's "
+                        "oriented normal, with this weight on its 1 - cos loss (the head is not saved "
+                        "with the network; default 0: none)")
     p.set_defaults(func=_train)
 
     p = sub.add_parser("calibrate", help="fit a trained network's per-cloud calibration", formatter_class=fmt,

@@ -52,6 +52,10 @@ class TrainConfig:
     augmentation: dict = field(default_factory=dict)
     init: str | None = None
     time_limit: float | None = None  # seconds of this call, then a checkpoint and a stop (a resume goes on)
+    # weight of dense orientation supervision: a linear head of training's own (not saved with the
+    # network) reads each point's U-Net feature and is scored by 1 - its cosine to the point's
+    # oriented normal, so that the features a network without normals learns carry orientation
+    orientation_weight: float = 0.0
 
 
 def warm_start(net: VisibilityNetwork, state: dict[str, torch.Tensor]) -> None:
@@ -84,15 +88,18 @@ def warm_start(net: VisibilityNetwork, state: dict[str, torch.Tensor]) -> None:
             dst[tuple(slice(0, s) for s in value.shape)].copy_(value)
 
 
-def batch_loss(net: torch.nn.Module, batch: Batch, use_normals: bool) -> tuple[torch.Tensor, float]:
-    """Cross-entropy averaged per view of each cloud, then over them, and the pooled accuracy.
+def batch_loss(net: torch.nn.Module, batch: Batch, use_normals: bool,
+               orientation_weight: float = 0.0) -> tuple[torch.Tensor, float]:
+    """Cross-entropy averaged per view of each cloud, then over them, and the pooled accuracy;
+    plus ``orientation_weight`` times the orientation head's mean ``1 - cos`` to the batch's
+    normals where ``net`` (an :class:`_Encoder`) has that head.
 
     Each (cloud, view) weighs the same whatever its number of points, so that
     2k-point clouds still count when the batch also holds 80k-point ones.
     """
     module = net.module if hasattr(net, "module") else net
     normals = batch.normals if use_normals else None
-    features = net(batch.points, batch.batch, normals, len(batch.sizes))
+    features, orientation = net(batch.points, batch.batch, normals, len(batch.sizes))
     losses, correct, total = [], 0, 0
     for i, sl in enumerate(batch.slices()):
         surfels = module.surfels(batch.points[sl])  # once per cloud, for all its views
@@ -103,7 +110,10 @@ def batch_loss(net: torch.nn.Module, batch: Batch, use_normals: bool) -> tuple[t
             losses.append(F.cross_entropy(logits, target))
             correct += int((logits.argmax(dim=1) == target).sum())
             total += len(target)
-    return torch.stack(losses).mean(), correct / total
+    loss = torch.stack(losses).mean()
+    if orientation is not None:
+        loss = loss + orientation_weight * (1 - F.cosine_similarity(orientation, batch.normals, dim=1)).mean()
+    return loss, correct / total
 
 
 @torch.no_grad()
@@ -132,14 +142,19 @@ def validate(net: VisibilityNetwork, files: list[Path], num_points: int = 8192, 
 
 
 class _Encoder(torch.nn.Module):
-    """Wraps ``encode`` as ``forward`` so DDP sees the U-Net's parameters used."""
+    """Wraps ``encode`` as ``forward`` so DDP sees the U-Net's parameters used, with the optional
+    orientation head (see ``TrainConfig.orientation_weight``): ``forward`` returns the per-point
+    features and the head's (N, 3) answer, or None without it."""
 
-    def __init__(self, net: VisibilityNetwork):
+    def __init__(self, net: VisibilityNetwork, orientation: bool = False):
         super().__init__()
         self.net = net
+        width = net.predictor.project_feature.out_features  # the per-point features the predictor reads
+        self.orientation = torch.nn.Linear(width, 3) if orientation else None
 
     def forward(self, points, batch, normals, batch_size):
-        return self.net.encode(points, batch, normals, batch_size)
+        features = self.net.encode(points, batch, normals, batch_size)
+        return features, None if self.orientation is None else self.orientation(features)
 
     def predict(self, *args, **kwargs):
         return self.net.predict(*args, **kwargs)
@@ -207,7 +222,8 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     net = VisibilityNetwork(NetworkConfig.from_dict(cfg.network)).to(device)
-    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    encoder = _Encoder(net, orientation=cfg.orientation_weight > 0).to(device)
+    opt = torch.optim.AdamW(encoder.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
 
     def lr_at(step: int) -> float:
         if step < cfg.warmup:
@@ -220,6 +236,8 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
         state = torch.load(out / "last_state.pt", map_location=device, weights_only=True)
         net.load_state_dict(state["model"] if "model" in state else  # runs from before weights were in it
                             VisibilityNetwork.load(out / "last.safetensors", device).state_dict())
+        if encoder.orientation is not None:
+            encoder.orientation.load_state_dict(state["orientation"])
         opt.load_state_dict(state["optimizer"])
         sched.load_state_dict(state["scheduler"])
         start, best = int(state["step"]), float(state["best"])
@@ -231,9 +249,8 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
         warm_start(net, load_file(cfg.init, device=str(device)))
     if rank == 0:
         (out / "config.json").write_text(json.dumps(asdict(cfg), indent=2))
-    model = _Encoder(net)
-    if world > 1:
-        model = torch.nn.parallel.DistributedDataParallel(model, find_unused_parameters=False)
+    model = (torch.nn.parallel.DistributedDataParallel(encoder, find_unused_parameters=False) if world > 1
+             else encoder)
 
     data = VisibilityDataset(files, Augmentation(**cfg.augmentation),
                              seed=cfg.seed * 1000 + rank, length=cfg.steps * cfg.batch_size)
@@ -246,10 +263,10 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
     t0, run_loss, run_acc = time.time(), 0.0, 0.0
     for step, batch in enumerate(loader, start=start + 1):
         batch = batch.to(device)
-        loss, acc = batch_loss(model, batch, net.config.use_normals)
+        loss, acc = batch_loss(model, batch, net.config.use_normals, cfg.orientation_weight)
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+        torch.nn.utils.clip_grad_norm_(encoder.parameters(), 1.0)
         opt.step()
         sched.step()
         run_loss, run_acc = 0.98 * run_loss + 0.02 * loss.item(), 0.98 * run_acc + 0.02 * acc
@@ -277,7 +294,8 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
             _atomic(out / "last.safetensors", lambda tmp: net.save(tmp, {"step": step}))
             _atomic(out / "last_state.pt", lambda tmp: torch.save(
                 {"model": net.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-                 "step": step, "best": best}, tmp))
+                 "step": step, "best": best,
+                 **({} if encoder.orientation is None else {"orientation": encoder.orientation.state_dict()})}, tmp))
             bar.write(json.dumps(record))
         if out_of_time:
             break

@@ -378,25 +378,38 @@ class NeuralVisibility:
             if camera is not None and inside_box(camera.to(lo)[None], (lo, hi))[0]:
                 return self._field(self.scene_network, None, *frame)
             scene = functools.partial(self._field, self.scene_network, None, *frame)
-        field = self._field(network, unit, *frame, scene=scene)
         # a flat cloud hides nothing from off its plane: one pass is exact there
-        if estimate and hull is None and len(normalized) >= _ESTIMATE_MIN_POINTS:
+        two_pass = estimate and hull is None and len(normalized) >= _ESTIMATE_MIN_POINTS
+        shared = {} if two_pass else None
+        field = self._field(network, unit, *frame, scene=scene, shared=shared)
+        if two_pass:
             normals = first_pass_normals(field, points.detach().cpu().double().numpy())
             if normals is not None:
                 unit = torch.from_numpy(normals).to(self.device).index_select(0, order).float()
-                field = self._field(self.normals_network, unit, *frame, scene=scene)
+                field = self._field(self.normals_network, unit, *frame, scene=scene, shared=shared)
         return field
 
     def _field(self, network: VisibilityNetwork, unit: Tensor | None, normalized: Tensor, center: Tensor,
                scale: Tensor, bounds: tuple[Tensor, Tensor], hull: tuple[Tensor, Tensor] | None, rank: Tensor,
-               scene: Callable[[], VisibilityField] | None = None) -> VisibilityField:
-        """The field of ``network`` over the normalised, Morton-ordered points of :meth:`encode`."""
+               scene: Callable[[], VisibilityField] | None = None, shared: dict | None = None) -> VisibilityField:
+        """The field of ``network`` over the normalised, Morton-ordered points of :meth:`encode`.
+
+        ``shared``: a dict that the passes over the same points fill and reuse: their noise cues
+        and their octree per pair of depths (None: nothing kept)."""
         calibrated, fused = network.calibration is not None, network.fusion is not None
         precision = resolve_precision(self.precision, self.device)
+        shared = {} if shared is None else shared
         with torch.no_grad(), products_in(precision):
-            noise = (network.cloud_noise(normalized, ordered=True) if network.config.noise_cues or calibrated or fused
-                     else None)
-            features = network.encode_leaves(normalized, normals=unit, noise=noise)
+            noise = None
+            if network.config.noise_cues or calibrated or fused:
+                noise = shared.get("noise")
+                if noise is None:
+                    noise = shared["noise"] = network.cloud_noise(normalized, ordered=True)
+            depths = (network.config.depth, network.config.full_depth)
+            octree = shared.get(depths)
+            if octree is None:
+                octree = shared[depths] = network.octree(normalized)
+            features = network.encode_leaves(normalized, normals=unit, noise=noise, octree=octree)
             rotated = [self._rotated(network, normalized, unit, r) for r in self.rotations[1:]]
         calibration = (network.calibration.affine(calibration_terms(noise[0], len(normalized)))
                        if calibrated else None)

@@ -612,6 +612,8 @@ def test_normals_estimated_in_a_first_pass_for_dense_clean_clouds(network):
     cameras = viewpoints_around(sphere, 14)  # the first pass's probabilities orient the normals
     expected = voted_normals(sphere, cameras, paired.encode(sphere, normals=False).probabilities(cameras).numpy())
     np.testing.assert_allclose(field.normals[field.rank].numpy(), expected, atol=1e-6)
+    given = paired.encode(sphere, normals=field.normals[field.rank].double().numpy())  # the passes share
+    torch.testing.assert_close(field.probabilities(cameras), given.probabilities(cameras))  # octree, noise
     assert paired.encode(sphere).network is network  # by default: one pass for a cloud without normals
     noisy = sphere * (1 + 0.05 * rng.uniform(-1, 1, (len(sphere), 1)))
     assert paired.encode(noisy, normals="estimate").network is network  # rough neighbourhoods: one pass

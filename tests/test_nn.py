@@ -243,6 +243,19 @@ def test_encode_projects_per_leaf_as_the_linear_layer_does_per_point():
         torch.testing.assert_close(net.encode(pn), expected)
 
 
+def test_encode_reuses_a_given_octree_of_its_depths():
+    torch.manual_seed(0)
+    net = VisibilityNetwork(NetworkConfig(depth=6)).eval()
+    other = VisibilityNetwork(NetworkConfig(depth=6, use_normals=True)).eval()
+    pn, _, _ = normalize_points(_sphere_with_bump())
+    with torch.no_grad():
+        shared = other.octree(pn)
+        other.encode_leaves(pn, normals=torch.nn.functional.normalize(pn, dim=1), octree=shared)  # fills its tables
+        torch.testing.assert_close(net.encode_leaves(pn, octree=shared).rows(), net.encode(pn))
+        with pytest.raises(ValueError, match="depths 5/2 given to a network of depths 6/2"):
+            net.encode_leaves(pn, octree=Octree(pn, depth=5))
+
+
 def test_view_cues_flag_the_far_side_of_a_sphere():
     torch.manual_seed(0)
     p = torch.nn.functional.normalize(torch.randn(20000, 3), dim=1)

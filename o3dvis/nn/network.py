@@ -172,7 +172,8 @@ class VisibilityNetwork(nn.Module):
         return self.encode_leaves(points, batch, normals, batch_size, noise).rows()
 
     def encode_leaves(self, points: Tensor, batch: Tensor | None = None, normals: Tensor | None = None,
-                      batch_size: int | None = None, noise: Tensor | None = None) -> LeafFeatures:
+                      batch_size: int | None = None, noise: Tensor | None = None,
+                      octree: Octree | None = None) -> LeafFeatures:
         """View-independent features, stored per octree leaf (what the per-view predictor reads).
 
         Args:
@@ -181,13 +182,23 @@ class VisibilityNetwork(nn.Module):
             normals: (N, 3) unit normals, required by a normals model.
             batch_size: number of clouds (default: ``batch.max() + 1``).
             noise: the clouds' :meth:`cloud_noise`, when the caller has it already.
+            octree: the points' :meth:`octree`, when the caller has it already (another network of
+                the same depths built it: its neighbour tables are reused too).
+
+        Raises:
+            ValueError: normals given to a points-only model or missing for a normals model, or an
+                ``octree`` of other depths than this network's.
         """
         if self.config.use_normals != (normals is not None):
             raise ValueError("this model needs normals" if self.config.use_normals else
                              "this model takes no normals")
         if batch is None:
             batch = torch.zeros(points.shape[0], dtype=torch.long, device=points.device)
-        octree = self.octree(points, batch, batch_size)
+        if octree is None:
+            octree = self.octree(points, batch, batch_size)
+        elif (octree.depth, octree.full_depth) != (self.config.depth, self.config.full_depth):
+            raise ValueError(f"an octree of depths {octree.depth}/{octree.full_depth} given to a network of "
+                             f"depths {self.config.depth}/{self.config.full_depth}")
         leaf = self.unet(self._signal(points, batch, octree, normals, noise), octree)
         return self.predictor.project(leaf, points, octree.point_leaf)
 

@@ -122,6 +122,19 @@ def test_surfels_equal_the_torch_ones():
 
 
 @needs_kernels
+@needs_kernels
+def test_child_neighbours_check_their_inputs():
+    from o3dvis.nn.octree import Octree, _PARENT_OCTANT, _PARENT_OFFSET
+
+    tree = Octree(torch.rand(500, 3, generator=torch.Generator().manual_seed(1)) * 2 - 1, depth=4, full_depth=1)
+    args = [tree.keys[2], tree.parent[2], tree.neighbours(1), tree.children[1], _PARENT_OFFSET, _PARENT_OCTANT]
+    assert torch.equal(native.child_neighbours(*args), tree.neighbours(2))
+    with pytest.raises(ValueError, match="above must be a contiguous"):
+        native.child_neighbours(*args[:2], args[2].int(), *args[3:])
+    with pytest.raises(ValueError, match=r"parent indices must lie in \[0, 8\)"):
+        native.child_neighbours(args[0], args[1] + 8, *args[2:])
+
+
 def test_morton_keys_equal_the_torch_ones():
     """One pass of C for the octree's keys: the same cells (outside the cube clamped to it, the
     float32 rounding of the cell's coordinate the same) and the same interleaving."""

@@ -93,9 +93,13 @@ def test_neighbours_dense_and_sparse_lookup_agree(monkeypatch):
     assert torch.equal(Octree(pts, depth=5, full_depth=2).neighbours(5), dense)  # through the parents
 
 
-def test_neighbours_from_parents_equal_the_cell_table():
-    # below the full levels each neighbour is found through the parent's; the lookup among the
-    # level's cells is the reference
+@pytest.mark.parametrize("kernels", [True, False])
+def test_neighbours_from_parents_equal_the_cell_table(kernels, monkeypatch):
+    # below the full levels each neighbour is found through the parent's (in C, or with torch ops);
+    # the lookup among the level's cells is the reference
+    if kernels and not native.available():
+        pytest.skip("C kernels not built")
+    monkeypatch.setattr(octree_module.native, "available", lambda: kernels)
     torch.manual_seed(3)
     pts = torch.rand(4000, 3) * 2 - 1
     pts[:1500] *= 0.05  # a dense cluster beside sparse points: nodes with and without neighbours
@@ -105,6 +109,23 @@ def test_neighbours_from_parents_equal_the_cell_table():
         expected, nodes = _cell_lookup_neighbours(pts, level, batch, depth=7)
         assert (expected < nodes).float().mean() > 0.05  # not all missing
         assert torch.equal(built.neighbours(level), expected)
+
+
+def test_full_levels_share_their_neighbours(monkeypatch):
+    monkeypatch.setattr(octree_module, "_FULL_NEIGHBOURS", {})
+    torch.manual_seed(4)
+    pts, batch = torch.rand(3000, 3) * 2 - 1, torch.randint(0, 2, (3000,))
+    a, b = Octree(pts, batch, depth=5, full_depth=2), Octree(pts.flip(1) * 0.5, batch, depth=5, full_depth=2)
+    for level in range(3):
+        assert b.neighbours(level) is a.neighbours(level)
+        assert torch.equal(a.neighbours(level), _cell_lookup_neighbours(pts, level, batch)[0])
+    one = Octree(pts, depth=5, full_depth=2)  # one cloud: its own table
+    assert torch.equal(one.neighbours(2), _cell_lookup_neighbours(pts, 2)[0])
+    assert one.neighbours(2).shape[0] == 64 and a.neighbours(2).shape[0] == 128
+    partial = Octree(pts[:10], depth=5, full_depth=2)
+    partial.full_depth = 3  # a level looked up among its cells that does not hold every cell
+    assert torch.equal(partial.neighbours(3), _cell_lookup_neighbours(pts[:10], 3)[0])
+    assert (3, 1, "cpu") not in octree_module._FULL_NEIGHBOURS
 
 
 def test_neighbours_do_not_cross_clouds():

@@ -16,7 +16,8 @@
  * runs the fusion of its answer with the margin (o3dvis/nn/fusion.py) in one
  * pass. And for the encoding, o3dvis_morton_keys computes the octree's Morton
  * keys (o3dvis/nn/octree.py, cell_keys) in one pass instead of some twenty,
- * and o3dvis_cell_moments the noise cue's per-cell sums (o3dvis/nn/noise.py);
+ * o3dvis_child_neighbours a level's 3x3x3 neighbours from its parents' (Octree.neighbours)
+ * in one instead of some ten, and o3dvis_cell_moments the noise cue's per-cell sums (o3dvis/nn/noise.py);
  * for oriented normals, o3dvis_fit_planes the plane fits of
  * o3dvis/orientation.py, o3dvis_visibility_affinity their neighbours' weights, and o3dvis_grid_knn the nearest neighbours it fits
  * them to, sought in the cells of a grid (o3dvis_key_table hashes the cells).
@@ -1195,6 +1196,25 @@ void o3dvis_grid_knn(const double *points, const int64_t *cells, const int64_t *
                 margin = fmax(margin - slack, 0.0); /* points up to slack off their cell may lie beyond */
                 exact[i] = (uint8_t)(found == k && best[k - 1] < margin * margin * (1.0 - 1e-9));
             }
+        }
+    }
+}
+
+/* The 3x3x3 neighbours of the n nodes of an octree level below its full ones, from those of their
+ * parents (o3dvis.nn.octree.Octree._neighbours_from_parents): node i, of octant keys[i] & 7 and parent
+ * parent[i], has at offset t the child offset_octant[o][t] of the parent level's node
+ * above[27 parent[i] + parent_offset[o][t]] (m where missing), children (m, 8) the parent level's
+ * children (-1 where empty). Writes (n, 27) indices into out, n where missing. */
+void o3dvis_child_neighbours(int64_t n, const int64_t *keys, const int64_t *parent, const int64_t *above,
+                             int64_t m, const int64_t *children, const int64_t *parent_offset,
+                             const int64_t *offset_octant, int64_t *out) {
+    for (int64_t i = 0; i < n; i++) {
+        const int o = (int)(keys[i] & 7);
+        const int64_t *holders = above + 27 * parent[i];
+        for (int t = 0; t < 27; t++) {
+            const int64_t h = holders[parent_offset[27 * o + t]];
+            const int64_t c = h >= 0 && h < m ? children[8 * h + offset_octant[27 * o + t]] : -1;
+            out[27 * i + t] = c < 0 ? n : c;
         }
     }
 }

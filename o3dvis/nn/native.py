@@ -1,5 +1,5 @@
 """A view's projection, the predictor's inputs and its MLP in a few passes of C, for queries on the
-CPU, and the octree's Morton keys in one.
+CPU, and the octree's Morton keys and neighbours in one each.
 
 ``kernels.c`` computes what :class:`~o3dvis.nn.cues.ViewProjection` and the view
 embedding times the projected features compute in some seventy eager torch
@@ -26,7 +26,7 @@ from .features import LeafFeatures
 __all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "cell_moments", "project",
            "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin",
            "fit_planes", "visibility_affinity", "affinity_table", "key_table",
-           "grid_knn"]
+           "grid_knn", "child_neighbours"]
 
 _I64, _I32, _PTR = ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
 
@@ -58,6 +58,7 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_visibility_affinity": ([_I64, _I32, _I32, _I32, _I64, _PTR, _PTR, ctypes.c_float, ctypes.c_float, _PTR],
                                    None),
     "o3dvis_key_table": ([_I64, _PTR, _I64, _PTR], None),
+    "o3dvis_child_neighbours": ([_I64, _PTR, _PTR, _PTR, _I64, _PTR, _PTR, _PTR, _PTR], None),
     "o3dvis_grid_knn": ([_PTR, _PTR, _PTR, _PTR, _I64, _PTR, _I32, _PTR, ctypes.c_double, ctypes.c_double, _I32,
                          _I64, _I64, _PTR, _PTR], None),
 }
@@ -485,6 +486,41 @@ def key_table(keys: Tensor) -> Tensor:
     table = torch.full((1 << max(1, 2 * keys.shape[0] - 1).bit_length(),), -1, dtype=torch.long)
     _LIBRARY.o3dvis_key_table(keys.shape[0], keys.data_ptr(), table.shape[0], table.data_ptr())
     return table
+
+
+def child_neighbours(keys: Tensor, parent: Tensor, above: Tensor, children: Tensor, parent_offset: Tensor,
+                     offset_octant: Tensor) -> Tensor:
+    """(n, 27) the 3x3x3 neighbours of the n nodes of an octree level from those of their parents,
+    n where missing, in one pass (what :meth:`o3dvis.nn.octree.Octree.neighbours` computes with torch
+    ops below the full levels).
+
+    Args:
+        keys: (n,) int64 the level's keys (their low three bits: each node's octant).
+        parent: (n,) int64 each node's parent, in the level above.
+        above: (m, 27) int64 the level above's neighbours, m where missing.
+        children: (m, 8) int64 the level above's children, -1 where empty.
+        parent_offset: (8, 27) int64 by octant, the offset at the level above whose node holds each
+            neighbour.
+        offset_octant: (8, 27) int64 by octant, the neighbour's octant in that node.
+
+    Raises:
+        ValueError: a tensor of another shape or dtype, not contiguous or not on the CPU, or a parent
+            index out of range.
+    """
+    n, m = keys.shape[0], above.shape[0]
+    _check("keys", keys, (n,), torch.long)
+    _check("parent", parent, (n,), torch.long)
+    _check("above", above, (m, 27), torch.long)
+    _check("children", children, (m, 8), torch.long)
+    _check("parent_offset", parent_offset, (8, 27), torch.long)
+    _check("offset_octant", offset_octant, (8, 27), torch.long)
+    if n and not (0 <= int(parent.min()) and int(parent.max()) < m):
+        raise ValueError(f"parent indices must lie in [0, {m})")
+    out = torch.empty((n, 27), dtype=torch.long)
+    _LIBRARY.o3dvis_child_neighbours(n, keys.data_ptr(), parent.data_ptr(), above.data_ptr(), m,
+                                     children.data_ptr(), parent_offset.data_ptr(), offset_octant.data_ptr(),
+                                     out.data_ptr())
+    return out
 
 
 def grid_knn(points: Tensor, cells: Tensor, keys: Tensor, starts: Tensor, table: Tensor, level: int, lo: Tensor,

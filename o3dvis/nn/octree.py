@@ -3,7 +3,8 @@
 Nodes of every level are identified by a key ``batch << 3*level | morton`` and
 kept sorted, so parents, children and neighbours are found with
 ``torch.searchsorted`` instead of Python loops. Everything runs unchanged on
-CPU and CUDA.
+CPU and CUDA; on the CPU the neighbours below the full levels come from one
+pass of C where the package's kernels are built (:mod:`o3dvis.nn.native`).
 """
 
 from __future__ import annotations
@@ -40,6 +41,12 @@ def _parent_steps() -> tuple[Tensor, Tensor]:
 
 
 _PARENT_OFFSET, _PARENT_OCTANT = _parent_steps()
+
+# The neighbours of full levels (every node, in key order), by (level, clouds, device): the same for
+# every octree, they are computed once (they were a third of a small cloud's octree) and shared,
+# read-only, for at most this many keys.
+_FULL_NEIGHBOURS: dict[tuple[int, int, str], Tensor] = {}
+_FULL_NEIGHBOURS_KEPT = 64
 
 
 def bounding_box(points: Tensor) -> tuple[Tensor, Tensor]:
@@ -246,6 +253,11 @@ class Octree:
         """
         if level not in self._neighbours and level > self.full_depth:
             self._neighbours[level] = self._neighbours_from_parents(level)
+        # a level that holds every cell of each cloud has the neighbours of any other such level
+        full = self.num_nodes(level) == self.batch_size << (3 * level)
+        shared = (level, self.batch_size, str(self.device))
+        if level not in self._neighbours and full and shared in _FULL_NEIGHBOURS:
+            self._neighbours[level] = _FULL_NEIGHBOURS[shared]
         if level not in self._neighbours:
             xyz = self.coords(level)
             offsets = _OFFSETS.to(self.device)
@@ -257,6 +269,8 @@ class Octree:
                 batch = self.batch_of(level)[:, None].expand(-1, 27)
                 idx = self.lookup(level, xyz[:, None, :] + offsets[None], batch)
             self._neighbours[level] = torch.where(idx < 0, xyz.shape[0], idx.long())
+            if full and len(_FULL_NEIGHBOURS) < _FULL_NEIGHBOURS_KEPT:
+                _FULL_NEIGHBOURS[shared] = self._neighbours[level]
         return self._neighbours[level]
 
     def _neighbours_from_parents(self, level: int) -> Tensor:
@@ -265,6 +279,9 @@ class Octree:
         table of the level's cells is built (filling it was most of the time at the fine levels
         of small clouds)."""
         above = self.neighbours(level - 1)  # (m, 27), m where missing
+        if self.device.type == "cpu" and native.available():  # one pass of C instead of some ten ops
+            return native.child_neighbours(self.keys[level], self.parent[level], above, self.children[level - 1],
+                                           _PARENT_OFFSET, _PARENT_OCTANT)
         octant = self.keys[level] & 7
         offset, child = _PARENT_OFFSET.to(self.device)[octant], _PARENT_OCTANT.to(self.device)[octant]
         holder = above.index_select(0, self.parent[level]).gather(1, offset)  # (n, 27) node at level - 1, or m

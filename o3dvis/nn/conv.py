@@ -115,9 +115,7 @@ class OctreeDownsample(_GatherMatmul):
         super().__init__(8, in_channels, out_channels)
 
     def forward(self, x: Tensor, octree: Octree, level: int, weight: Tensor | None = None) -> Tensor:
-        children = octree.children[level - 1]
-        children = torch.where(children < 0, torch.full_like(children, x.shape[0]), children)
-        return self.gather_matmul(_pad(x), children, weight)
+        return self.gather_matmul(_pad(x), octree.child_rows(level - 1), weight)
 
 
 class OctreeUpsample(_GatherMatmul):
@@ -133,7 +131,7 @@ class OctreeUpsample(_GatherMatmul):
     def forward(self, x: Tensor, octree: Octree, level: int, weight: Tensor | None = None) -> Tensor:
         weight = self.weight if weight is None else weight
         per_octant = (x @ weight).view(x.shape[0] * 8, self.out_channels // 8)
-        return gather_rows(per_octant, octree.parent[level + 1] * 8 + (octree.keys[level + 1] & 7))
+        return gather_rows(per_octant, octree.octant_rows(level + 1))
 
 
 class ConvBnRelu(nn.Module):

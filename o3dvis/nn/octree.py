@@ -202,9 +202,26 @@ class Octree:
             self.children.append(children)
         self._neighbours: dict[int, Tensor] = {}
         self._tables: dict[int, Tensor] = {}
+        self._child_rows: dict[int, Tensor] = {}
+        self._octant_rows: dict[int, Tensor] = {}
 
     def num_nodes(self, level: int) -> int:
         return self.keys[level].shape[0]
+
+    def child_rows(self, level: int) -> Tensor:
+        """(n, 8) the children of the nodes of ``level``, ``num_nodes(level + 1)`` where empty: rows of
+        the finer level's features padded with one row of zeros (what a down-sampling gathers)."""
+        if level not in self._child_rows:
+            children = self.children[level]
+            self._child_rows[level] = torch.where(children < 0, self.num_nodes(level + 1), children)
+        return self._child_rows[level]
+
+    def octant_rows(self, level: int) -> Tensor:
+        """(n,) ``8 * parent + octant`` of each node of ``level``: its row among the eight octants of
+        each node of ``level - 1`` (what an up-sampling gathers)."""
+        if level not in self._octant_rows:
+            self._octant_rows[level] = self.parent[level] * 8 + (self.keys[level] & 7)
+        return self._octant_rows[level]
 
     def coords(self, level: int) -> Tensor:
         """Integer (x, y, z) of the nodes of ``level``."""

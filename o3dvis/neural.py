@@ -35,10 +35,11 @@ _NORMALS_MODEL = "normals"
 _SCENE_MODEL = "scene"
 _SMALL_MODEL = "small"
 # the clouds a small network answers (points only): fewer points than this. The shipped one, on a
-# depth-6 octree, measured 0.3-0.4 points above the default at 2 k points and level with it or
-# above at 3 k (below it at 4 k), on the validation meshes; it encodes 2 k points in two thirds of the
-# default's time on one thread (a drop-in call on two threads is 10-15 % faster)
-_SMALL_MAX_POINTS = 4000
+# depth-6 octree, measured on the validation meshes (clean / 1 % / 2 % noise) +0.0 / +0.1 / +0.7
+# points against the default at 4 k points, -0.1 / -0.0 / +0.7 at 5 k and -0.3 / -0.2 / +0.5 at 6 k,
+# hence a bound between those; encode + one query of 5 k points take two thirds of the default's
+# time on one thread
+_SMALL_MAX_POINTS = 5500
 _FLAT_TOL = 1e-6
 """A cloud is flat along a direction when no point lies farther from its mean along it than this
 many bounding-box diagonals: below what the network's float32 coordinates (about 2^-23 of the box)
@@ -147,7 +148,7 @@ class NeuralVisibility:
             cameras inside a cloud's bounding box (rooms, streets, scans);
             None: ``network`` answers them too.
         small_network: optional network (without normals) that encodes the
-            clouds of fewer than 4 000 points in ``network``'s stead (the
+            clouds of fewer than 5 500 points in ``network``'s stead (the
             shipped one, on a coarser octree, is faster there and as accurate).
         device: torch device to run on (default: the network's device).
         chunk_size: rows (views x points) per MLP call; bounds the memory of queries.
@@ -208,7 +209,7 @@ class NeuralVisibility:
         one, is loaded too and used for clouds that have normals, the shipped
         ``"scene"`` model, when there is one, for cameras inside a cloud's
         bounding box, and the shipped ``"small"`` model, when there is one, for
-        clouds of fewer than 4 000 points without normals.
+        clouds of fewer than 5 500 points without normals.
 
         Args:
             name: model name in the model card, or a ``.safetensors`` path.

@@ -553,14 +553,14 @@ def test_select_visible_keeps_colours_and_normals(vis, pcd, points):
 
 
 def test_small_clouds_without_normals_go_to_the_small_model(network, points):
-    """Under 4 000 points, a cloud without normals is encoded by the small network (the shipped one
+    """Under 5 500 points, a cloud without normals is encoded by the small network (the shipped one
     on a depth-6 octree, loaded by pretrained()); larger ones, and clouds with normals, are not."""
     torch.manual_seed(6)
     small = VisibilityNetwork(NetworkConfig(**SMALL))
     normals_net = VisibilityNetwork(NetworkConfig(**SMALL, use_normals=True))
     vis = o3dvis.NeuralVisibility(network, normals_net, small_network=small)
     rng = np.random.default_rng(0)
-    few, many = rng.normal(size=(3999, 3)), rng.normal(size=(4000, 3))
+    few, many = rng.normal(size=(5499, 3)), rng.normal(size=(5500, 3))
     assert vis.encode(few).network is small and vis.encode(many).network is network
     assert vis.encode(few, normals=few).network is normals_net
     assert "small model" in repr(vis) and small in vis.networks()

@@ -7,7 +7,8 @@ on a shared machine it counts only the time this thread ran, which wall-clock ti
 stages: the whole ``encode`` (normalisation, Morton order, flat-hull test, noise cues, octree, U-Net,
 projection), the network's ``encode`` alone, the octree with its neighbour tables, the U-Net on a
 built octree, one ``query``; and the multiply-adds of the U-Net's matrix products. The network is
-the one that encodes a cloud of that size.
+the one that encodes a cloud of that size, its stages timed with the products in the dtype that
+``encode`` gives them (bfloat16 on a CPU with native bfloat16 dot products).
 """
 
 import argparse
@@ -20,7 +21,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from o3dvis.nn.conv import products_in  # noqa: E402
 from o3dvis.nn.octree import morton_order, normalize_points  # noqa: E402
+from o3dvis.nn.predictor import resolve_precision  # noqa: E402
 from o3dvis.pretrained import shared_pretrained  # noqa: E402
 from o3dvis.training.speed import bench_cloud  # noqa: E402
 
@@ -58,7 +61,7 @@ def profile(points: int, repeats: int) -> dict:
             tree.neighbours(level)
         return tree
 
-    with torch.no_grad():
+    with torch.no_grad(), products_in(resolve_precision(vis.precision, vis.device)):
         tree = octree()
         noise = network.cloud_noise(normalised, ordered=True) if network.config.noise_cues else None
         signal = network._signal(normalised, torch.zeros(points, dtype=torch.long), tree, None, noise)

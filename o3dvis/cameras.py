@@ -136,9 +136,18 @@ def as_vectors(value, name: str = "camera") -> Tensor:
         raise ValueError(f"{name} must have shape (3,) or (V, 3), got {tuple(np.shape(value))}")
     if tensor.shape[0] == 0:
         raise ValueError(f"{name} holds no vectors (shape (0, 3))")
-    if not torch.isfinite(tensor.detach()).all():
+    if not all_finite(tensor.detach()):
         raise ValueError(f"{name} has NaN or Inf coordinates")
     return tensor
+
+
+def all_finite(tensor: Tensor) -> bool:
+    """Whether every entry of ``tensor`` is finite.
+
+    Its sum is finite only when every entry is (a NaN or an infinity makes it NaN or
+    infinite), so one reduction settles most clouds; only a sum that overflows, or a
+    cloud that is not finite, is checked entry by entry."""
+    return bool(torch.isfinite(tensor.sum())) or bool(torch.isfinite(tensor).all())
 
 
 def as_camera_location(camera, name: str = "camera_location") -> np.ndarray:

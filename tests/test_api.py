@@ -12,7 +12,7 @@ import torch
 
 import o3dvis
 from o3dvis import models
-from o3dvis.cameras import as_views, viewpoints_around
+from o3dvis.cameras import all_finite, as_views, viewpoints_around
 from o3dvis.cli import build_parser
 from o3dvis.cli._common import split_vectors
 from o3dvis.models import file_sha256
@@ -418,6 +418,16 @@ BAD_CAMERAS = [
     ("0,0,5", TypeError, "real numbers"),
     (torch.tensor([1j, 0, 5]), TypeError, "real numbers"),
 ]
+
+
+def test_all_finite_is_exact_where_the_sum_overflows_or_cancels():
+    """The sum decides only when it is finite: finite entries whose sum overflows still pass, and
+    +inf beside -inf (a NaN sum) or a NaN fail."""
+    huge = torch.full((4, 3), 1e308, dtype=torch.float64)
+    assert not torch.isfinite(huge.sum()) and all_finite(huge)
+    assert all_finite(torch.zeros(5, 3)) and all_finite(torch.tensor([[1.0, -2.0, 3.0]]))
+    for bad in ([np.inf, -np.inf, 0.0], [np.nan, 1.0, 2.0], [1e308, 1e308, np.inf]):
+        assert not all_finite(torch.tensor([bad], dtype=torch.float64))
 
 
 @pytest.mark.parametrize("camera, error, message", BAD_CAMERAS)

@@ -31,8 +31,9 @@ from .geometry import fibonacci_sphere
 if TYPE_CHECKING:
     import open3d as o3d
 
-__all__ = ["Frustum", "Views", "as_views", "as_vectors", "as_camera_location", "real_array", "frustum_from_pinhole", "intrinsic_matrix",
-           "View", "make_view", "look_at", "fibonacci_sphere", "viewpoints_around", "camera_location_of"]
+__all__ = ["Frustum", "Views", "as_views", "as_vectors", "all_finite", "as_camera_location", "real_array",
+           "frustum_from_pinhole", "intrinsic_matrix", "View", "make_view", "look_at", "fibonacci_sphere",
+           "viewpoints_around", "camera_location_of"]
 
 _ORTHONORMAL_TOL = 1e-4
 

@@ -14,6 +14,7 @@ from collections.abc import Iterator
 import torch
 from torch import Tensor, nn
 
+from ..threads import torch_threads
 from .octree import Octree
 
 __all__ = ["OctreeConv", "OctreeDownsample", "OctreeUpsample", "ConvBnRelu", "ResBlock", "gather_rows",
@@ -43,6 +44,14 @@ _CHUNK_ELEMENTS = 1 << 20
 """Gathered values per chunk of a convolution (4 MB in float32): temporaries this size are reused
 from the heap by the allocator and stay in cache, where larger ones are mapped and page-faulted
 afresh on every call (measured: that was half the encode time at 200k points)."""
+
+
+_SERIAL_ROWS = 2048
+"""Matrix products of fewer rows than this run on one thread. With several threads the CPU kernels
+split such products along their inner dimension, which changes the order of the sums with the
+thread count; in bfloat16 the rounded outputs then differ, and the answers for one cloud would
+depend on how many threads the machine's load left free (measured with 2 threads: products of up
+to 1 000 rows split)."""
 
 
 def gather_rows(x: Tensor, index: Tensor) -> Tensor:
@@ -79,7 +88,11 @@ class _GatherMatmul(nn.Module):
             weight = self.weight if dtype == self.weight.dtype else self._weight_in(dtype)
         x = x.to(weight.dtype)
         step = max(1, _CHUNK_ELEMENTS // (index.shape[1] * x.shape[1]))
-        parts = [gather_rows(x, index[a:a + step]).flatten(1) @ weight for a in range(0, len(index), step)]
+        parts = []
+        for a in range(0, len(index), step):
+            rows = gather_rows(x, index[a:a + step]).flatten(1)
+            with torch_threads(1) if len(rows) < _SERIAL_ROWS else contextlib.nullcontext():
+                parts.append(rows @ weight)
         out = parts[0] if len(parts) == 1 else torch.cat(parts)
         return out.to(out_dtype)
 

@@ -23,7 +23,7 @@ from .models import available_models, load_model, torch_device
 from .nn.calibration import calibration_terms
 from .nn.network import VisibilityNetwork
 from .nn.noise import noise_cues
-from .nn.octree import bounding_box, morton_order, normalize_points
+from .nn.octree import MORTON_DEPTH, bounding_box, coarser_keys, morton_sort, normalize_points
 from .nn.conv import products_in
 from .nn.predictor import resolve_precision
 from .orientation import LAYER_NEIGHBOURS, nearest_neighbours, oriented_planes, surface_variation
@@ -368,7 +368,7 @@ class NeuralVisibility:
         normalized, center, scale = _normalize(points, (lo, hi))
         hull = _flat_hull(normalized, ((hi - lo) / scale).norm())  # float64: flat to the last bits
         normalized = normalized.float()
-        order = morton_order(normalized)
+        keys, order = morton_sort(normalized)
         rank = torch.empty_like(order)
         rank[order] = torch.arange(len(order), device=order.device)
         normalized = normalized.index_select(0, order)
@@ -381,7 +381,7 @@ class NeuralVisibility:
             scene = functools.partial(self._field, self.scene_network, None, *frame)
         # a flat cloud hides nothing from off its plane: one pass is exact there
         two_pass = estimate and hull is None and len(normalized) >= _ESTIMATE_MIN_POINTS
-        shared = {} if two_pass else None
+        shared = {"keys": keys}
         field = self._field(network, unit, *frame, scene=scene, shared=shared)
         if two_pass:
             normals = first_pass_normals(field, points.detach().cpu().double().numpy())
@@ -396,7 +396,8 @@ class NeuralVisibility:
         """The field of ``network`` over the normalised, Morton-ordered points of :meth:`encode`.
 
         ``shared``: a dict that the passes over the same points fill and reuse: their noise cues
-        and their octree per pair of depths (None: nothing kept)."""
+        and their octree per pair of depths, from the points' sorted Morton keys at
+        :data:`~o3dvis.nn.octree.MORTON_DEPTH` under ``"keys"`` where given (None: nothing kept)."""
         calibrated, fused = network.calibration is not None, network.fusion is not None
         precision = resolve_precision(self.precision, self.device)
         shared = {} if shared is None else shared
@@ -409,7 +410,9 @@ class NeuralVisibility:
             depths = (network.config.depth, network.config.full_depth)
             octree = shared.get(depths)
             if octree is None:
-                octree = shared[depths] = network.octree(normalized)
+                keys = shared.get("keys")
+                keys = None if keys is None else coarser_keys(keys, MORTON_DEPTH, network.config.depth)
+                octree = shared[depths] = network.octree(normalized, keys=keys)
             features = network.encode_leaves(normalized, normals=unit, noise=noise, octree=octree)
             rotated = [self._rotated(network, normalized, unit, r) for r in self.rotations[1:]]
         calibration = (network.calibration.affine(calibration_terms(noise[0], len(normalized)))

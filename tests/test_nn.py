@@ -74,6 +74,28 @@ def test_octree_of_morton_ordered_points_equals_the_sorted_build():
     assert torch.equal(shuffled.point_leaf[order], ordered.point_leaf)
 
 
+def test_the_morton_sort_keys_build_the_same_octree():
+    # the keys of the finest grid, shifted, are every coarser grid's: the octree built from them
+    # (as an encode builds it) equals the one that computes its own, up to points on the box's faces
+    from o3dvis.nn.octree import MORTON_DEPTH, cell_keys, coarser_keys, morton_sort
+
+    torch.manual_seed(3)
+    pts = torch.cat([torch.rand(3000, 3) * 2 - 1, torch.tensor([[1.0, -1.0, 1.0], [-1.0, 1.0, 0.0]])])
+    keys, order = morton_sort(pts)
+    assert torch.equal(order, morton_order(pts)) and torch.equal(keys, cell_keys(pts, MORTON_DEPTH)[order])
+    ordered = pts[order]
+    for depth in (3, 6, 7):
+        coarse = coarser_keys(keys, MORTON_DEPTH, depth)
+        assert torch.equal(coarse, cell_keys(ordered, depth))
+        given, own = Octree(ordered, depth=depth, full_depth=2, keys=coarse), Octree(ordered, depth=depth, full_depth=2)
+        assert all(torch.equal(a, b) for a, b in zip(given.keys, own.keys))
+        assert torch.equal(given.point_leaf, own.point_leaf)
+    with pytest.raises(ValueError, match="coarser <= depth"):
+        coarser_keys(keys, 6, 7)
+    with pytest.raises(ValueError, match="keys must have shape"):
+        Octree(ordered, depth=6, keys=keys[:10])
+
+
 def _cell_lookup_neighbours(pts: torch.Tensor, level: int, batch: torch.Tensor | None = None,
                             depth: int = 5) -> tuple[torch.Tensor, int]:
     """The neighbours of ``level`` looked up among its cells, as levels up to the full depth are

@@ -161,9 +161,11 @@ class VisibilityNetwork(nn.Module):
             return noise_cues(points, ordered)[None]
         return torch.stack([noise_cues(points[batch == b]) for b in range(batch_size)])
 
-    def octree(self, points: Tensor, batch: Tensor | None = None, batch_size: int | None = None) -> Octree:
-        """The octree of normalised points at this network's depths (what :meth:`encode` builds)."""
-        return Octree(points, batch, self.config.depth, self.config.full_depth, batch_size)
+    def octree(self, points: Tensor, batch: Tensor | None = None, batch_size: int | None = None,
+               keys: Tensor | None = None) -> Octree:
+        """The octree of normalised points at this network's depths (what :meth:`encode` builds);
+        ``keys``: the points' cell keys at this network's depth where known (see :class:`Octree`)."""
+        return Octree(points, batch, self.config.depth, self.config.full_depth, batch_size, keys)
 
     def encode(self, points: Tensor, batch: Tensor | None = None, normals: Tensor | None = None,
                batch_size: int | None = None, noise: Tensor | None = None) -> Tensor:

@@ -14,8 +14,8 @@ from torch import Tensor
 
 from . import native
 
-__all__ = ["Octree", "bounding_box", "cell_keys", "grid_cells", "morton_encode", "morton_decode", "morton_order",
-           "normalize_points"]
+__all__ = ["Octree", "bounding_box", "cell_keys", "coarser_keys", "grid_cells", "morton_encode", "morton_decode",
+           "morton_order", "morton_sort", "normalize_points", "MORTON_DEPTH"]
 
 # The most cells (all clouds of the batch, a border of one cell included) of a level whose node
 # lookups go through a dense table; larger levels search their sorted keys.
@@ -127,6 +127,10 @@ def grid_cells(points: Tensor, depth: int) -> Tensor:
     return (points.detach() + 1).mul_(res / 2).long().clamp_(0, res - 1)  # truncation = floor here
 
 
+MORTON_DEPTH = 21
+"""The grid of the Morton order (2^21 cells a side, 63-bit keys): the finest one the keys hold."""
+
+
 def cell_keys(points: Tensor, depth: int) -> Tensor:
     """(N,) Morton keys of the cells of a ``2^depth`` grid over [-1, 1]^3 holding ``points``:
     ``morton_encode(grid_cells(points, depth), depth)``, in one pass of C
@@ -137,7 +141,7 @@ def cell_keys(points: Tensor, depth: int) -> Tensor:
     return morton_encode(grid_cells(points, depth), depth)
 
 
-def morton_order(points: Tensor, depth: int = 21) -> Tensor:
+def morton_order(points: Tensor, depth: int = MORTON_DEPTH) -> Tensor:
     """The permutation that sorts normalised points along the Morton curve of a ``2^depth`` grid.
 
     Points close in space end up close in memory, which keeps the per-view
@@ -145,7 +149,22 @@ def morton_order(points: Tensor, depth: int = 21) -> Tensor:
     finest, the order is also that of every coarser grid (an octree's levels)
     and of the noise cues' runs (:func:`o3dvis.nn.noise.noise_cues`).
     """
-    return torch.argsort(cell_keys(points, depth))
+    return morton_sort(points, depth)[1]
+
+
+def morton_sort(points: Tensor, depth: int = MORTON_DEPTH) -> tuple[Tensor, Tensor]:
+    """:func:`morton_order` with the keys it sorts: ``(sorted cell keys, permutation)``, the keys
+    of the ``2^depth`` grid (:func:`cell_keys`), from which :func:`coarser_keys` gives any coarser
+    grid's without another pass over the points."""
+    return torch.sort(cell_keys(points, depth))
+
+
+def coarser_keys(keys: Tensor, depth: int, coarser: int) -> Tensor:
+    """The cell keys of a ``2^coarser`` grid from those of the ``2^depth`` grid (``coarser <= depth``):
+    a Morton key's leading bits are its ancestors' keys, so the same as :func:`cell_keys` there."""
+    if not 0 <= coarser <= depth:
+        raise ValueError(f"need 0 <= coarser <= depth, got {coarser} and {depth}")
+    return keys >> (3 * (depth - coarser))
 
 
 def _bordered_cell(width: int, batch: Tensor | int, xyz: Tensor) -> Tensor:
@@ -165,9 +184,13 @@ class Octree:
     """
 
     def __init__(self, points: Tensor, batch: Tensor | None = None, depth: int = 7,
-                 full_depth: int = 2, batch_size: int | None = None):
+                 full_depth: int = 2, batch_size: int | None = None, keys: Tensor | None = None):
+        """``keys``: the points' :func:`cell_keys` at ``depth`` where known already (e.g. by
+        :func:`coarser_keys` of :func:`morton_sort`'s), else None to compute them."""
         if points.ndim != 2 or points.shape[1] != 3:
             raise ValueError(f"points must have shape (N, 3), got {tuple(points.shape)}")
+        if keys is not None and keys.shape != points.shape[:1]:
+            raise ValueError(f"keys must have shape ({points.shape[0]},), got {tuple(keys.shape)}")
         if not 1 <= full_depth < depth <= 16:
             raise ValueError(f"need 1 <= full_depth < depth <= 16, got {full_depth}, {depth}")
         device = points.device
@@ -177,7 +200,7 @@ class Octree:
         self.batch_size = int(batch.max().item()) + 1 if batch_size is None else batch_size
         self.device = device
 
-        leaf_keys = (batch.long() << (3 * depth)) | cell_keys(points, depth)
+        leaf_keys = (batch.long() << (3 * depth)) | (cell_keys(points, depth) if keys is None else keys)
         keys: list[Tensor] = [torch.empty(0)] * (depth + 1)
         if bool((leaf_keys[1:] >= leaf_keys[:-1]).all()):  # points in Morton order: no sort needed
             keys[depth], self.point_leaf = torch.unique_consecutive(leaf_keys, return_inverse=True)

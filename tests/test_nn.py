@@ -76,7 +76,7 @@ def test_octree_of_morton_ordered_points_equals_the_sorted_build():
 
 def test_the_morton_sort_keys_build_the_same_octree():
     # the keys of the finest grid, shifted, are every coarser grid's: the octree built from them
-    # (as an encode builds it) equals the one that computes its own, up to points on the box's faces
+    # (as an encode builds it) equals the one that computes its own, points on the box's faces included
     from o3dvis.nn.octree import MORTON_DEPTH, cell_keys, coarser_keys, morton_sort
 
     torch.manual_seed(3)

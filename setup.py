@@ -1,7 +1,7 @@
 """Builds the package's C libraries (see ``o3dvis/clib.py``): each for a baseline CPU and, on
-x86-64, for AVX2 with FMA and for AVX-512 with bfloat16 dot products. They are optional: where
-one cannot be built (no C compiler, or one that lacks an instruction set's flags) the install
-goes on, and the package runs its Python fallbacks. The rest of the metadata is in pyproject.toml.
+x86-64, for AVX2 with FMA, for AVX-512 with bfloat16 dot products and for AMX tiles. They are
+optional: where one cannot be built (no C compiler, or one that lacks an instruction set's flags)
+the install goes on, and the package runs its Python fallbacks. The rest of the metadata is in pyproject.toml.
 """
 
 import runpy

@@ -2,9 +2,9 @@
 beside their Python modules and called through ``ctypes``, which releases the GIL.
 
 Each library is built in variants, one per instruction set (:data:`VARIANTS`): a baseline, and on
-x86-64 one for AVX2 with FMA and one for AVX-512 with bfloat16 dot products. At import the widest
-variant built that this CPU runs is loaded; nothing is compiled at run time and nothing outside the
-package is loaded. ``O3DVIS_NATIVE=0`` in the environment turns the libraries off and
+x86-64 one for AVX2 with FMA, one for AVX-512 with bfloat16 dot products and one that adds AMX
+tiles. At import the widest variant built that this CPU runs is loaded; nothing is compiled at run
+time and nothing outside the package is loaded. ``O3DVIS_NATIVE=0`` in the environment turns the libraries off and
 ``O3DVIS_NATIVE=<variant>`` picks one. Where none is loaded (no C compiler at install time), the
 callers run their Python fallbacks, with one warning a process.
 
@@ -44,6 +44,8 @@ VARIANTS: dict[str, Variant] = {
     "avx2": Variant(("-mavx2", "-mfma"), frozenset({"avx2", "fma"})),
     "avx512bf16": Variant(("-mavx2", "-mfma", "-mavx512f", "-mavx512bf16"),
                           frozenset({"avx2", "fma", "avx512f", "avx512_bf16"})),
+    "amx": Variant(("-mavx2", "-mfma", "-mavx512f", "-mavx512bf16", "-mamx-tile", "-mamx-bf16"),
+                   frozenset({"avx2", "fma", "avx512f", "avx512_bf16", "amx_tile", "amx_bf16"})),
 }
 X86_64_ARGS = ("-march=x86-64", "-mtune=generic")
 # what torch's CPU capability implies, where /proc/cpuinfo is not there to ask

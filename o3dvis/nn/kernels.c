@@ -11,7 +11,8 @@
  * with the features) compute in a dozen eager torch ops, each a pass over
  * memory; and they run the predictor's MLP on them while they are in the L1
  * cache (VisibilityPredictor.margin_from_inputs), in bfloat16 with the CPU's
- * bfloat16 dot products, or in float32. o3dvis_surfel_zbuffer tests each point
+ * bfloat16 dot products (the hidden layers on the AMX tiles where the build and
+ * the operating system allow them), or in float32. o3dvis_surfel_zbuffer tests each point
  * against a z-buffer of discs (o3dvis/nn/zbuffer.py) and o3dvis_fuse_margin
  * runs the fusion of its answer with the margin (o3dvis/nn/fusion.py) in one
  * pass. And for the encoding, o3dvis_morton_keys computes the octree's Morton
@@ -43,6 +44,9 @@
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
+#ifdef __AVX512F__
+#include <immintrin.h>
+#endif
 
 #define BLOCK 64          /* points per block: the block's buffers stay in L1 */
 #define MAX_SCALES 7      /* depth-buffer scales */
@@ -644,7 +648,7 @@ static void gather_patches(const struct view *v, const int64_t *idx, int m, floa
 static void block_inputs(const struct view *v, int64_t b0, int m, float *in) {
     const int ne = 3 + 6 * v->frequencies, nc = 9 * v->scales, scales = v->scales;
     float *cue = in + ne * BLOCK, dep[BLOCK], kd[BLOCK], k[BLOCK], px[BLOCK], py[BLOCK], pz[BLOCK];
-    int64_t lf[BLOCK];
+    int32_t lf[BLOCK]; /* leaves number fewer than points (MAX_POINTS): 32 bits, for vector gathers */
     const float empty = v->empty; /* a local: the stores below could otherwise change it */
     int64_t idx[BLOCK];
     for (int b = 0; b < m; b++) idx[b] = v->rows ? v->rows[b0 + b] : v->start + b0 + b;
@@ -696,7 +700,7 @@ static void block_inputs(const struct view *v, int64_t b0, int m, float *in) {
     if (v->leaf) { /* each point's leaf and coordinates, for the features below */
         for (int b = 0; b < m; b++) {
             const float *q = v->points + 3 * idx[b];
-            lf[b] = v->leaf[idx[b]], px[b] = q[0], py[b] = q[1], pz[b] = q[2];
+            lf[b] = (int32_t)v->leaf[idx[b]], px[b] = q[0], py[b] = q[1], pz[b] = q[2];
         }
     }
     for (int j = 0; j < ne; j++) {
@@ -704,7 +708,17 @@ static void block_inputs(const struct view *v, int64_t b0, int m, float *in) {
         float *e = in + j * BLOCK;
         if (v->leaf) { /* the leaf's value plus the point's term, in the order of torch's addmm_ */
             const float *w = v->point_weight + 3 * j;
-            for (int b = 0; b < m; b++) e[b] *= p[lf[b]] + (w[0] * px[b] + w[1] * py[b] + w[2] * pz[b]);
+            int b = 0;
+#ifdef __AVX512F__ /* the same, 16 points a step (compilers tuned for any x86-64 do not gather) */
+            const __m512 w0 = _mm512_set1_ps(w[0]), w1 = _mm512_set1_ps(w[1]), w2 = _mm512_set1_ps(w[2]);
+            for (; b + 16 <= m; b += 16) {
+                __m512 t = _mm512_add_ps(_mm512_mul_ps(w0, _mm512_loadu_ps(px + b)), _mm512_mul_ps(w1, _mm512_loadu_ps(py + b)));
+                t = _mm512_add_ps(_mm512_i32gather_ps(_mm512_loadu_si512(lf + b), p, 4),
+                                  _mm512_add_ps(t, _mm512_mul_ps(w2, _mm512_loadu_ps(pz + b))));
+                _mm512_storeu_ps(e + b, _mm512_mul_ps(_mm512_loadu_ps(e + b), t));
+            }
+#endif
+            for (; b < m; b++) e[b] *= p[lf[b]] + (w[0] * px[b] + w[1] * py[b] + w[2] * pz[b]);
         } else if (v->rows) {
             for (int b = 0; b < m; b++) e[b] *= p[idx[b]];
         } else { /* the next block's features fetched now: the CPU's own prefetcher follows
@@ -732,7 +746,6 @@ int o3dvis_has_view_margin_bf16(void) {
 }
 
 #ifdef __AVX512BF16__
-#include <immintrin.h>
 
 /* x: k rows of 16 values (row j at rows + j * ld) -> (k + 1) / 2 rows of 16 pairs of bfloat16,
    rows 2i and 2i + 1 in pair i (a zero after an odd last row) */
@@ -764,6 +777,109 @@ static void dense_relu(const uint32_t *x, int pairs, const uint32_t *w, const fl
         for (int j = 0; j < 16; j++) _mm512_storeu_ps(y + 16 * (o0 + j), _mm512_max_ps(acc[j], _mm512_setzero_ps()));
     }
 }
+
+/* The last layer's one output for 16 points, rounded to bfloat16 as torch rounds it: x as pair_rows
+   writes it, pairs rows; w: pairs pairs of bfloat16; the first min(count, 16) margins to out */
+static void last_margins(const uint32_t *x, int pairs, const uint32_t *w, float bias, int count, float *out) {
+    __m512 acc = _mm512_set1_ps(bias);
+    for (int i = 0; i < pairs; i++)
+        acc = _mm512_dpbf16_ps(acc, (__m512bh)_mm512_loadu_si512(x + 16 * i), (__m512bh)_mm512_set1_epi32((int)w[i]));
+    float margin[16];
+    _mm512_storeu_ps(margin, acc);
+    for (int l = 0; l < 16 && l < count; l++) out[l] = float_of((uint32_t)bf16_of(margin[l]) << 16);
+}
+#endif
+
+#ifdef __AMX_BF16__
+#include <sys/syscall.h>
+#include <unistd.h>
+
+#define ROUND16(k) (((k) + 15) / 16 * 16)
+
+/* Whether the operating system lets this process use the AMX tiles (Linux grants their state to a
+   process that asks; kernels before 5.16 cannot): asked once a process, threads that race here
+   ask twice and get the same answer. */
+static int tiles_granted(void) {
+    static int granted = -1;
+    if (__atomic_load_n(&granted, __ATOMIC_RELAXED) < 0)
+        __atomic_store_n(&granted, syscall(SYS_arch_prctl, 0x1023 /* ARCH_REQ_XCOMP_PERM */,
+                                           18 /* XFEATURE_XTILEDATA */) == 0, __ATOMIC_RELAXED);
+    return __atomic_load_n(&granted, __ATOMIC_RELAXED);
+}
+
+/* Where the tiles' path keeps its work (see tile_work): a group's inputs as pair_rows writes them,
+   up to MAX_INPUTS / 2 pairs, and its outputs, up to MAX_WIDTH rows of 16 */
+#define GROUP_PAIRS (MAX_INPUTS / 2 * 16)
+#define GROUP_ROWS (MAX_WIDTH * 16)
+#define GROUPS_SIDE_BY_SIDE (BLOCK / 16)
+
+/* The tiles' path's memory: the hidden layers' packed weights (pairs, outputs) and biases as the
+   tiles read them, each layer's (outputs, pairs rounded up to 16) pairs of bfloat16, padding zero,
+   then its (outputs, 16) biases, each repeated for 16 points; then, for each of a block's groups
+   of 16 points, GROUP_PAIRS inputs and GROUP_ROWS outputs. NULL when out of memory. */
+static uint32_t *tile_work(int32_t layers, const int32_t *sizes, const uint32_t *w, const float *bias) {
+    size_t total = (size_t)GROUPS_SIDE_BY_SIDE * (GROUP_PAIRS + GROUP_ROWS);
+    for (int l = 0; l < layers; l++) total += (size_t)sizes[l + 1] * (ROUND16(sizes[l] / 2) + 16);
+    uint32_t *work = calloc(total, sizeof *work), *t = work;
+    if (work == NULL) return NULL;
+    for (int l = 0; l < layers; l++) {
+        const int pairs = sizes[l] / 2, kp = ROUND16(pairs), outputs = sizes[l + 1];
+        for (int i = 0; i < pairs; i++)
+            for (int o = 0; o < outputs; o++) t[o * kp + i] = w[i * outputs + o];
+        t += outputs * kp;
+        for (int o = 0; o < outputs; o++)
+            for (int p = 0; p < 16; p++) t[16 * o + p] = bits_of(bias[o]);
+        w += pairs * outputs, t += 16 * outputs, bias += outputs;
+    }
+    return work;
+}
+
+/* Tiles 0-3: the sums of 16 outputs x 16 points of four groups (float32); 4: 16 outputs x 16 pairs
+   of weights; 5 and 6: 16 pairs of inputs x 16 points. Each 16 rows of 64 bytes. */
+__attribute__((target("amx-tile"))) static void configure_tiles(void) {
+    struct { uint8_t palette, start_row, reserved[14]; uint16_t colsb[16]; uint8_t rows[16]; } config = {1, 0, {0},
+                                                                                                     {0}, {0}};
+    for (int i = 0; i < 7; i++) config.colsb[i] = 64, config.rows[i] = 16;
+    _tile_loadconfig(&config);
+}
+
+__attribute__((target("amx-tile"))) static void release_tiles(void) { _tile_release(); }
+
+/* dense_relu for the four groups of a block side by side on the tiles, each sum in the order of
+   dense_relu's (a pair's two products added as the tiles add them): x, y: the groups' inputs
+   (zero from their pairs up to a multiple of 16) and outputs in tile_work; t: the layer's. */
+__attribute__((target("amx-tile,amx-bf16")))
+static void dense_relu_tiles(const uint32_t *x, int pairs, const uint32_t *t, int outputs, float *y) {
+    const int kp = ROUND16(pairs);
+    const int64_t xg = GROUP_PAIRS + GROUP_ROWS; /* from a group's inputs or outputs to the next's */
+    for (int o0 = 0; o0 < outputs; o0 += 16) {
+        const uint32_t *bias = t + outputs * kp + 16 * o0;
+        _tile_loadd(0, bias, 64);
+        _tile_loadd(1, bias, 64);
+        _tile_loadd(2, bias, 64);
+        _tile_loadd(3, bias, 64);
+        for (int k0 = 0; k0 < kp; k0 += 16) {
+            _tile_loadd(4, t + o0 * kp + k0, 4 * kp);
+            _tile_loadd(5, x + 16 * k0, 64);
+            _tile_dpbf16ps(0, 4, 5);
+            _tile_loadd(6, x + xg + 16 * k0, 64);
+            _tile_dpbf16ps(1, 4, 6);
+            _tile_loadd(5, x + 2 * xg + 16 * k0, 64);
+            _tile_dpbf16ps(2, 4, 5);
+            _tile_loadd(6, x + 3 * xg + 16 * k0, 64);
+            _tile_dpbf16ps(3, 4, 6);
+        }
+        _tile_stored(0, y + 16 * o0, 64);
+        _tile_stored(1, y + xg + 16 * o0, 64);
+        _tile_stored(2, y + 2 * xg + 16 * o0, 64);
+        _tile_stored(3, y + 3 * xg + 16 * o0, 64);
+    }
+    for (int g = 0; g < GROUPS_SIDE_BY_SIDE; g++)
+        for (int o = 0; o < outputs; o++) {
+            float *row = y + g * xg + 16 * o;
+            _mm512_storeu_ps(row, _mm512_max_ps(_mm512_loadu_ps(row), _mm512_setzero_ps()));
+        }
+}
 #endif
 
 /* Writes the margins of n points for one view: the predictor's MLP (o3dvis/nn/predictor.py,
@@ -786,9 +902,40 @@ int o3dvis_view_margin_bf16(int64_t n, const struct view *v, int32_t layers, con
     if (channels < 0 || layers < 0 || sizes[0] != channels + channels % 2 || sizes[layers + 1] != 1) return -1;
     for (int l = 1; l <= layers; l++)
         if (sizes[l] < 16 || sizes[l] % 16 || sizes[l] > MAX_WIDTH) return -1;
+    const uint32_t *last = weights; /* the last layer's weights and bias */
+    const float *last_bias = biases;
+    for (int l = 0; l < layers; l++) last += sizes[l] / 2 * sizes[l + 1], last_bias += sizes[l + 1];
+#ifdef __AMX_BF16__
+    uint32_t *work = NULL; /* the hidden layers on the AMX tiles, where there are some */
+    if (layers > 0 && tiles_granted() && (work = tile_work(layers, sizes, weights, biases)) != NULL) configure_tiles();
+#endif
     for (int64_t b0 = 0; b0 < n; b0 += BLOCK) {
         const int m = n - b0 < BLOCK ? (int)(n - b0) : BLOCK;
         block_inputs(v, b0, m, in);
+#ifdef __AMX_BF16__
+        if (work != NULL) {
+            uint32_t *t = work, *xs;
+            for (int l = 0; l < layers; l++) t += sizes[l + 1] * (ROUND16(sizes[l] / 2) + 16);
+            xs = t;
+            for (int g = 0; g < GROUPS_SIDE_BY_SIDE; g++)
+                pair_rows(in + 16 * g, BLOCK, channels, xs + g * (GROUP_PAIRS + GROUP_ROWS));
+            t = work;
+            for (int l = 0; l < layers; l++) {
+                const int pairs = sizes[l] / 2;
+                float *ys = (float *)(xs + GROUP_PAIRS);
+                for (int g = 0; g < GROUPS_SIDE_BY_SIDE; g++)
+                    memset(xs + g * (GROUP_PAIRS + GROUP_ROWS) + 16 * pairs, 0, sizeof *xs * 16 * (ROUND16(pairs) - pairs));
+                dense_relu_tiles(xs, pairs, t, sizes[l + 1], ys);
+                t += sizes[l + 1] * (ROUND16(pairs) + 16);
+                for (int g = 0; g < GROUPS_SIDE_BY_SIDE; g++)
+                    pair_rows(ys + g * (GROUP_PAIRS + GROUP_ROWS), 16, sizes[l + 1], xs + g * (GROUP_PAIRS + GROUP_ROWS));
+            }
+            for (int g = 0; 16 * g < m; g++)
+                last_margins(xs + g * (GROUP_PAIRS + GROUP_ROWS), sizes[layers] / 2, last, last_bias[0],
+                             m - 16 * g, out + b0 + 16 * g);
+            continue;
+        }
+#endif
         for (int g = 0; g < m; g += 16) {
             const uint32_t *w = weights;
             const float *bias = biases;
@@ -798,15 +945,12 @@ int o3dvis_view_margin_bf16(int64_t n, const struct view *v, int32_t layers, con
                 w += sizes[l] / 2 * sizes[l + 1], bias += sizes[l + 1];
                 pair_rows(y, 16, sizes[l + 1], x);
             }
-            __m512 acc = _mm512_set1_ps(bias[0]);
-            for (int i = 0; i < sizes[layers] / 2; i++)
-                acc = _mm512_dpbf16_ps(acc, (__m512bh)_mm512_loadu_si512(x + 16 * i),
-                                       (__m512bh)_mm512_set1_epi32((int)w[i]));
-            float margin[16];
-            _mm512_storeu_ps(margin, acc);
-            for (int l = 0; l < 16 && g + l < m; l++) out[b0 + g + l] = float_of((uint32_t)bf16_of(margin[l]) << 16);
+            last_margins(x, sizes[layers] / 2, last, last_bias[0], m - g, out + b0 + g);
         }
     }
+#ifdef __AMX_BF16__
+    if (work != NULL) release_tiles(), free(work);
+#endif
     return 0;
 #else
     (void)n, (void)v, (void)layers, (void)sizes, (void)weights, (void)biases, (void)out;

@@ -5,8 +5,8 @@ CPU, and the octree's Morton keys and neighbours in one each.
 embedding times the projected features compute in some seventy eager torch
 ops, each a pass over memory, and runs the predictor's MLP on those inputs
 while they are in cache (``docs/results.md`` measures what it saves).
-It is C with no dependency, built with the package for a baseline CPU, AVX2 and
-AVX-512 with bfloat16, and called through ``ctypes`` (see :mod:`o3dvis.clib`).
+It is C with no dependency, built with the package for a baseline CPU, AVX2,
+AVX-512 with bfloat16 and AMX (the MLP's hidden layers on its tiles), and called through ``ctypes`` (see :mod:`o3dvis.clib`).
 Where it was not built, or with ``O3DVIS_NATIVE=0`` in the environment, queries
 run the torch ops instead, with a warning; gradients and CUDA always do.
 This module only checks shapes and passes pointers; the callers own the tensors.

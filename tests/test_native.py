@@ -154,6 +154,32 @@ def test_morton_keys_equal_the_torch_ones():
 
 
 @needs_kernels
+@pytest.mark.parametrize("keys", ["ties", "wide", "one byte high", "cloud", "one", "equal", "none"])
+def test_sort_keys_equals_a_stable_torch_sort(keys):
+    """The radix sort of the Morton keys: the same sorted keys and the same permutation as a stable
+    sort, ties (points in one cell) in their order, whichever bytes the keys differ in."""
+    from o3dvis.nn.octree import MORTON_DEPTH, cell_keys, morton_sort
+
+    g = torch.Generator().manual_seed(3)
+    points = _points(30_000)
+    keys = {"ties": lambda: torch.randint(0, 700, (20_000,), generator=g),
+            "wide": lambda: torch.randint(0, 2**63 - 1, (20_000,), generator=g),
+            "one byte high": lambda: torch.randint(0, 200, (5_000,), generator=g) << 48,
+            "cloud": lambda: cell_keys(points, MORTON_DEPTH),
+            "one": lambda: torch.tensor([2**63 - 1]),
+            "equal": lambda: torch.full((300,), 12345),
+            "none": lambda: torch.empty(0, dtype=torch.long)}[keys]()
+    expected = torch.sort(keys, stable=True)
+    got = native.sort_keys(keys)
+    assert torch.equal(got[0], expected.values) and torch.equal(got[1], expected.indices)
+    assert torch.equal(morton_sort(points)[1], torch.sort(cell_keys(points, MORTON_DEPTH), stable=True).indices)
+    with pytest.raises(ValueError, match="non-negative"):
+        native.sort_keys(torch.tensor([4, -1, 2]))
+    with pytest.raises(ValueError, match="keys must be"):
+        native.sort_keys(keys.int())
+
+
+@needs_kernels
 def test_projection_rejects_what_the_kernel_cannot_take():
     points = _points(500)
     with torch.inference_mode():

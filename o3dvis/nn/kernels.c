@@ -17,6 +17,7 @@
  * runs the fusion of its answer with the margin (o3dvis/nn/fusion.py) in one
  * pass. And for the encoding, o3dvis_morton_keys computes the octree's Morton
  * keys (o3dvis/nn/octree.py, cell_keys) in one pass instead of some twenty,
+ * o3dvis_sort_keys sorts them (a radix sort, faster than torch.sort),
  * o3dvis_child_neighbours a level's 3x3x3 neighbours from its parents' (Octree.neighbours)
  * in one instead of some ten, and o3dvis_cell_moments the noise cue's per-cell sums (o3dvis/nn/noise.py);
  * for oriented normals, o3dvis_fit_planes the plane fits of
@@ -185,6 +186,56 @@ void o3dvis_morton_keys(int64_t n, const float *points, int32_t depth, int64_t *
         }
         keys[i] = (int64_t)(spread_bits(cell[0]) << 2 | spread_bits(cell[1]) << 1 | spread_bits(cell[2]));
     }
+}
+
+struct keyed { int64_t key, index; };
+
+/* Sorts a[0..n) by their keys' bytes below the `digits`-th, stably: one counting pass a byte from the
+ * lowest, over the bytes that differ, between a and b (n each). Returns where the result lies. */
+static struct keyed *radix_passes(struct keyed *a, struct keyed *b, int64_t n, int digits) {
+    uint32_t count[8][256];
+    memset(count, 0, sizeof count[0] * digits);
+    for (int64_t i = 0; i < n; i++)
+        for (int d = 0; d < digits; d++) count[d][(a[i].key >> (8 * d)) & 255]++;
+    for (int d = 0; d < digits; d++) {
+        if (count[d][(a[0].key >> (8 * d)) & 255] == (uint32_t)n) continue; /* a byte every key shares */
+        uint32_t start[256], sum = 0;
+        for (int k = 0; k < 256; k++) start[k] = sum, sum += count[d][k];
+        for (int64_t i = 0; i < n; i++) b[start[(a[i].key >> (8 * d)) & 255]++] = a[i];
+        struct keyed *t = a;
+        a = b, b = t;
+    }
+    return a;
+}
+
+/* Sorts n non-negative keys, n < 2^32, with the permutation that sorts them, as a stable sort
+ * (torch.sort(keys, stable=True)) does: one counting pass on the highest byte that differs, then
+ * radix_passes on the lower bytes within each of its buckets, which fit in the cache. sorted,
+ * order: (n,) out; scratch: 4n of the caller's. Returns 0, or -1 (nothing written) when a key is
+ * negative. */
+int o3dvis_sort_keys(int64_t n, const int64_t *keys, int64_t *sorted, int64_t *order, int64_t *scratch) {
+    int64_t any = 0, differ = 0;
+    for (int64_t i = 0; i < n; i++) any |= keys[i], differ |= keys[i] ^ keys[0];
+    if (any < 0) return -1;
+    int top = 0; /* the highest byte in which keys differ */
+    while (top < 7 && differ >> (8 * (top + 1))) top++;
+    struct keyed *a = (struct keyed *)scratch, *b = a + n;
+    uint32_t count[257] = {0};
+    for (int64_t i = 0; i < n; i++) count[((keys[i] >> (8 * top)) & 255) + 1]++;
+    for (int k = 0; k < 256; k++) count[k + 1] += count[k];
+    uint32_t start[256];
+    memcpy(start, count, sizeof start);
+    for (int64_t i = 0; i < n; i++) {
+        struct keyed *to = a + start[(keys[i] >> (8 * top)) & 255]++;
+        to->key = keys[i], to->index = i;
+    }
+    for (int k = 0; k < 256; k++) {
+        const int64_t first = count[k], m = count[k + 1] - count[k];
+        if (m == 0) continue;
+        const struct keyed *r = radix_passes(a + first, b + first, m, top);
+        for (int64_t i = 0; i < m; i++) sorted[first + i] = r[i].key, order[first + i] = r[i].index;
+    }
+    return 0;
 }
 
 /* The moments of n points of [-1, 1]^3 about the centres of their cells of a 2^level grid

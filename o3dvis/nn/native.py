@@ -23,7 +23,7 @@ from torch import Tensor
 from .. import clib
 from .features import LeafFeatures
 
-__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "cell_moments", "project",
+__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "sort_keys", "cell_moments", "project",
            "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin",
            "fit_planes", "visibility_affinity", "affinity_table", "key_table",
            "grid_knn", "child_neighbours"]
@@ -44,6 +44,7 @@ class _View(ctypes.Structure):
 _VIEW = ctypes.POINTER(_View)
 _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_morton_keys": ([_I64, _PTR, _I32, _PTR], None),
+    "o3dvis_sort_keys": ([_I64, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_cell_moments": ([_I64, _PTR, _I32, _PTR, _PTR], None),
     "o3dvis_project": ([_I64, _PTR, _PTR, _PTR, _I32, _PTR] + [_PTR] * 6, ctypes.c_int),
     "o3dvis_plane_splat": ([_I64, _PTR, _PTR, _PTR, _PTR, _I32, _PTR, _PTR, _PTR, _PTR, _PTR, ctypes.c_float,
@@ -97,6 +98,23 @@ def morton_keys(points: Tensor, depth: int) -> Tensor:
     keys = torch.empty(points.shape[0], dtype=torch.long)
     _LIBRARY.o3dvis_morton_keys(points.shape[0], points.data_ptr(), depth, keys.data_ptr())
     return keys
+
+
+def sort_keys(keys: Tensor) -> tuple[Tensor, Tensor]:
+    """``torch.sort(keys, stable=True)`` of (N,) non-negative int64 keys, ``(sorted, permutation)``,
+    by a radix sort.
+
+    Raises:
+        ValueError: keys of another shape or dtype, 2^32 or more of them, or a negative one.
+    """
+    _check("keys", keys, (keys.shape[0],), torch.long)
+    n = keys.shape[0]
+    if n >= 1 << 32:
+        raise ValueError(f"at most 2^32 - 1 keys, got {n}")
+    out, order, scratch = torch.empty_like(keys), torch.empty_like(keys), keys.new_empty(4 * n)
+    if _LIBRARY.o3dvis_sort_keys(n, keys.data_ptr(), out.data_ptr(), order.data_ptr(), scratch.data_ptr()):
+        raise ValueError("keys must be non-negative")
+    return out, order
 
 
 def cell_moments(points: Tensor, level: int) -> tuple[Tensor, Tensor]:

@@ -368,9 +368,7 @@ class NeuralVisibility:
         normalized, center, scale = _normalize(points, (lo, hi))
         hull = _flat_hull(normalized, ((hi - lo) / scale).norm())  # float64: flat to the last bits
         normalized = normalized.float()
-        keys, order = morton_sort(normalized)
-        rank = torch.empty_like(order)
-        rank[order] = torch.arange(len(order), device=order.device)
+        keys, order, rank = morton_sort(normalized)
         normalized = normalized.index_select(0, order)
         unit = None if unit is None else unit.to(self.device).index_select(0, order).float()
         frame = (normalized, center, scale, (lo, hi), hull, rank)

@@ -172,6 +172,7 @@ def test_sort_keys_equals_a_stable_torch_sort(keys):
     expected = torch.sort(keys, stable=True)
     got = native.sort_keys(keys)
     assert torch.equal(got[0], expected.values) and torch.equal(got[1], expected.indices)
+    assert torch.equal(got[2][got[1]], torch.arange(len(keys)))
     assert torch.equal(morton_sort(points)[1], torch.sort(cell_keys(points, MORTON_DEPTH), stable=True).indices)
     with pytest.raises(ValueError, match="non-negative"):
         native.sort_keys(torch.tensor([4, -1, 2]))

@@ -81,8 +81,9 @@ def test_the_morton_sort_keys_build_the_same_octree():
 
     torch.manual_seed(3)
     pts = torch.cat([torch.rand(3000, 3) * 2 - 1, torch.tensor([[1.0, -1.0, 1.0], [-1.0, 1.0, 0.0]])])
-    keys, order = morton_sort(pts)
+    keys, order, rank = morton_sort(pts)
     assert torch.equal(order, morton_order(pts)) and torch.equal(keys, cell_keys(pts, MORTON_DEPTH)[order])
+    assert torch.equal(rank[order], torch.arange(len(pts)))
     ordered = pts[order]
     for depth in (3, 6, 7):
         coarse = coarser_keys(keys, MORTON_DEPTH, depth)

@@ -211,9 +211,10 @@ static struct keyed *radix_passes(struct keyed *a, struct keyed *b, int64_t n, i
 /* Sorts n non-negative keys, n < 2^32, with the permutation that sorts them, as a stable sort
  * (torch.sort(keys, stable=True)) does: one counting pass on the highest byte that differs, then
  * radix_passes on the lower bytes within each of its buckets, which fit in the cache. sorted,
- * order: (n,) out; scratch: 4n of the caller's. Returns 0, or -1 (nothing written) when a key is
- * negative. */
-int o3dvis_sort_keys(int64_t n, const int64_t *keys, int64_t *sorted, int64_t *order, int64_t *scratch) {
+ * order, rank: (n,) out, rank the inverse permutation (the place of each key); scratch: 4n of the
+ * caller's. Returns 0, or -1 (nothing written) when a key is negative. */
+int o3dvis_sort_keys(int64_t n, const int64_t *keys, int64_t *sorted, int64_t *order, int64_t *rank,
+                     int64_t *scratch) {
     int64_t any = 0, differ = 0;
     for (int64_t i = 0; i < n; i++) any |= keys[i], differ |= keys[i] ^ keys[0];
     if (any < 0) return -1;
@@ -233,7 +234,8 @@ int o3dvis_sort_keys(int64_t n, const int64_t *keys, int64_t *sorted, int64_t *o
         const int64_t first = count[k], m = count[k + 1] - count[k];
         if (m == 0) continue;
         const struct keyed *r = radix_passes(a + first, b + first, m, top);
-        for (int64_t i = 0; i < m; i++) sorted[first + i] = r[i].key, order[first + i] = r[i].index;
+        for (int64_t i = 0; i < m; i++)
+            sorted[first + i] = r[i].key, order[first + i] = r[i].index, rank[r[i].index] = first + i;
     }
     return 0;
 }

@@ -44,7 +44,7 @@ class _View(ctypes.Structure):
 _VIEW = ctypes.POINTER(_View)
 _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_morton_keys": ([_I64, _PTR, _I32, _PTR], None),
-    "o3dvis_sort_keys": ([_I64, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
+    "o3dvis_sort_keys": ([_I64, _PTR, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_cell_moments": ([_I64, _PTR, _I32, _PTR, _PTR], None),
     "o3dvis_project": ([_I64, _PTR, _PTR, _PTR, _I32, _PTR] + [_PTR] * 6, ctypes.c_int),
     "o3dvis_plane_splat": ([_I64, _PTR, _PTR, _PTR, _PTR, _I32, _PTR, _PTR, _PTR, _PTR, _PTR, ctypes.c_float,
@@ -100,9 +100,9 @@ def morton_keys(points: Tensor, depth: int) -> Tensor:
     return keys
 
 
-def sort_keys(keys: Tensor) -> tuple[Tensor, Tensor]:
-    """``torch.sort(keys, stable=True)`` of (N,) non-negative int64 keys, ``(sorted, permutation)``,
-    by a radix sort.
+def sort_keys(keys: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``torch.sort(keys, stable=True)`` of (N,) non-negative int64 keys by a radix sort:
+    ``(sorted, permutation, its inverse)``, the inverse the place of each key.
 
     Raises:
         ValueError: keys of another shape or dtype, 2^32 or more of them, or a negative one.
@@ -111,10 +111,12 @@ def sort_keys(keys: Tensor) -> tuple[Tensor, Tensor]:
     n = keys.shape[0]
     if n >= 1 << 32:
         raise ValueError(f"at most 2^32 - 1 keys, got {n}")
-    out, order, scratch = torch.empty_like(keys), torch.empty_like(keys), keys.new_empty(4 * n)
-    if _LIBRARY.o3dvis_sort_keys(n, keys.data_ptr(), out.data_ptr(), order.data_ptr(), scratch.data_ptr()):
+    out, order, rank, scratch = (torch.empty_like(keys), torch.empty_like(keys), torch.empty_like(keys),
+                                 keys.new_empty(4 * n))
+    if _LIBRARY.o3dvis_sort_keys(n, keys.data_ptr(), out.data_ptr(), order.data_ptr(), rank.data_ptr(),
+                                 scratch.data_ptr()):
         raise ValueError("keys must be non-negative")
-    return out, order
+    return out, order, rank
 
 
 def cell_moments(points: Tensor, level: int) -> tuple[Tensor, Tensor]:

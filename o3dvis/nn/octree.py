@@ -152,15 +152,19 @@ def morton_order(points: Tensor, depth: int = MORTON_DEPTH) -> Tensor:
     return morton_sort(points, depth)[1]
 
 
-def morton_sort(points: Tensor, depth: int = MORTON_DEPTH) -> tuple[Tensor, Tensor]:
-    """:func:`morton_order` with the keys it sorts: ``(sorted cell keys, permutation)``, the keys
-    of the ``2^depth`` grid (:func:`cell_keys`), from which :func:`coarser_keys` gives any coarser
-    grid's without another pass over the points. Ties (points of one cell) keep their order: a
-    radix sort of C on the CPU, a stable ``torch.sort`` elsewhere."""
+def morton_sort(points: Tensor, depth: int = MORTON_DEPTH) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`morton_order` with the keys it sorts and its inverse: ``(sorted cell keys,
+    permutation, rank)``, ``rank[i]`` the place of point ``i``; the keys are those of the
+    ``2^depth`` grid (:func:`cell_keys`), from which :func:`coarser_keys` gives any coarser grid's
+    without another pass over the points. Ties (points of one cell) keep their order: a radix
+    sort of C on the CPU, a stable ``torch.sort`` elsewhere."""
     keys = cell_keys(points, depth)
     if keys.device.type == "cpu" and native.available():
         return native.sort_keys(keys)
-    return torch.sort(keys, stable=True)
+    keys, order = torch.sort(keys, stable=True)
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(len(order), device=order.device)
+    return keys, order, rank
 
 
 def coarser_keys(keys: Tensor, depth: int, coarser: int) -> Tensor:

@@ -803,9 +803,13 @@ int o3dvis_has_view_margin_bf16(void) {
 /* x: k rows of 16 values (row j at rows + j * ld) -> (k + 1) / 2 rows of 16 pairs of bfloat16,
    rows 2i and 2i + 1 in pair i (a zero after an odd last row) */
 static void pair_rows(const float *rows, int64_t ld, int k, uint32_t *x) {
+    /* both rows rounded at once ([a, b] as bfloat16), then interleaved: a0 b0 a1 b1 ... */
+    const __m512i interleave = _mm512_set_epi16(31, 15, 30, 14, 29, 13, 28, 12, 27, 11, 26, 10, 25, 9, 24, 8,
+                                                23, 7, 22, 6, 21, 5, 20, 4, 19, 3, 18, 2, 17, 1, 16, 0);
     for (int i = 0; i < k / 2; i++) {
         const float *a = rows + 2 * i * ld, *b = a + ld;
-        for (int l = 0; l < 16; l++) x[16 * i + l] = bf16_of(a[l]) | (uint32_t)bf16_of(b[l]) << 16;
+        const __m512i both = (__m512i)_mm512_cvtne2ps_pbh(_mm512_loadu_ps(b), _mm512_loadu_ps(a));
+        _mm512_storeu_si512(x + 16 * i, _mm512_permutexvar_epi16(interleave, both));
     }
     if (k % 2)
         for (int l = 0; l < 16; l++) x[16 * (k / 2) + l] = bf16_of(rows[(k - 1) * ld + l]);

@@ -181,6 +181,33 @@ def test_sort_keys_equals_a_stable_torch_sort(keys):
 
 
 @needs_kernels
+@pytest.mark.parametrize("normals", [False, True])
+def test_leaf_means_equal_the_torch_ones(normals, monkeypatch):
+    """The U-Net's input per leaf in one pass of C: bit for bit what index_add_ sums and divides,
+    for two clouds in one octree, their points in no particular order."""
+    from o3dvis.nn.network import VisibilityNetwork
+
+    network = VisibilityNetwork()
+    points = torch.cat([_points(3000), _points(2000, seed=1) * 0.5])[torch.randperm(5000)]
+    batch = torch.cat([torch.zeros(3000, dtype=torch.long), torch.ones(2000, dtype=torch.long)])
+    unit = torch.nn.functional.normalize(points + 0.1, dim=1) if normals else None
+    noise = torch.rand(2, 2)
+    with torch.no_grad():
+        octree = network.octree(points, batch, 2)
+        fast = network._signal(points, batch, octree, unit, noise)
+        monkeypatch.setattr(native, "usable", lambda *tensors: False)
+        slow = network._signal(points, batch, octree, unit, noise)
+    assert torch.equal(fast, slow)
+    leaf = octree.point_leaf
+    with pytest.raises(ValueError, match="leaves must lie"):
+        native.leaf_means(points, unit, leaf, 7, int(leaf.max()))
+    with pytest.raises(ValueError, match="every leaf needs a point"):
+        native.leaf_means(points, unit, leaf, 7, int(leaf.max()) + 2)
+    with pytest.raises(ValueError, match="depth must lie"):
+        native.leaf_means(points, unit, leaf, 0, int(leaf.max()) + 1)
+
+
+@needs_kernels
 def test_projection_rejects_what_the_kernel_cannot_take():
     points = _points(500)
     with torch.inference_mode():

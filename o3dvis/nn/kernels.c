@@ -19,7 +19,8 @@
  * keys (o3dvis/nn/octree.py, cell_keys) in one pass instead of some twenty,
  * o3dvis_sort_keys sorts them (a radix sort, faster than torch.sort),
  * o3dvis_child_neighbours a level's 3x3x3 neighbours from its parents' (Octree.neighbours)
- * in one instead of some ten, and o3dvis_cell_moments the noise cue's per-cell sums (o3dvis/nn/noise.py);
+ * in one instead of some ten, o3dvis_cell_moments the noise cue's per-cell sums (o3dvis/nn/noise.py)
+ * and o3dvis_leaf_means the U-Net's input (o3dvis/nn/network.py);
  * for oriented normals, o3dvis_fit_planes the plane fits of
  * o3dvis/orientation.py, o3dvis_visibility_affinity their neighbours' weights, and o3dvis_grid_knn the nearest neighbours it fits
  * them to, sought in the cells of a grid (o3dvis_key_table hashes the cells).
@@ -265,6 +266,30 @@ void o3dvis_cell_moments(int64_t n, const float *points, int32_t level, int64_t 
         m[3] += (double)(q[1] * q[1]), m[4] += (double)(q[1] * q[2]), m[5] += (double)(q[2] * q[2]);
         m[6] += q[0], m[7] += q[1], m[8] += q[2];
     }
+}
+
+/* The U-Net's input per octree leaf, as o3dvis/nn/network.py's _signal computes it with torch ops:
+ * the mean over each leaf's points of [the point's coordinates inside its cell of a 2^depth grid,
+ * in [-1, 1) (((p + 1) 2^depth / 2) less its truncation, times 2, less 1), the point, then its
+ * normal where normals is not NULL]. Sums in float32 in the points' order, as index_add_ sums them.
+ * leaf: (n,) each point's leaf in [0, leaves); out: (leaves, channels) zeroed by the caller,
+ * channels 6 or 9; counts: (leaves,) float32 zeroed by the caller. */
+void o3dvis_leaf_means(int64_t n, const float *points, const float *normals, const int64_t *leaf, int32_t depth,
+                       int64_t leaves, float *counts, float *out) {
+    const float half = (float)(1 << depth) / 2.0f;
+    const int channels = normals ? 9 : 6;
+    for (int64_t i = 0; i < n; i++) {
+        float *o = out + leaf[i] * channels;
+        for (int a = 0; a < 3; a++) {
+            const float u = (points[3 * i + a] + 1.0f) * half;
+            o[a] += (u - truncf(u)) * 2.0f - 1.0f;
+            o[3 + a] += points[3 * i + a];
+            if (normals) o[6 + a] += normals[3 * i + a];
+        }
+        counts[leaf[i]] += 1.0f;
+    }
+    for (int64_t l = 0; l < leaves; l++)
+        for (int c = 0; c < channels; c++) out[l * channels + c] /= counts[l];
 }
 
 /* Builds one view's projection of n points (n >= 1); returns 0, or -1 for more than

@@ -23,7 +23,7 @@ from torch import Tensor
 from .. import clib
 from .features import LeafFeatures
 
-__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "sort_keys", "cell_moments", "project",
+__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "sort_keys", "leaf_means", "cell_moments", "project",
            "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin",
            "fit_planes", "visibility_affinity", "affinity_table", "key_table",
            "grid_knn", "child_neighbours"]
@@ -46,6 +46,7 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_morton_keys": ([_I64, _PTR, _I32, _PTR], None),
     "o3dvis_sort_keys": ([_I64, _PTR, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_cell_moments": ([_I64, _PTR, _I32, _PTR, _PTR], None),
+    "o3dvis_leaf_means": ([_I64, _PTR, _PTR, _PTR, _I32, _I64, _PTR, _PTR], None),
     "o3dvis_project": ([_I64, _PTR, _PTR, _PTR, _I32, _PTR] + [_PTR] * 6, ctypes.c_int),
     "o3dvis_plane_splat": ([_I64, _PTR, _PTR, _PTR, _PTR, _I32, _PTR, _PTR, _PTR, _PTR, _PTR, ctypes.c_float,
                             ctypes.c_float, _PTR], ctypes.c_int),
@@ -117,6 +118,33 @@ def sort_keys(keys: Tensor) -> tuple[Tensor, Tensor, Tensor]:
                                  scratch.data_ptr()):
         raise ValueError("keys must be non-negative")
     return out, order, rank
+
+
+def leaf_means(points: Tensor, normals: Tensor | None, leaf: Tensor, depth: int, leaves: int) -> Tensor:
+    """(leaves, 6 or 9) the mean of ``[coordinates in the point's cell of a 2^depth grid, point,
+    normal]`` over each leaf's points (see ``kernels.c``), in one pass over ``points`` (N, 3) and
+    ``normals`` (N, 3) or None, float32; ``leaf``: (N,) int64, each point's leaf.
+
+    Raises:
+        ValueError: tensors of the wrong shape or type, a depth out of [1, 21], a leaf out of
+            range, or a leaf without points.
+    """
+    n = points.shape[0]
+    _check("points", points, (n, 3))
+    if normals is not None:
+        _check("normals", normals, (n, 3))
+    _check("leaf", leaf, (n,), torch.long)
+    if not 1 <= depth <= 21:
+        raise ValueError(f"depth must lie in [1, 21], got {depth}")
+    if n and (int(leaf.min()) < 0 or int(leaf.max()) >= leaves):
+        raise ValueError(f"leaves must lie in [0, {leaves})")
+    counts = torch.zeros(leaves)
+    out = torch.zeros(leaves, 6 if normals is None else 9)
+    _LIBRARY.o3dvis_leaf_means(n, points.data_ptr(), None if normals is None else normals.data_ptr(), leaf.data_ptr(),
+                               depth, leaves, counts.data_ptr(), out.data_ptr())
+    if leaves and float(counts.min()) == 0:
+        raise ValueError("every leaf needs a point")
+    return out
 
 
 def cell_moments(points: Tensor, level: int) -> tuple[Tensor, Tensor]:

@@ -138,14 +138,17 @@ class VisibilityNetwork(nn.Module):
                 noise: Tensor | None = None) -> Tensor:
         """(L, C) input of the U-Net per leaf: mean local and global coordinates (and normals),
         then the cloud's noise cues when the network reads them (``noise``: precomputed, or None)."""
-        res = 1 << octree.depth
-        local = ((points + 1) * (res / 2)).frac() * 2 - 1
-        per_point = [local, points] + ([normals] if normals is not None else [])
-        per_point = torch.cat(per_point, dim=1)
         n = octree.num_nodes(octree.depth)
-        sums = per_point.new_zeros(n, per_point.shape[1]).index_add_(0, octree.point_leaf, per_point)
-        counts = per_point.new_zeros(n).index_add_(0, octree.point_leaf, torch.ones_like(points[:, 0]))
-        signal = sums / counts[:, None]
+        if native.usable(points, normals) and octree.point_leaf.device.type == "cpu":  # the same in one pass of C
+            signal = native.leaf_means(points.contiguous(), None if normals is None else normals.contiguous(),
+                                       octree.point_leaf.contiguous(), octree.depth, n)
+        else:
+            res = 1 << octree.depth
+            local = ((points + 1) * (res / 2)).frac() * 2 - 1
+            per_point = torch.cat([local, points] + ([normals] if normals is not None else []), dim=1)
+            sums = per_point.new_zeros(n, per_point.shape[1]).index_add_(0, octree.point_leaf, per_point)
+            counts = per_point.new_zeros(n).index_add_(0, octree.point_leaf, torch.ones_like(points[:, 0]))
+            signal = sums / counts[:, None]
         if not self.config.noise_cues:
             return signal
         if noise is None:

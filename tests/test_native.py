@@ -207,6 +207,55 @@ def test_leaf_means_equal_the_torch_ones(normals, monkeypatch):
         native.leaf_means(points, unit, leaf, 0, int(leaf.max()) + 1)
 
 
+@pytest.mark.skipif(not native.has_gather_conv(), reason="no AMX tiles here")
+@pytest.mark.parametrize("shape", [(16, 16, 27, 700), (32, 48, 27, 77), (8, 16, 8, 130), (96, 96, 27, 64),
+                                   (48, 32, 27, 301), (64, 112, 27, 17)])
+def test_gather_conv_equals_the_torch_ops(shape):
+    """A convolution over gathered rows on the AMX tiles against the torch ops of ConvBnRelu in
+    inference: bfloat16 rows gathered (the input's length gathers zeros), one product rounded to
+    bfloat16, the shift, the residual and the ReLU. The sums may run in another order than
+    oneDNN's: a bfloat16 step apart at most, and rarely."""
+    channels, outputs, taps, n = shape
+    g = torch.Generator().manual_seed(4)
+    x = torch.randn(3 * n, channels, generator=g)
+    weight = torch.randn(taps * channels, outputs, generator=g) / taps
+    shift, residual = torch.randn(outputs, generator=g), torch.randn(n, outputs, generator=g)
+    index = torch.randint(0, len(x) + 1, (n, taps), generator=g)
+    padded = torch.cat([x, x.new_zeros(1, channels)]).to(torch.bfloat16)
+    product = (padded[index].flatten(1) @ weight.to(torch.bfloat16)).float() + shift
+    packed = native.pack_conv(weight, taps)
+    for got, expected in [(native.gather_conv(x, index, packed, taps, outputs, shift), product),
+                          (native.gather_conv(x, index, packed, taps, outputs, shift, residual, relu=True),
+                           torch.relu(residual + product))]:
+        assert (got == expected).float().mean() > 0.999
+        torch.testing.assert_close(got, expected, atol=0.01 * float(expected.abs().max()), rtol=0)
+    with pytest.raises(ValueError, match="index must lie"):
+        native.gather_conv(x, index.clamp(max=len(x)) + 1, packed, taps, outputs, shift)
+    with pytest.raises(ValueError, match="packed must be"):
+        native.gather_conv(x, index, packed[1:], taps, outputs, shift)
+
+
+@pytest.mark.skipif(not native.has_gather_conv(), reason="no AMX tiles here")
+def test_the_unet_on_the_tiles_answers_as_the_torch_ops(monkeypatch):
+    """The encoding with every gathered convolution (3x3x3 and down-sampling) in one pass of C:
+    the features of the torch ops, but for sums that oneDNN orders otherwise."""
+    from o3dvis.nn.conv import products_in
+    from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
+
+    torch.manual_seed(0)
+    network = VisibilityNetwork(NetworkConfig(noise_cues=True)).eval()
+    points = _points(5000)
+    calls, gather_conv = [], native.gather_conv
+    monkeypatch.setattr(native, "gather_conv", lambda *args, **kw: calls.append(1) or gather_conv(*args, **kw))
+    with torch.no_grad(), products_in(torch.bfloat16):
+        fused = network.encode(points)
+        assert len(calls) == 23  # 5 down-samplings, 9 residual blocks of 2
+        monkeypatch.setattr(native, "has_gather_conv", lambda: False)
+        plain = network.encode(points)
+    assert (fused == plain).float().mean() > 0.999
+    torch.testing.assert_close(fused, plain, atol=1e-2 * float(plain.abs().max()), rtol=0)
+
+
 @needs_kernels
 def test_projection_rejects_what_the_kernel_cannot_take():
     points = _points(500)

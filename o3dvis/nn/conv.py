@@ -15,6 +15,7 @@ import torch
 from torch import Tensor, nn
 
 from ..threads import torch_threads
+from . import native
 from .octree import Octree
 
 __all__ = ["OctreeConv", "OctreeDownsample", "OctreeUpsample", "ConvBnRelu", "ResBlock", "gather_rows",
@@ -117,8 +118,12 @@ class OctreeConv(_GatherMatmul):
         super().__init__(27, in_channels, out_channels)
 
     def forward(self, x: Tensor, octree: Octree, level: int, weight: Tensor | None = None) -> Tensor:
-        nbr = octree.neighbours(level)
-        return self.gather_matmul(_pad(x), nbr, weight)
+        return self.gather_matmul(_pad(x), self.index(octree, level), weight)
+
+    @staticmethod
+    def index(octree: Octree, level: int) -> Tensor:
+        """(n, 27) the rows of the input each output row gathers (the input's length: zeros)."""
+        return octree.neighbours(level)
 
 
 class OctreeDownsample(_GatherMatmul):
@@ -128,7 +133,12 @@ class OctreeDownsample(_GatherMatmul):
         super().__init__(8, in_channels, out_channels)
 
     def forward(self, x: Tensor, octree: Octree, level: int, weight: Tensor | None = None) -> Tensor:
-        return self.gather_matmul(_pad(x), octree.child_rows(level - 1), weight)
+        return self.gather_matmul(_pad(x), self.index(octree, level), weight)
+
+    @staticmethod
+    def index(octree: Octree, level: int) -> Tensor:
+        """(n, 8) the rows of the input each output row gathers (the input's length: zeros)."""
+        return octree.child_rows(level - 1)
 
 
 class OctreeUpsample(_GatherMatmul):
@@ -162,9 +172,31 @@ class ConvBnRelu(nn.Module):
         if self.training or torch.is_grad_enabled():
             x = self.bn(self.conv(x, octree, level))
             return torch.relu(x) if self.relu else x
+        fused = self.fused(x, octree, level)
+        if fused is not None:
+            return fused
         weight, shift = self._folded(self.conv.product_dtype(x))
         x = self.conv(x, octree, level, weight).add_(shift)
         return x.relu_() if self.relu else x
+
+    def fused(self, x: Tensor, octree: Octree, level: int, residual: Tensor | None = None) -> Tensor | None:
+        """This layer in inference in one pass of C on the AMX tiles (:func:`~o3dvis.nn.native.gather_conv`):
+        as :meth:`forward`, or with a ``residual`` ``relu(residual + convolution + shift)`` (a
+        :class:`ResBlock`'s end). None where that does not run: training, gradients, products in
+        float32, another device, an up-sampling, an odd number of input channels or output channels
+        that are no multiple of 16 (the kernel's tiles), or no tiles here."""
+        if (self.training or torch.is_grad_enabled() or x.device.type != "cpu" or x.dtype != torch.float32
+                or isinstance(self.conv, OctreeUpsample) or self.conv.product_dtype(x) != torch.bfloat16
+                or x.shape[1] % 2 or self.conv.out_channels % 16 or not native.has_gather_conv()):
+            return None
+        weight, shift = self._folded(torch.bfloat16)
+        cached = self.__dict__.get("_packed")
+        if cached is None or cached[0] is not weight:
+            cached = self.__dict__["_packed"] = (weight, native.pack_conv(weight, len(weight) // x.shape[1]))
+        index = self.conv.index(octree, level).contiguous()
+        return native.gather_conv(x.contiguous(), index, cached[1], index.shape[1], self.conv.out_channels,
+                                  shift.float().contiguous(), residual,
+                                  relu=self.relu if residual is None else True)
 
     def _folded(self, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
         """The convolution's weight times the batch norm's scale (in ``dtype``) and the batch norm's
@@ -191,4 +223,6 @@ class ResBlock(nn.Module):
         self.b = ConvBnRelu(channels, channels, relu=False)
 
     def forward(self, x: Tensor, octree: Octree, level: int) -> Tensor:
-        return torch.relu(x + self.b(self.a(x, octree, level), octree, level))
+        y = self.a(x, octree, level)
+        fused = self.b.fused(y, octree, level, residual=x.contiguous())
+        return fused if fused is not None else torch.relu(x + self.b(y, octree, level))

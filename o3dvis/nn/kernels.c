@@ -916,12 +916,13 @@ static uint32_t *tile_work(int32_t layers, const int32_t *sizes, const uint32_t 
     return work;
 }
 
-/* Tiles 0-3: the sums of 16 outputs x 16 points of four groups (float32); 4: 16 outputs x 16 pairs
-   of weights; 5 and 6: 16 pairs of inputs x 16 points. Each 16 rows of 64 bytes. */
+/* Eight tiles of 16 rows of 64 bytes. For the MLP, tiles 0-3: the sums of 16 outputs x 16 points of
+   four groups (float32); 4: 16 outputs x 16 pairs of weights; 5 and 6: 16 pairs of inputs x 16
+   points. For o3dvis_gather_conv, see conv_block. */
 __attribute__((target("amx-tile"))) static void configure_tiles(void) {
     struct { uint8_t palette, start_row, reserved[14]; uint16_t colsb[16]; uint8_t rows[16]; } config = {1, 0, {0},
                                                                                                      {0}, {0}};
-    for (int i = 0; i < 7; i++) config.colsb[i] = 64, config.rows[i] = 16;
+    for (int i = 0; i < 8; i++) config.colsb[i] = 64, config.rows[i] = 16;
     _tile_loadconfig(&config);
 }
 
@@ -1036,6 +1037,155 @@ int o3dvis_view_margin_bf16(int64_t n, const struct view *v, int32_t layers, con
     return 0;
 #else
     (void)n, (void)v, (void)layers, (void)sizes, (void)weights, (void)biases, (void)out;
+    return -2;
+#endif
+}
+
+/* Whether this build and the operating system run o3dvis_gather_conv (the AMX tiles). */
+int o3dvis_has_gather_conv(void) {
+#ifdef __AMX_BF16__
+    return tiles_granted();
+#else
+    return 0;
+#endif
+}
+
+#ifdef __AMX_BF16__
+/* Tile instructions on tiles chosen at run time (their operands are immediates): loads into tiles
+ * 4-7, products into sums 0-3 from inputs 4 or 7 and weights 5 or 6, stores of 0-3. */
+__attribute__((target("amx-tile"))) static inline void load_tile(int t, const void *p, int64_t stride) {
+    switch (t) {
+    case 4: _tile_loadd(4, p, stride); break;
+    case 5: _tile_loadd(5, p, stride); break;
+    case 6: _tile_loadd(6, p, stride); break;
+    default: _tile_loadd(7, p, stride); break;
+    }
+}
+
+__attribute__((target("amx-tile,amx-bf16"))) static inline void product_tile(int c, int a, int b) {
+    switch (c * 4 + (a == 7) * 2 + (b == 6)) {
+    case 0: _tile_dpbf16ps(0, 4, 5); break;
+    case 1: _tile_dpbf16ps(0, 4, 6); break;
+    case 2: _tile_dpbf16ps(0, 7, 5); break;
+    case 3: _tile_dpbf16ps(0, 7, 6); break;
+    case 4: _tile_dpbf16ps(1, 4, 5); break;
+    case 5: _tile_dpbf16ps(1, 4, 6); break;
+    case 6: _tile_dpbf16ps(1, 7, 5); break;
+    case 7: _tile_dpbf16ps(1, 7, 6); break;
+    case 8: _tile_dpbf16ps(2, 4, 5); break;
+    case 9: _tile_dpbf16ps(2, 4, 6); break;
+    case 10: _tile_dpbf16ps(2, 7, 5); break;
+    case 11: _tile_dpbf16ps(2, 7, 6); break;
+    case 12: _tile_dpbf16ps(3, 4, 5); break;
+    case 13: _tile_dpbf16ps(3, 4, 6); break;
+    case 14: _tile_dpbf16ps(3, 7, 5); break;
+    default: _tile_dpbf16ps(3, 7, 6); break;
+    }
+}
+
+__attribute__((target("amx-tile"))) static inline void store_sums(int c, void *p) {
+    switch (c) {
+    case 0: _tile_stored(0, p, 64); break;
+    case 1: _tile_stored(1, p, 64); break;
+    case 2: _tile_stored(2, p, 64); break;
+    default: _tile_stored(3, p, 64); break;
+    }
+}
+
+/* A block of up to 64 output rows of o3dvis_gather_conv (m of them real): a, the rows' gathered
+ * inputs in bfloat16 (64 rows of kp values). Four sums at a time on tiles 0-3, each one group of
+ * 16 rows x 16 outputs summed along the inputs in order: four groups of rows for one of outputs,
+ * two by two, or one by four, so that products into different sums overlap. Then rounded to
+ * bfloat16 and finished as the caller's torch ops finish them (outputs a multiple of 16). */
+__attribute__((target("amx-tile,amx-bf16")))
+static void conv_block(const uint16_t *a, int kp, int m, const uint32_t *packed, int outputs, const float *shift,
+                       const float *residual, int relu, float *sums, float *out) {
+    const int otiles = outputs / 16, groups = (m + 15) / 16;
+    const int per = otiles >= 4 ? 4 : (otiles >= 2 ? 2 : 1); /* output tiles a pass */
+    const int side = 4 / per < groups ? 4 / per : groups;     /* row groups a pass */
+    for (int g0 = 0; g0 < groups; g0 += side)
+        for (int o0 = 0; o0 < otiles; o0 += per) {
+            const int rg = groups - g0 < side ? groups - g0 : side, ot = otiles - o0 < per ? otiles - o0 : per;
+            _tile_zero(0);
+            _tile_zero(1);
+            _tile_zero(2);
+            _tile_zero(3);
+            for (int kc = 0; kc < kp / 32; kc++)
+                for (int o = 0; o < ot; o++) {
+                    const int bt = 5 + o % 2;
+                    load_tile(bt, packed + ((int64_t)kc * otiles + o0 + o) * 256, 64);
+                    for (int r = 0; r < rg; r++) {
+                        const int at = r % 2 ? 7 : 4;
+                        if (o == 0) load_tile(at, a + (int64_t)(16 * (g0 + r)) * kp + 32 * kc, 2 * kp);
+                        product_tile(r * ot + o, at, bt);
+                    }
+                }
+            for (int r = 0; r < rg; r++)
+                for (int o = 0; o < ot; o++) store_sums(r * ot + o, sums + 256 * (r * ot + o));
+            for (int r = 0; r < rg; r++)
+                for (int o = 0; o < ot; o++) {
+                    const int c = r * ot + o, col = 16 * (o0 + o);
+                    for (int i = 0; i < 16 && 16 * (g0 + r) + i < m; i++) {
+                        const int64_t row = 16 * (g0 + r) + i;
+                        /* rounded to bfloat16 and back, plus the shift (and the residual), through the ReLU */
+                        const __m256i rounded = (__m256i)_mm512_cvtneps_pbh(_mm512_loadu_ps(sums + 256 * c + 16 * i));
+                        __m512 v = _mm512_add_ps((__m512)_mm512_slli_epi32(_mm512_cvtepu16_epi32(rounded), 16),
+                                                 _mm512_loadu_ps(shift + col));
+                        if (residual) v = _mm512_add_ps(_mm512_loadu_ps(residual + row * outputs + col), v);
+                        if (relu) v = _mm512_max_ps(v, _mm512_setzero_ps());
+                        _mm512_storeu_ps(out + row * outputs + col, v);
+                    }
+                }
+        }
+}
+#endif
+
+/* A convolution over gathered rows, as o3dvis/nn/conv.py's gather_matmul and ConvBnRelu compute it
+ * in inference: out[r] = relu?(residual[r] + (bf16(sum_t bf16(x[index[r][t]]) W_t) + shift)), the
+ * products in bfloat16 on the AMX tiles with float32 sums, rounded to bfloat16 as torch rounds a
+ * bfloat16 product. x: (rows, channels) float32, channels even; index: (n, taps), rows meaning a
+ * row of zeros; packed: the weight as o3dvis/nn/native.py's pack_conv lays it out; outputs a
+ * multiple of 16; shift: (outputs,); residual: (n, outputs) or NULL; out: (n, outputs). Returns
+ * 0, or with nothing written -1 when out of memory, -2 in a build or on a system without the
+ * tiles, -3 for an index out of [0, rows]. */
+int o3dvis_gather_conv(int64_t n, const float *x, int64_t rows, int32_t channels, const int64_t *index,
+                       int32_t taps, const uint32_t *packed, int32_t outputs, const float *shift,
+                       const float *residual, int32_t relu, float *out) {
+#ifdef __AMX_BF16__
+    if (!tiles_granted()) return -2;
+    int outside = 0;
+    for (int64_t i = 0; i < n * taps; i++) outside |= (index[i] < 0) | (index[i] > rows);
+    if (outside) return -3;
+    const int kp = (taps * channels + 31) / 32 * 32, pairs = channels / 2;
+    uint16_t *a = calloc((size_t)64 * kp, sizeof *a);
+    uint32_t *xb = malloc(sizeof *xb * (size_t)(rows + 1) * pairs); /* x in bfloat16, then a row of zeros */
+    float *sums = malloc(sizeof *sums * 4 * 256);
+    if (a == NULL || xb == NULL || sums == NULL) return free(a), free(xb), free(sums), -1;
+    for (int64_t i = 0; i < rows * pairs; i++)
+        xb[i] = bf16_of(x[2 * i]) | (uint32_t)bf16_of(x[2 * i + 1]) << 16;
+    memset(xb + rows * pairs, 0, sizeof *xb * pairs);
+    configure_tiles();
+    for (int64_t r0 = 0; r0 < n; r0 += 64) {
+        const int m = n - r0 < 64 ? (int)(n - r0) : 64;
+        for (int r = 0; r < (m + 15) / 16 * 16; r++) { /* rows past n gather zeros */
+            uint32_t *dst = (uint32_t *)(a + (int64_t)r * kp);
+            for (int t = 0; t < taps; t++) { /* a row's pairs, 16 at a time */
+                const uint32_t *src = xb + (r < m ? index[(r0 + r) * taps + t] : rows) * pairs;
+                for (int c = 0; c < pairs; c += 16) {
+                    const __mmask16 lanes = pairs - c >= 16 ? 0xffff : (__mmask16)((1u << (pairs - c)) - 1);
+                    _mm512_mask_storeu_epi32(dst + t * pairs + c, lanes, _mm512_maskz_loadu_epi32(lanes, src + c));
+                }
+            }
+        }
+        conv_block(a, kp, m, packed, outputs, shift, residual ? residual + r0 * outputs : NULL, relu, sums,
+                   out + r0 * outputs);
+    }
+    release_tiles();
+    free(a), free(xb), free(sums);
+    return 0;
+#else
+    (void)n, (void)x, (void)rows, (void)channels, (void)index, (void)taps, (void)packed, (void)outputs;
+    (void)shift, (void)residual, (void)relu, (void)out;
     return -2;
 #endif
 }

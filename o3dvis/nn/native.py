@@ -23,7 +23,7 @@ from torch import Tensor
 from .. import clib
 from .features import LeafFeatures
 
-__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "sort_keys", "leaf_means", "cell_moments", "project",
+__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "sort_keys", "leaf_means", "has_gather_conv", "pack_conv", "gather_conv", "cell_moments", "project",
            "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin",
            "fit_planes", "visibility_affinity", "affinity_table", "key_table",
            "grid_knn", "child_neighbours"]
@@ -47,6 +47,8 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_sort_keys": ([_I64, _PTR, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_cell_moments": ([_I64, _PTR, _I32, _PTR, _PTR], None),
     "o3dvis_leaf_means": ([_I64, _PTR, _PTR, _PTR, _I32, _I64, _PTR, _PTR], None),
+    "o3dvis_has_gather_conv": ([], ctypes.c_int),
+    "o3dvis_gather_conv": ([_I64, _PTR, _I64, _I32, _PTR, _I32, _PTR, _I32, _PTR, _PTR, _I32, _PTR], ctypes.c_int),
     "o3dvis_project": ([_I64, _PTR, _PTR, _PTR, _I32, _PTR] + [_PTR] * 6, ctypes.c_int),
     "o3dvis_plane_splat": ([_I64, _PTR, _PTR, _PTR, _PTR, _I32, _PTR, _PTR, _PTR, _PTR, _PTR, ctypes.c_float,
                             ctypes.c_float, _PTR], ctypes.c_int),
@@ -144,6 +146,67 @@ def leaf_means(points: Tensor, normals: Tensor | None, leaf: Tensor, depth: int,
                                depth, leaves, counts.data_ptr(), out.data_ptr())
     if leaves and float(counts.min()) == 0:
         raise ValueError("every leaf needs a point")
+    return out
+
+
+def has_gather_conv() -> bool:
+    """Whether :func:`gather_conv` runs here: the kernels' AMX variant is loaded and the operating
+    system grants the process the tiles."""
+    return _LIBRARY is not None and bool(_LIBRARY.o3dvis_has_gather_conv())
+
+
+def pack_conv(weight: Tensor, taps: int) -> Tensor:
+    """A gathered convolution's (taps x C, O) weight as :func:`gather_conv` reads it: rounded to
+    bfloat16, zero-padded to a multiple of 32 rows and of 16 columns, and cut into tiles of 16
+    pairs of rows x 16 columns (a pair of bfloat16 per int32), row tiles outermost."""
+    k, outputs = weight.shape
+    if k % taps:
+        raise ValueError(f"the weight's {k} rows are not {taps} taps of the same channels")
+    kp, op = -(-k // 32) * 32, -(-outputs // 16) * 16
+    padded = weight.detach().new_zeros(kp, op, dtype=torch.bfloat16)
+    padded[:k, :outputs] = weight.detach()
+    tiles = padded.view(kp // 32, 16, 2, op // 16, 16).permute(0, 3, 1, 4, 2).contiguous()
+    return tiles.view(torch.int16).view(torch.int32).flatten().cpu()
+
+
+def gather_conv(x: Tensor, index: Tensor, packed: Tensor, taps: int, outputs: int, shift: Tensor,
+                residual: Tensor | None = None, relu: bool = False) -> Tensor:
+    """(n, outputs) float32: each row's ``taps`` rows of ``x`` gathered (an index of ``len(x)``: a
+    row of zeros) times the weight :func:`pack_conv` packed, in bfloat16 on the AMX tiles with
+    float32 sums and the result rounded to bfloat16, then plus ``shift``, plus ``residual``, and
+    through a ReLU where ``relu``: a :class:`~o3dvis.nn.conv.ConvBnRelu` in inference in one pass.
+
+    Args:
+        x: (rows, C) float32.
+        index: (n, taps) int64 in [0, rows].
+        packed: :func:`pack_conv` of the (taps x C, outputs) weight.
+        shift: (outputs,) float32.
+        residual: (n, outputs) float32 or None.
+
+    Raises:
+        ValueError: tensors of the wrong shape or type, or an index out of range.
+        RuntimeError: no tiles here (see :func:`has_gather_conv`).
+    """
+    rows, channels = x.shape
+    n = index.shape[0]
+    _check("x", x, (rows, channels))
+    _check("index", index, (n, taps), torch.long)
+    _check("packed", packed, ((-(-taps * channels // 32) * 32) * (-(-outputs // 16) * 16) // 2,), torch.int32)
+    _check("shift", shift, (outputs,))
+    if residual is not None:
+        _check("residual", residual, (n, outputs))
+    if channels % 2 or outputs % 16:
+        raise ValueError(f"need an even number of channels and a multiple of 16 outputs, got {channels} and {outputs}")
+    out = x.new_empty(n, outputs)
+    code = _LIBRARY.o3dvis_gather_conv(n, x.data_ptr(), rows, channels, index.data_ptr(), taps, packed.data_ptr(),
+                                       outputs, shift.data_ptr(), None if residual is None else residual.data_ptr(),
+                                       int(relu), out.data_ptr())
+    if code == -3:
+        raise ValueError(f"index must lie in [0, {rows}]")
+    if code == -2:
+        raise RuntimeError("gather_conv needs the AMX tiles (see has_gather_conv)")
+    if code:
+        raise MemoryError("gather_conv: out of memory")
     return out
 
 

@@ -192,11 +192,11 @@ class ConvBnRelu(nn.Module):
         weight, shift = self._folded(torch.bfloat16)
         cached = self.__dict__.get("_packed")
         if cached is None or cached[0] is not weight:
-            cached = self.__dict__["_packed"] = (weight, native.pack_conv(weight, len(weight) // x.shape[1]))
+            packed = native.pack_conv(weight, len(weight) // x.shape[1])
+            cached = self.__dict__["_packed"] = (weight, packed, shift.float().contiguous())
         index = self.conv.index(octree, level).contiguous()
         return native.gather_conv(x.contiguous(), index, cached[1], index.shape[1], self.conv.out_channels,
-                                  shift.float().contiguous(), residual,
-                                  relu=self.relu if residual is None else True)
+                                  cached[2], residual, relu=self.relu if residual is None else True)
 
     def _folded(self, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
         """The convolution's weight times the batch norm's scale (in ``dtype``) and the batch norm's

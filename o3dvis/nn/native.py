@@ -151,8 +151,12 @@ def leaf_means(points: Tensor, normals: Tensor | None, leaf: Tensor, depth: int,
 
 def has_gather_conv() -> bool:
     """Whether :func:`gather_conv` runs here: the kernels' AMX variant is loaded and the operating
-    system grants the process the tiles."""
-    return _LIBRARY is not None and bool(_LIBRARY.o3dvis_has_gather_conv())
+    system grants the process the tiles (asked once per library loaded)."""
+    if _LIBRARY is None:
+        return False
+    if getattr(_LIBRARY, "gather_conv", None) is None:
+        _LIBRARY.gather_conv = bool(_LIBRARY.o3dvis_has_gather_conv())
+    return _LIBRARY.gather_conv
 
 
 def pack_conv(weight: Tensor, taps: int) -> Tensor:

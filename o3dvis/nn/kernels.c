@@ -781,6 +781,21 @@ static void block_inputs(const struct view *v, int64_t b0, int m, float *in) {
             lf[b] = (int32_t)v->leaf[idx[b]], px[b] = q[0], py[b] = q[1], pz[b] = q[2];
         }
     }
+#ifdef __AVX512F__
+    /* per 16 points: their leaves as offsets from the first, and whether those fit 16 lanes (points
+       along the Morton curve share few leaves), so that one load and a permute fetch them */
+    __m512i offset[BLOCK / 16];
+    int32_t first[BLOCK / 16];
+    __mmask16 window[BLOCK / 16];
+    if (v->leaf)
+        for (int g = 0; 16 * g + 16 <= m; g++) {
+            const __m512i leaves = _mm512_loadu_si512(lf + 16 * g);
+            const int32_t lo = _mm512_reduce_min_epi32(leaves), hi = _mm512_reduce_max_epi32(leaves);
+            const int64_t left = v->proj_ld - lo; /* leaves from lo to the end of the row */
+            first[g] = lo, offset[g] = _mm512_sub_epi32(leaves, _mm512_set1_epi32(lo));
+            window[g] = hi - lo >= 16 ? 0 : (left >= 16 ? 0xffff : (__mmask16)((1u << left) - 1));
+        }
+#endif
     for (int j = 0; j < ne; j++) {
         const float *p = v->proj + j * v->proj_ld;
         float *e = in + j * BLOCK;
@@ -790,9 +805,11 @@ static void block_inputs(const struct view *v, int64_t b0, int m, float *in) {
 #ifdef __AVX512F__ /* the same, 16 points a step (compilers tuned for any x86-64 do not gather) */
             const __m512 w0 = _mm512_set1_ps(w[0]), w1 = _mm512_set1_ps(w[1]), w2 = _mm512_set1_ps(w[2]);
             for (; b + 16 <= m; b += 16) {
+                const int g = b / 16;
+                const __m512 leaf = window[g] ? _mm512_permutexvar_ps(offset[g], _mm512_maskz_loadu_ps(window[g], p + first[g]))
+                                              : _mm512_i32gather_ps(_mm512_loadu_si512(lf + b), p, 4);
                 __m512 t = _mm512_add_ps(_mm512_mul_ps(w0, _mm512_loadu_ps(px + b)), _mm512_mul_ps(w1, _mm512_loadu_ps(py + b)));
-                t = _mm512_add_ps(_mm512_i32gather_ps(_mm512_loadu_si512(lf + b), p, 4),
-                                  _mm512_add_ps(t, _mm512_mul_ps(w2, _mm512_loadu_ps(pz + b))));
+                t = _mm512_add_ps(leaf, _mm512_add_ps(t, _mm512_mul_ps(w2, _mm512_loadu_ps(pz + b))));
                 _mm512_storeu_ps(e + b, _mm512_mul_ps(_mm512_loadu_ps(e + b), t));
             }
 #endif

@@ -21,6 +21,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from o3dvis.nn import native  # noqa: E402
 from o3dvis.nn.conv import products_in  # noqa: E402
 from o3dvis.nn.octree import morton_order, normalize_points  # noqa: E402
 from o3dvis.nn.predictor import resolve_precision  # noqa: E402
@@ -33,18 +34,19 @@ def _cpu_ms(fn, repeats: int) -> float:
 
 
 def _unet_mflop(network, octree, signal) -> float:
-    """Multiply-adds x 2 of the U-Net's matrix products on ``octree``, counted by a hook on ``@``."""
-    flops, matmul = [0], torch.Tensor.__matmul__
+    """Multiply-adds x 2 of the U-Net's matrix products on ``octree``, counted by a hook on ``@``
+    (with the convolutions as torch ops, whose products are the fused kernel's)."""
+    flops, matmul, fused = [0], torch.Tensor.__matmul__, native.has_gather_conv
 
     def counted(a, b):
         flops[0] += 2 * a.shape[0] * a.shape[1] * b.shape[-1]
         return matmul(a, b)
 
-    torch.Tensor.__matmul__ = counted
+    torch.Tensor.__matmul__, native.has_gather_conv = counted, lambda: False
     try:
         network.unet(signal, octree)
     finally:
-        torch.Tensor.__matmul__ = matmul
+        torch.Tensor.__matmul__, native.has_gather_conv = matmul, fused
     return flops[0] / 1e6
 
 

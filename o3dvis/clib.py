@@ -4,8 +4,8 @@ beside their Python modules and called through ``ctypes``, which releases the GI
 Each library is built in variants, one per instruction set (:data:`VARIANTS`): a baseline, and on
 x86-64 one for AVX2 with FMA, one for AVX-512 with bfloat16 dot products and one that adds AMX
 tiles. At import the widest variant built that this CPU runs is loaded; nothing is compiled at run
-time and nothing outside the package is loaded. ``O3DVIS_NATIVE=0`` in the environment turns the libraries off and
-``O3DVIS_NATIVE=<variant>`` picks one. Where none is loaded (no C compiler at install time), the
+time and nothing outside the package is loaded. ``O3DVIS_NATIVE=0`` in the environment turns the
+libraries off and ``O3DVIS_NATIVE=<variant>`` picks one. Where none is loaded (no C compiler at install time), the
 callers run their Python fallbacks, with one warning a process.
 
 This module imports nothing of the package: ``setup.py`` reads :data:`VARIANTS` from it.

@@ -19,8 +19,9 @@
  * keys (o3dvis/nn/octree.py, cell_keys) in one pass instead of some twenty,
  * o3dvis_sort_keys sorts them (a radix sort, faster than torch.sort),
  * o3dvis_child_neighbours a level's 3x3x3 neighbours from its parents' (Octree.neighbours)
- * in one instead of some ten, o3dvis_cell_moments the noise cue's per-cell sums (o3dvis/nn/noise.py)
- * and o3dvis_leaf_means the U-Net's input (o3dvis/nn/network.py);
+ * in one instead of some ten, o3dvis_cell_moments the noise cue's per-cell sums (o3dvis/nn/noise.py),
+ * o3dvis_leaf_means the U-Net's input (o3dvis/nn/network.py) and, on the AMX tiles,
+ * o3dvis_gather_conv each of its convolutions but the up-samplings (o3dvis/nn/conv.py, ConvBnRelu);
  * for oriented normals, o3dvis_fit_planes the plane fits of
  * o3dvis/orientation.py, o3dvis_visibility_affinity their neighbours' weights, and o3dvis_grid_knn the nearest neighbours it fits
  * them to, sought in the cells of a grid (o3dvis_key_table hashes the cells).
@@ -806,9 +807,11 @@ static void block_inputs(const struct view *v, int64_t b0, int m, float *in) {
             const __m512 w0 = _mm512_set1_ps(w[0]), w1 = _mm512_set1_ps(w[1]), w2 = _mm512_set1_ps(w[2]);
             for (; b + 16 <= m; b += 16) {
                 const int g = b / 16;
-                const __m512 leaf = window[g] ? _mm512_permutexvar_ps(offset[g], _mm512_maskz_loadu_ps(window[g], p + first[g]))
-                                              : _mm512_i32gather_ps(_mm512_loadu_si512(lf + b), p, 4);
-                __m512 t = _mm512_add_ps(_mm512_mul_ps(w0, _mm512_loadu_ps(px + b)), _mm512_mul_ps(w1, _mm512_loadu_ps(py + b)));
+                const __m512 leaf =
+                    window[g] ? _mm512_permutexvar_ps(offset[g], _mm512_maskz_loadu_ps(window[g], p + first[g]))
+                              : _mm512_i32gather_ps(_mm512_loadu_si512(lf + b), p, 4);
+                __m512 t = _mm512_add_ps(_mm512_mul_ps(w0, _mm512_loadu_ps(px + b)),
+                                         _mm512_mul_ps(w1, _mm512_loadu_ps(py + b)));
                 t = _mm512_add_ps(leaf, _mm512_add_ps(t, _mm512_mul_ps(w2, _mm512_loadu_ps(pz + b))));
                 _mm512_storeu_ps(e + b, _mm512_mul_ps(_mm512_loadu_ps(e + b), t));
             }
@@ -1023,12 +1026,14 @@ int o3dvis_view_margin_bf16(int64_t n, const struct view *v, int32_t layers, con
             for (int l = 0; l < layers; l++) {
                 const int pairs = sizes[l] / 2;
                 float *ys = (float *)(xs + GROUP_PAIRS);
-                for (int g = 0; g < GROUPS_SIDE_BY_SIDE; g++)
-                    memset(xs + g * (GROUP_PAIRS + GROUP_ROWS) + 16 * pairs, 0, sizeof *xs * 16 * (ROUND16(pairs) - pairs));
+                for (int g = 0; g < GROUPS_SIDE_BY_SIDE; g++) /* zero up to a whole tile of pairs */
+                    memset(xs + g * (GROUP_PAIRS + GROUP_ROWS) + 16 * pairs, 0,
+                           sizeof *xs * 16 * (ROUND16(pairs) - pairs));
                 dense_relu_tiles(xs, pairs, t, sizes[l + 1], ys);
                 t += sizes[l + 1] * (ROUND16(pairs) + 16);
                 for (int g = 0; g < GROUPS_SIDE_BY_SIDE; g++)
-                    pair_rows(ys + g * (GROUP_PAIRS + GROUP_ROWS), 16, sizes[l + 1], xs + g * (GROUP_PAIRS + GROUP_ROWS));
+                    pair_rows(ys + g * (GROUP_PAIRS + GROUP_ROWS), 16, sizes[l + 1],
+                              xs + g * (GROUP_PAIRS + GROUP_ROWS));
             }
             for (int g = 0; 16 * g < m; g++)
                 last_margins(xs + g * (GROUP_PAIRS + GROUP_ROWS), sizes[layers] / 2, last, last_bias[0],

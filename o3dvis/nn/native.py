@@ -1,12 +1,14 @@
 """A view's projection, the predictor's inputs and its MLP in a few passes of C, for queries on the
-CPU, and the octree's Morton keys and neighbours in one each.
+CPU; and for the encoding the octree's Morton keys, their sort and neighbours, the U-Net's input
+and, on CPUs with AMX tiles, its convolutions, each in one pass.
 
 ``kernels.c`` computes what :class:`~o3dvis.nn.cues.ViewProjection` and the view
 embedding times the projected features compute in some seventy eager torch
 ops, each a pass over memory, and runs the predictor's MLP on those inputs
 while they are in cache (``docs/results.md`` measures what it saves).
 It is C with no dependency, built with the package for a baseline CPU, AVX2,
-AVX-512 with bfloat16 and AMX (the MLP's hidden layers on its tiles), and called through ``ctypes`` (see :mod:`o3dvis.clib`).
+AVX-512 with bfloat16 and AMX (the MLP's hidden layers and the U-Net's gathered
+convolutions on its tiles), and called through ``ctypes`` (see :mod:`o3dvis.clib`).
 Where it was not built, or with ``O3DVIS_NATIVE=0`` in the environment, queries
 run the torch ops instead, with a warning; gradients and CUDA always do.
 This module only checks shapes and passes pointers; the callers own the tensors.
@@ -23,7 +25,8 @@ from torch import Tensor
 from .. import clib
 from .features import LeafFeatures
 
-__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "sort_keys", "leaf_means", "has_gather_conv", "pack_conv", "gather_conv", "cell_moments", "project",
+__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "sort_keys", "leaf_means",
+           "has_gather_conv", "pack_conv", "gather_conv", "cell_moments", "project",
            "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin",
            "fit_planes", "visibility_affinity", "affinity_table", "key_table",
            "grid_knn", "child_neighbours"]

@@ -274,11 +274,15 @@ void o3dvis_cell_moments(int64_t n, const float *points, int32_t level, int64_t 
  * in [-1, 1) (((p + 1) 2^depth / 2) less its truncation, times 2, less 1), the point, then its
  * normal where normals is not NULL]. Sums in float32 in the points' order, as index_add_ sums them.
  * leaf: (n,) each point's leaf in [0, leaves); out: (leaves, channels) zeroed by the caller,
- * channels 6 or 9; counts: (leaves,) float32 zeroed by the caller. */
-void o3dvis_leaf_means(int64_t n, const float *points, const float *normals, const int64_t *leaf, int32_t depth,
-                       int64_t leaves, float *counts, float *out) {
+ * channels 6 or 9; counts: (leaves,) float32 zeroed by the caller. Returns 0, -1 (nothing written)
+ * for a leaf out of [0, leaves), -2 when a leaf has no point. */
+int o3dvis_leaf_means(int64_t n, const float *points, const float *normals, const int64_t *leaf, int32_t depth,
+                      int64_t leaves, float *counts, float *out) {
     const float half = (float)(1 << depth) / 2.0f;
     const int channels = normals ? 9 : 6;
+    int outside = 0;
+    for (int64_t i = 0; i < n; i++) outside |= (leaf[i] < 0) | (leaf[i] >= leaves);
+    if (outside) return -1;
     for (int64_t i = 0; i < n; i++) {
         float *o = out + leaf[i] * channels;
         for (int a = 0; a < 3; a++) {
@@ -289,8 +293,12 @@ void o3dvis_leaf_means(int64_t n, const float *points, const float *normals, con
         }
         counts[leaf[i]] += 1.0f;
     }
-    for (int64_t l = 0; l < leaves; l++)
+    int empty = 0;
+    for (int64_t l = 0; l < leaves; l++) {
+        empty |= counts[l] == 0.0f;
         for (int c = 0; c < channels; c++) out[l * channels + c] /= counts[l];
+    }
+    return empty ? -2 : 0;
 }
 
 /* Builds one view's projection of n points (n >= 1); returns 0, or -1 for more than

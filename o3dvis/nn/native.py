@@ -49,7 +49,7 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_morton_keys": ([_I64, _PTR, _I32, _PTR], None),
     "o3dvis_sort_keys": ([_I64, _PTR, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_cell_moments": ([_I64, _PTR, _I32, _PTR, _PTR], None),
-    "o3dvis_leaf_means": ([_I64, _PTR, _PTR, _PTR, _I32, _I64, _PTR, _PTR], None),
+    "o3dvis_leaf_means": ([_I64, _PTR, _PTR, _PTR, _I32, _I64, _PTR, _PTR], ctypes.c_int),
     "o3dvis_has_gather_conv": ([], ctypes.c_int),
     "o3dvis_gather_conv": ([_I64, _PTR, _I64, _I32, _PTR, _I32, _PTR, _I32, _PTR, _PTR, _I32, _PTR], ctypes.c_int),
     "o3dvis_project": ([_I64, _PTR, _PTR, _PTR, _I32, _PTR] + [_PTR] * 6, ctypes.c_int),
@@ -141,13 +141,13 @@ def leaf_means(points: Tensor, normals: Tensor | None, leaf: Tensor, depth: int,
     _check("leaf", leaf, (n,), torch.long)
     if not 1 <= depth <= 21:
         raise ValueError(f"depth must lie in [1, 21], got {depth}")
-    if n and (int(leaf.min()) < 0 or int(leaf.max()) >= leaves):
-        raise ValueError(f"leaves must lie in [0, {leaves})")
     counts = torch.zeros(leaves)
     out = torch.zeros(leaves, 6 if normals is None else 9)
-    _LIBRARY.o3dvis_leaf_means(n, points.data_ptr(), None if normals is None else normals.data_ptr(), leaf.data_ptr(),
-                               depth, leaves, counts.data_ptr(), out.data_ptr())
-    if leaves and float(counts.min()) == 0:
+    code = _LIBRARY.o3dvis_leaf_means(n, points.data_ptr(), None if normals is None else normals.data_ptr(),
+                                      leaf.data_ptr(), depth, leaves, counts.data_ptr(), out.data_ptr())
+    if code == -1:
+        raise ValueError(f"leaves must lie in [0, {leaves})")
+    if code:
         raise ValueError("every leaf needs a point")
     return out
 

@@ -29,7 +29,7 @@ from .nn.predictor import resolve_precision
 from .orientation import LAYER_NEIGHBOURS, nearest_neighbours, oriented_planes, surface_variation
 from .threads import plan_threads, torch_threads
 
-__all__ = ["NeuralVisibility", "fixed_rotations", "random_rotation"]
+__all__ = ["NeuralVisibility"]
 
 _NORMALS_MODEL = "normals"
 _SCENE_MODEL = "scene"

@@ -727,3 +727,17 @@ def test_a_first_view_reads_the_features_from_the_leaves_and_later_queries_carry
     two = vis.encode(points)  # a first query of several views carries them too
     torch.testing.assert_close(two.probabilities(np.stack([camera, -camera]))[:1], first, atol=1e-6, rtol=0)
     assert two._features is not None
+
+
+def test_every_module_defines_what_its_all_names():
+    import importlib
+    import pkgutil
+
+    missing = []
+    for info in pkgutil.walk_packages(o3dvis.__path__, "o3dvis."):
+        name = info.name.rsplit(".", 1)[-1]
+        if name == "__main__" or name.startswith("_kernels") or name.startswith("_delaunay"):
+            continue  # the command line runs on import; native libraries are not Python modules
+        module = importlib.import_module(info.name)
+        missing += [f"{info.name}.{n}" for n in getattr(module, "__all__", ()) if not hasattr(module, n)]
+    assert not missing, f"__all__ names what the module does not define: {missing}"

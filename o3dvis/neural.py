@@ -21,9 +21,10 @@ from .geometry import fixed_rotations
 from .field import DEFAULT_CHUNK, RotatedEncoding, VisibilityField, inside_box
 from .models import available_models, load_model, torch_device
 from .nn.calibration import calibration_terms
+from .nn import native
 from .nn.network import VisibilityNetwork
 from .nn.noise import noise_cues
-from .nn.octree import MORTON_DEPTH, bounding_box, coarser_keys, morton_sort, normalize_points
+from .nn.octree import MORTON_DEPTH, bounding_box, coarser_keys, cube_frame, morton_sort, normalize_points
 from .nn.conv import products_in
 from .nn.predictor import resolve_precision
 from .orientation import LAYER_NEIGHBOURS, nearest_neighbours, oriented_planes, surface_variation
@@ -76,14 +77,44 @@ def _flat_hull(points: Tensor, diagonal: Tensor) -> tuple[Tensor, Tensor] | None
     """
     centre = points.mean(dim=0)
     offsets = points - centre
-    scatter = offsets.T @ offsets
-    least, largest = torch.linalg.eigvalsh(scatter)[[0, 2]]
-    bound = _FLAT_TOL * diagonal
-    if least - 1e3 * torch.finfo(points.dtype).eps * largest > bound * bound * len(points):
+    if _solid(offsets.T @ offsets, len(points), diagonal):
         return None
+    bound = _FLAT_TOL * diagonal
     _, _, vt = torch.linalg.svd(torch.linalg.qr(offsets, mode="r").R)
     spans = (offsets @ vt.T).abs().max(dim=0).values > bound
     return None if bool(spans.all()) else (centre, vt[spans])
+
+
+def _solid(scatter: Tensor, count: int, diagonal: Tensor) -> bool:
+    """Whether the (3, 3) float64 scatter matrix of ``count`` points about their mean (or a point
+    a few ulps from it) tells that they extend along every direction (see :func:`_flat_hull`)."""
+    least, largest = torch.linalg.eigvalsh(scatter)[[0, 2]]
+    bound = _FLAT_TOL * diagonal
+    return bool(least - 1e3 * torch.finfo(scatter.dtype).eps * largest > bound * bound * count)
+
+
+def _unit_frame(points: Tensor) -> tuple[Tensor, Tensor | None, Tensor, Tensor, tuple[Tensor, Tensor],
+                                         tuple[Tensor, Tensor] | None]:
+    """``(normalised float32 points, their keys at MORTON_DEPTH or None, center, scale, bounds,
+    flat hull)`` of (N, 3) float64 points: :func:`_normalize`, then :func:`_flat_hull` of the
+    float64 normalised points and :func:`~o3dvis.nn.octree.cell_keys` of the float32 ones; on the
+    CPU in two passes of C (the float64 normalised points are made only for a cloud that may be
+    flat)."""
+    if not (points.device.type == "cpu" and points.dtype == torch.float64 and native.available()):
+        lo, hi = bounding_box(points)
+        normalized, center, scale = _normalize(points, (lo, hi))
+        hull = _flat_hull(normalized, ((hi - lo) / scale).norm())  # float64: flat to the last bits
+        return normalized.float(), None, center, scale, (lo, hi), hull
+    points = points.contiguous()
+    lo, hi, total = native.bounds(points)
+    if not (hi - lo).amax() > 0:  # all points coincide
+        normalized, center, scale = _normalize(points, (lo, hi))
+        return normalized.float(), None, center, scale, (lo, hi), _flat_hull(normalized, (hi - lo).norm())
+    center, scale = cube_frame(lo, hi)
+    normalized, keys, scatter = native.normalize(points, center, float(scale), (total / len(points) - center) / scale)
+    diagonal = ((hi - lo) / scale).norm()
+    hull = None if _solid(scatter, len(points), diagonal) else _flat_hull(_normalize(points, (lo, hi))[0], diagonal)
+    return normalized, keys, center, scale, (lo, hi), hull
 
 
 def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray | None:
@@ -363,12 +394,8 @@ class NeuralVisibility:
                        camera: Tensor | None, estimate: bool = False) -> VisibilityField:
         """:meth:`_encode` of checked points and unit normals (or None) with ``network``; ``estimate``:
         normals estimated in a first pass where that pays (see :meth:`encode`)."""
-        points = points.to(self.device)
-        lo, hi = bounding_box(points)
-        normalized, center, scale = _normalize(points, (lo, hi))
-        hull = _flat_hull(normalized, ((hi - lo) / scale).norm())  # float64: flat to the last bits
-        normalized = normalized.float()
-        keys, order, rank = morton_sort(normalized)
+        normalized, keys, center, scale, (lo, hi), hull = _unit_frame(points.to(self.device))
+        keys, order, rank = morton_sort(normalized, keys=keys)
         normalized = normalized.index_select(0, order)
         unit = None if unit is None else unit.to(self.device).index_select(0, order).float()
         frame = (normalized, center, scale, (lo, hi), hull, rank)

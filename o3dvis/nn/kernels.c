@@ -17,7 +17,8 @@
  * runs the fusion of its answer with the margin (o3dvis/nn/fusion.py) in one
  * pass. And for the encoding, o3dvis_morton_keys computes the octree's Morton
  * keys (o3dvis/nn/octree.py, cell_keys) in one pass instead of some twenty,
- * o3dvis_sort_keys sorts them (a radix sort, faster than torch.sort),
+ * o3dvis_sort_keys sorts them (a radix sort, faster than torch.sort), o3dvis_bounds and
+ * o3dvis_normalize put a cloud in the unit cube, with its keys, in two passes instead of some ten,
  * o3dvis_child_neighbours a level's 3x3x3 neighbours from its parents' (Octree.neighbours)
  * in one instead of some ten, o3dvis_cell_moments the noise cue's per-cell sums (o3dvis/nn/noise.py),
  * o3dvis_leaf_means the U-Net's input (o3dvis/nn/network.py) and, on the AMX tiles,
@@ -188,6 +189,76 @@ void o3dvis_morton_keys(int64_t n, const float *points, int32_t depth, int64_t *
         }
         keys[i] = (int64_t)(spread_bits(cell[0]) << 2 | spread_bits(cell[1]) << 1 | spread_bits(cell[2]));
     }
+}
+
+/* The per-axis minimum, maximum and sum of n points (n, 3) float64, into out: lo[3], hi[3], sum[3]
+ * (o3dvis/nn/octree.py, bounding_box: NaN where an axis has one, as torch's min and max). Eight
+ * points a step, each lane of the step its own minimum, maximum and sum: the loop vectorises and
+ * its sums do not wait on each other (so they add in another order than one running sum). */
+void o3dvis_bounds(int64_t n, const double *points, double *out) {
+    double lo[24], hi[24], sum[24];
+    for (int k = 0; k < 24; k++) lo[k] = INFINITY, hi[k] = -INFINITY, sum[k] = 0.0;
+    int64_t i = 0;
+    for (; i + 8 <= n; i += 8) {
+        const double *p = points + 3 * i;
+        for (int k = 0; k < 24; k++) {
+            const double x = p[k];
+            lo[k] = x < lo[k] || x != x ? x : lo[k], hi[k] = x > hi[k] || x != x ? x : hi[k], sum[k] += x;
+        }
+    }
+    for (; i < n; i++)
+        for (int a = 0; a < 3; a++) {
+            const double x = points[3 * i + a];
+            lo[a] = x < lo[a] || x != x ? x : lo[a], hi[a] = x > hi[a] || x != x ? x : hi[a], sum[a] += x;
+        }
+    for (int k = 3; k < 24; k++) {
+        const int a = k % 3;
+        lo[a] = lo[k] < lo[a] || lo[k] != lo[k] ? lo[k] : lo[a];
+        hi[a] = hi[k] > hi[a] || hi[k] != hi[k] ? hi[k] : hi[a];
+        sum[a] += sum[k];
+    }
+    for (int a = 0; a < 3; a++) out[a] = lo[a], out[3 + a] = hi[a], out[6 + a] = sum[a];
+}
+
+/* The normalised cloud in one pass (o3dvis/nn/octree.py, normalize_points then .float(), then
+ * cell_keys at MORTON_DEPTH): each coordinate (p - center) / scale in float64, rounded to float32
+ * into out (n, 3); the Morton keys of those float32 points on the 2^21 grid into keys, as
+ * o3dvis_morton_keys computes them; and into scatter the sums of the products of the float64
+ * offsets from mean (3,): xx, xy, xz, yy, yz, zz. Eight points a step (the arithmetic along
+ * their 24 coordinates vectorises). */
+void o3dvis_normalize(int64_t n, const double *points, const double *center, double scale, const double *mean,
+                      float *out, int64_t *keys, double *scatter) {
+    const float half = (float)(1 << 20), top = (float)((1 << 21) - 1);
+    double c24[24], m24[24], s[6] = {0};
+    for (int k = 0; k < 24; k++) c24[k] = center[k % 3], m24[k] = mean[k % 3];
+    uint64_t spread[256]; /* spread_bits of a byte: a cell's 21 bits in three lookups */
+    for (int k = 0; k < 256; k++) spread[k] = spread_bits((uint64_t)k);
+    for (int64_t i0 = 0; i0 < n; i0 += 8) {
+        const int m = n - i0 < 8 ? (int)(n - i0) : 8;
+        double q[24] = {0};
+        float f[24];
+        const double *p = points + 3 * i0;
+        if (m == 8)
+            for (int k = 0; k < 24; k++) q[k] = (p[k] - c24[k]) / scale;
+        else
+            for (int k = 0; k < 3 * m; k++) q[k] = (p[k] - c24[k]) / scale;
+        for (int k = 0; k < 24; k++) f[k] = (float)q[k], q[k] -= m24[k];
+        memcpy(out + 3 * i0, f, (size_t)(3 * m) * sizeof(float));
+        for (int b = 0; b < m; b++) {
+            uint64_t key = 0;
+            for (int a = 0; a < 3; a++) {
+                float c = (f[3 * b + a] + 1.0f) * half;
+                c = c >= 0.0f ? c : 0.0f;
+                const uint32_t cell = (uint32_t)(c < top ? c : top);
+                key |= (spread[cell & 255] | spread[(cell >> 8) & 255] << 24 | spread[cell >> 16] << 48) << (2 - a);
+            }
+            keys[i0 + b] = (int64_t)key;
+            const double *d = q + 3 * b;
+            s[0] += d[0] * d[0], s[1] += d[0] * d[1], s[2] += d[0] * d[2];
+            s[3] += d[1] * d[1], s[4] += d[1] * d[2], s[5] += d[2] * d[2];
+        }
+    }
+    memcpy(scatter, s, sizeof s);
 }
 
 struct keyed { int64_t key, index; };

@@ -25,7 +25,8 @@ from torch import Tensor
 from .. import clib
 from .features import LeafFeatures
 
-__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "morton_keys", "sort_keys", "leaf_means",
+__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "bounds", "normalize", "morton_keys", "sort_keys",
+           "leaf_means",
            "has_gather_conv", "pack_conv", "gather_conv", "cell_moments", "project",
            "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin",
            "fit_planes", "visibility_affinity", "affinity_table", "key_table",
@@ -46,6 +47,8 @@ class _View(ctypes.Structure):
 
 _VIEW = ctypes.POINTER(_View)
 _SIGNATURES = {  # name: (argument types, result type)
+    "o3dvis_bounds": ([_I64, _PTR, _PTR], None),
+    "o3dvis_normalize": ([_I64, _PTR, _PTR, ctypes.c_double, _PTR, _PTR, _PTR, _PTR], None),
     "o3dvis_morton_keys": ([_I64, _PTR, _I32, _PTR], None),
     "o3dvis_sort_keys": ([_I64, _PTR, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_cell_moments": ([_I64, _PTR, _I32, _PTR, _PTR], None),
@@ -92,6 +95,31 @@ def _check(name: str, t: Tensor, shape: tuple[int, ...], dtype: torch.dtype = to
     if t.shape != shape or t.dtype != dtype or not t.is_contiguous() or t.device.type != "cpu":
         raise ValueError(f"{name} must be a contiguous {shape} {dtype} CPU tensor, got "
                          f"{tuple(t.shape)} {t.dtype} on {t.device}")
+
+
+def bounds(points: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``(lo, hi, sum)``, each (3,) float64: the per-axis minimum, maximum (NaN where an axis has
+    one, as ``min``/``max`` give) and sum of ``points`` (N, 3) float64, in one pass."""
+    _check("points", points, (points.shape[0], 3), torch.float64)
+    out = points.new_empty(9)
+    _LIBRARY.o3dvis_bounds(points.shape[0], points.data_ptr(), out.data_ptr())
+    return out[:3], out[3:6], out[6:]
+
+
+def normalize(points: Tensor, center: Tensor, scale: float, mean: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``(normalised, keys, scatter)`` of ``points`` (N, 3) float64 in one pass: ``((points - center)
+    / scale).float()``, the (N,) Morton keys of those float32 points on the finest grid
+    (:func:`morton_keys` at depth 21), and the (3, 3) sum of the outer products of the float64
+    offsets ``(points - center) / scale - mean``."""
+    n = points.shape[0]
+    _check("points", points, (n, 3), torch.float64)
+    _check("center", center, (3,), torch.float64)
+    _check("mean", mean, (3,), torch.float64)
+    out, keys, sums = torch.empty(n, 3), torch.empty(n, dtype=torch.long), points.new_empty(6)
+    _LIBRARY.o3dvis_normalize(n, points.data_ptr(), center.data_ptr(), float(scale), mean.data_ptr(),
+                              out.data_ptr(), keys.data_ptr(), sums.data_ptr())
+    scatter = sums[[0, 1, 2, 1, 3, 4, 2, 4, 5]].view(3, 3)
+    return out, keys, scatter
 
 
 def morton_keys(points: Tensor, depth: int) -> Tensor:

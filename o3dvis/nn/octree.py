@@ -14,7 +14,7 @@ from torch import Tensor
 
 from . import native
 
-__all__ = ["Octree", "bounding_box", "cell_keys", "coarser_keys", "grid_cells", "morton_encode", "morton_decode",
+__all__ = ["Octree", "bounding_box", "cube_frame", "cell_keys", "coarser_keys", "grid_cells", "morton_encode", "morton_decode",
            "morton_order", "morton_sort", "normalize_points", "MORTON_DEPTH"]
 
 # The most cells (all clouds of the batch, a border of one cell included) of a level whose node
@@ -55,7 +55,16 @@ def bounding_box(points: Tensor) -> tuple[Tensor, Tensor]:
     ``min``/``max`` over dim 0, which run faster than ``amin``/``amax`` on the
     CPU for this shape.
     """
+    if points.dtype == torch.float64 and points.device.type == "cpu" and native.available():
+        return native.bounds(points.detach().contiguous())[:2]  # one pass of C instead of two
     return points.min(dim=0).values, points.max(dim=0).values
+
+
+def cube_frame(lo: Tensor, hi: Tensor, eps: float = 1e-6) -> tuple[Tensor, Tensor]:
+    """``(center, scale)`` of :func:`normalize_points` for the bounding box ``lo``, ``hi``: the box's
+    centre, and half its longest side, enlarged by the relative margin ``eps``."""
+    center = (lo + hi) / 2
+    return center, ((hi - lo).amax() / 2).clamp_min(torch.finfo(lo.dtype).tiny) * (1 + eps)
 
 
 def normalize_points(points: Tensor, eps: float = 1e-6,
@@ -70,9 +79,7 @@ def normalize_points(points: Tensor, eps: float = 1e-6,
     Returns:
         ``(normalised, center, scale)`` with ``normalised = (points - center) / scale``.
     """
-    lo, hi = bounding_box(points) if bounds is None else bounds
-    center = (lo + hi) / 2
-    scale = ((hi - lo).amax() / 2).clamp_min(torch.finfo(points.dtype).tiny) * (1 + eps)
+    center, scale = cube_frame(*(bounding_box(points) if bounds is None else bounds), eps)
     return (points - center).div_(scale), center, scale  # one temporary: at 10 M points 240 MB each
 
 
@@ -152,13 +159,15 @@ def morton_order(points: Tensor, depth: int = MORTON_DEPTH) -> Tensor:
     return morton_sort(points, depth)[1]
 
 
-def morton_sort(points: Tensor, depth: int = MORTON_DEPTH) -> tuple[Tensor, Tensor, Tensor]:
+def morton_sort(points: Tensor, depth: int = MORTON_DEPTH, keys: Tensor | None = None
+                ) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`morton_order` with the keys it sorts and its inverse: ``(sorted cell keys,
     permutation, rank)``, ``rank[i]`` the place of point ``i``; the keys are those of the
-    ``2^depth`` grid (:func:`cell_keys`), from which :func:`coarser_keys` gives any coarser grid's
-    without another pass over the points. Ties (points of one cell) keep their order: a radix
-    sort of C on the CPU, a stable ``torch.sort`` elsewhere."""
-    keys = cell_keys(points, depth)
+    ``2^depth`` grid (:func:`cell_keys`, or ``keys`` where the caller has them), from which
+    :func:`coarser_keys` gives any coarser grid's without another pass over the points. Ties
+    (points of one cell) keep their order: a radix sort of C on the CPU, a stable ``torch.sort``
+    elsewhere."""
+    keys = cell_keys(points, depth) if keys is None else keys
     if keys.device.type == "cpu" and native.available():
         return native.sort_keys(keys)
     keys, order = torch.sort(keys, stable=True)

@@ -315,6 +315,52 @@ def test_the_unet_on_the_tiles_answers_as_the_torch_ops(monkeypatch):
 
 
 @needs_kernels
+@pytest.mark.parametrize("shape", [(16, 32, 700), (32, 16, 301), (96, 64, 5), (48, 48, 130), (8, 24, 77)])
+def test_upsample_equals_the_torch_ops(shape, variant):
+    """An up-sampling for the nodes that exist only, against OctreeUpsample's product for all eight
+    octants, gather, shift and ReLU: the same float32 sums where the CPU fuses multiply-adds (every
+    variant but the baseline one, whose products round apart), point for point."""
+    channels, outputs, parents = shape
+    g = torch.Generator().manual_seed(6)
+    x = torch.randn(parents, channels, generator=g).relu_()
+    weight, shift = torch.randn(channels, 8 * outputs, generator=g) / channels, torch.randn(outputs, generator=g)
+    rows = torch.sort(torch.randperm(8 * parents, generator=g)[: 3 * parents]).values
+    product = (x @ weight).view(8 * parents, outputs).index_select(0, rows) + shift
+    for relu, expected in [(False, product), (True, torch.relu(product))]:
+        got = native.upsample(x, rows, weight, shift, relu)
+        if variant == "base":
+            torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-5)
+        else:
+            assert torch.equal(got, expected)
+    with pytest.raises(ValueError, match="rows must lie"):
+        native.upsample(x, rows + 8 * parents - int(rows.min()), weight, shift, True)
+    with pytest.raises(ValueError, match="weight must be"):
+        native.upsample(x, rows, weight[:, 1:], shift, True)
+
+
+@needs_kernels
+def test_the_unet_with_native_upsamplings_answers_as_the_torch_ops(monkeypatch):
+    """The encoding with its up-samplings in one pass of C (only the octants that exist): the
+    features of the products over all octants, value for value."""
+    from o3dvis.nn import conv
+    from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
+
+    torch.manual_seed(0)
+    network = VisibilityNetwork(NetworkConfig(noise_cues=True)).eval()
+    points = _points(5000)
+    calls, upsample = [], native.upsample
+    monkeypatch.setattr(native, "upsample", lambda *args: calls.append(1) or upsample(*args))
+    with torch.no_grad(), conv.products_in(torch.float32):
+        fused = network.encode(points)
+        assert len(calls) == 5  # four decoder stages and the leaves
+        fused_layer = conv.ConvBnRelu.fused
+        monkeypatch.setattr(conv.ConvBnRelu, "fused", lambda layer, x, *args, **kw: None if isinstance(
+            layer.conv, conv.OctreeUpsample) else fused_layer(layer, x, *args, **kw))
+        plain = network.encode(points)
+    assert torch.equal(fused, plain)
+
+
+@needs_kernels
 def test_projection_rejects_what_the_kernel_cannot_take():
     points = _points(500)
     with torch.inference_mode():

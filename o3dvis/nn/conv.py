@@ -180,14 +180,24 @@ class ConvBnRelu(nn.Module):
         return x.relu_() if self.relu else x
 
     def fused(self, x: Tensor, octree: Octree, level: int, residual: Tensor | None = None) -> Tensor | None:
-        """This layer in inference in one pass of C on the AMX tiles (:func:`~o3dvis.nn.native.gather_conv`):
-        as :meth:`forward`, or with a ``residual`` ``relu(residual + convolution + shift)`` (a
-        :class:`ResBlock`'s end). None where that does not run: training, gradients, products in
-        float32, another device, an up-sampling, an odd number of input channels or output channels
+        """This layer in inference in one pass of C: an up-sampling for the nodes that exist only
+        (:func:`~o3dvis.nn.native.upsample`, the same float32 sums), a convolution on the AMX tiles
+        (:func:`~o3dvis.nn.native.gather_conv`): as :meth:`forward`, or with a ``residual``
+        ``relu(residual + convolution + shift)`` (a :class:`ResBlock`'s end). None where that does
+        not run: training, gradients, another device or dtype, the kernels not built; for a
+        convolution also products in float32, an odd number of input channels or output channels
         that are no multiple of 16 (the kernel's tiles), or no tiles here."""
         if (self.training or torch.is_grad_enabled() or x.device.type != "cpu" or x.dtype != torch.float32
-                or isinstance(self.conv, OctreeUpsample) or self.conv.product_dtype(x) != torch.bfloat16
-                or x.shape[1] % 2 or self.conv.out_channels % 16 or not native.has_gather_conv()):
+                or not native.available()):
+            return None
+        if isinstance(self.conv, OctreeUpsample):
+            if residual is not None:
+                return None
+            weight, shift = self._folded(x.dtype)
+            return native.upsample(x.contiguous(), octree.octant_rows(level + 1).contiguous(), weight.contiguous(),
+                                   shift.contiguous(), self.relu)
+        if (self.conv.product_dtype(x) != torch.bfloat16 or x.shape[1] % 2 or self.conv.out_channels % 16
+                or not native.has_gather_conv()):
             return None
         weight, shift = self._folded(torch.bfloat16)
         cached = self.__dict__.get("_packed")

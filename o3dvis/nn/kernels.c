@@ -340,6 +340,60 @@ void o3dvis_cell_moments(int64_t n, const float *points, int32_t level, int64_t 
     }
 }
 
+/* An up-sampling of the U-Net in inference, as o3dvis/nn/conv.py's OctreeUpsample and ConvBnRelu
+ * compute it, for the rows that exist only: out[i] = relu?(x[p] W_o + shift) with p = rows[i] / 8
+ * the parent's row of x (parents, channels) and o = rows[i] % 8 the octant, W_o the octant's
+ * outputs columns of weight (channels, 8 outputs); each sum in float32 along the channels in order,
+ * multiply-adds fused where the CPU fuses them (as a matrix product's sums run), then the shift
+ * added. out: (n, outputs). Returns 0, or -1 (nothing written) for a row out of [0, 8 parents). */
+int o3dvis_upsample(int64_t n, const float *x, int64_t parents, int32_t channels, const int64_t *rows,
+                    const float *weight, int32_t outputs, const float *shift, int32_t relu, float *out) {
+    int outside = 0;
+    for (int64_t i = 0; i < n; i++) outside |= (rows[i] < 0) | (rows[i] >= 8 * parents);
+    if (outside) return -1;
+    const int64_t stride = 8 * (int64_t)outputs;
+    int64_t i = 0;
+#ifdef __AVX512F__
+    /* the sums of four rows in up to sixteen registers: four rows' chains of multiply-adds side by side */
+    if (outputs % 16 == 0 && outputs <= 64)
+        for (; i + 4 <= n; i += 4) {
+            const int t = outputs / 16;
+            const float *xp[4], *w[4];
+            __m512 acc[4][4];
+            for (int r = 0; r < 4; r++) {
+                xp[r] = x + (rows[i + r] >> 3) * channels, w[r] = weight + (rows[i + r] & 7) * outputs;
+                for (int u = 0; u < 4; u++) acc[r][u] = _mm512_setzero_ps();
+            }
+            for (int k = 0; k < channels; k++)
+                for (int r = 0; r < 4; r++) {
+                    const __m512 a = _mm512_set1_ps(xp[r][k]);
+                    const float *wk = w[r] + k * stride;
+                    for (int u = 0; u < t; u++) acc[r][u] = _mm512_fmadd_ps(a, _mm512_loadu_ps(wk + 16 * u), acc[r][u]);
+                }
+            for (int r = 0; r < 4; r++)
+                for (int u = 0; u < t; u++) {
+                    __m512 v = _mm512_add_ps(acc[r][u], _mm512_loadu_ps(shift + 16 * u));
+                    if (relu) v = _mm512_max_ps(v, _mm512_setzero_ps());
+                    _mm512_storeu_ps(out + (i + r) * outputs + 16 * u, v);
+                }
+        }
+#endif
+    for (; i < n; i++) {
+        const float *xp = x + (rows[i] >> 3) * channels, *w = weight + (rows[i] & 7) * outputs;
+        float *o = out + i * outputs;
+        for (int j = 0; j < outputs; j++) o[j] = 0.0f;
+        for (int k = 0; k < channels; k++) {
+            const float a = xp[k], *wk = w + k * stride;
+            for (int j = 0; j < outputs; j++) o[j] = MADD(a, wk[j], o[j]);
+        }
+        for (int j = 0; j < outputs; j++) {
+            const float v = o[j] + shift[j];
+            o[j] = relu && v < 0.0f ? 0.0f : v;
+        }
+    }
+    return 0;
+}
+
 /* The U-Net's input per octree leaf, as o3dvis/nn/network.py's _signal computes it with torch ops:
  * the mean over each leaf's points of [the point's coordinates inside its cell of a 2^depth grid,
  * in [-1, 1) (((p + 1) 2^depth / 2) less its truncation, times 2, less 1), the point, then its

@@ -27,7 +27,7 @@ from .features import LeafFeatures
 
 __all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "bounds", "normalize", "morton_keys", "sort_keys",
            "leaf_means",
-           "has_gather_conv", "pack_conv", "gather_conv", "cell_moments", "project",
+           "upsample", "has_gather_conv", "pack_conv", "gather_conv", "cell_moments", "project",
            "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin",
            "fit_planes", "visibility_affinity", "affinity_table", "key_table",
            "grid_knn", "child_neighbours"]
@@ -53,6 +53,7 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_sort_keys": ([_I64, _PTR, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_cell_moments": ([_I64, _PTR, _I32, _PTR, _PTR], None),
     "o3dvis_leaf_means": ([_I64, _PTR, _PTR, _PTR, _I32, _I64, _PTR, _PTR], ctypes.c_int),
+    "o3dvis_upsample": ([_I64, _PTR, _I64, _I32, _PTR, _PTR, _I32, _PTR, _I32, _PTR], ctypes.c_int),
     "o3dvis_has_gather_conv": ([], ctypes.c_int),
     "o3dvis_gather_conv": ([_I64, _PTR, _I64, _I32, _PTR, _I32, _PTR, _I32, _PTR, _PTR, _I32, _PTR], ctypes.c_int),
     "o3dvis_project": ([_I64, _PTR, _PTR, _PTR, _I32, _PTR] + [_PTR] * 6, ctypes.c_int),
@@ -177,6 +178,35 @@ def leaf_means(points: Tensor, normals: Tensor | None, leaf: Tensor, depth: int,
         raise ValueError(f"leaves must lie in [0, {leaves})")
     if code:
         raise ValueError("every leaf needs a point")
+    return out
+
+
+def upsample(x: Tensor, rows: Tensor, weight: Tensor, shift: Tensor, relu: bool) -> Tensor:
+    """(n, O) float32: an up-sampling (:class:`~o3dvis.nn.conv.OctreeUpsample` with its batch norm
+    folded into ``weight`` and ``shift``) for the rows that exist only: row ``i`` is parent
+    ``rows[i] // 8`` of ``x`` times the columns of octant ``rows[i] % 8`` of ``weight``, plus
+    ``shift``, through a ReLU where ``relu``; in one pass instead of a product for all eight
+    octants of every parent and a gather.
+
+    Args:
+        x: (parents, C) float32.
+        rows: (n,) int64 in [0, 8 parents), the octree's ``octant_rows``.
+        weight: (C, 8 O) float32, columns (octant, channel).
+        shift: (O,) float32.
+
+    Raises:
+        ValueError: tensors of the wrong shape or type, or a row out of range.
+    """
+    parents, channels = x.shape
+    outputs = weight.shape[1] // 8
+    _check("x", x, (parents, channels))
+    _check("rows", rows, (rows.shape[0],), torch.long)
+    _check("weight", weight, (channels, 8 * outputs))
+    _check("shift", shift, (outputs,))
+    out = x.new_empty(rows.shape[0], outputs)
+    if _LIBRARY.o3dvis_upsample(rows.shape[0], x.data_ptr(), parents, channels, rows.data_ptr(), weight.data_ptr(),
+                                outputs, shift.data_ptr(), int(relu), out.data_ptr()):
+        raise ValueError(f"rows must lie in [0, {8 * parents})")
     return out
 
 

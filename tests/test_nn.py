@@ -615,6 +615,43 @@ def test_native_cell_moments_match_the_torch_sums(monkeypatch):
         native.cell_moments(p.double(), 5)
 
 
+@pytest.mark.skipif(not native.available(), reason="the C kernels are not built")
+def test_native_patch_terms_match_the_torch_eigenvalues():
+    """The cells' thickness and the runs' flatness with the covariances' eigenvalues in closed form
+    (C) against eigvalsh (torch ops) on the same sums: equal to a few ulps of the largest
+    eigenvalue, on noisy patches and on degenerate ones (a plane, a line, one point, a sphere of
+    equal eigenvalues, a sheet 1e-6 thick)."""
+    import o3dvis.nn.noise as noise
+
+    p = _noisy_sphere(30_000, 0.003).float()
+    p = p[morton_order(p)].contiguous()
+    counts, moments = noise._cell_moments(p)
+    full = torch.nonzero(counts >= noise._MIN_COUNT).squeeze(1)
+    m, n = moments[full].T, counts[full].double()
+    cov = m.new_zeros(len(full), 3, 3)
+    for k, (i, j) in enumerate(noise._PAIRS):
+        cov[:, i, j] = m[k] / n - (m[6 + i] / n) * (m[6 + j] / n)
+    expected = noise._eigenvalues(cov)[:, 0].sqrt() * n.sqrt() * 16
+    torch.testing.assert_close(native.cell_thickness(counts, moments, 5, noise._MIN_COUNT), expected,
+                               rtol=1e-6, atol=1e-9)
+    g = torch.Generator().manual_seed(1)
+    flat = torch.rand(16, 3, generator=g)
+    patches = [p[:16], flat * torch.tensor([1.0, 1.0, 0.0]), flat * torch.tensor([1.0, 0.0, 0.0]),
+               torch.zeros(16, 3), torch.tensor([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0)
+                                                 for z in (-1.0, 1.0)] * 2),
+               flat * torch.tensor([1.0, 1.0, 1e-6])]
+    runs = torch.cat(patches).contiguous()
+    got = native.run_flatness(runs, torch.arange(0, len(runs), 16), 16)
+    x = runs.double().view(-1, 16, 3)
+    x = x - x.mean(dim=1, keepdim=True)
+    eig = noise._eigenvalues(torch.einsum("rki,rkj->rij", x, x))
+    want = (eig[:, 0] / eig[:, 1].clamp_min(torch.finfo(torch.float64).tiny)).sqrt()
+    torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-7)
+    assert got[4] == 1.0 and got[3] == 0.0 and got[2] == 0.0
+    with pytest.raises(ValueError, match="runs of 16 points"):
+        native.run_flatness(runs, torch.tensor([len(runs) - 8]), 16)
+
+
 def test_noise_cues_of_clouds_too_small_to_measure_are_zero():
     assert torch.equal(noise_cues(_noisy_sphere(10, 0.01)), torch.zeros(2, dtype=torch.float64))
 

@@ -20,7 +20,9 @@
  * o3dvis_sort_keys sorts them (a radix sort, faster than torch.sort), o3dvis_bounds and
  * o3dvis_normalize put a cloud in the unit cube, with its keys, in two passes instead of some ten,
  * o3dvis_child_neighbours a level's 3x3x3 neighbours from its parents' (Octree.neighbours)
- * in one instead of some ten, o3dvis_cell_moments the noise cue's per-cell sums (o3dvis/nn/noise.py),
+ * in one instead of some ten, o3dvis_cell_moments the noise cue's per-cell sums (o3dvis/nn/noise.py)
+ * and o3dvis_cell_thickness / o3dvis_run_flatness its patches' eigenvalues, o3dvis_upsample the
+ * U-Net's up-samplings for the nodes that exist,
  * o3dvis_leaf_means the U-Net's input (o3dvis/nn/network.py) and, on the AMX tiles,
  * o3dvis_gather_conv each of its convolutions but the up-samplings (o3dvis/nn/conv.py, ConvBnRelu);
  * for oriented normals, o3dvis_fit_planes the plane fits of
@@ -392,6 +394,77 @@ int o3dvis_upsample(int64_t n, const float *x, int64_t parents, int32_t channels
         }
     }
     return 0;
+}
+
+/* The ascending eigenvalues of the symmetric 3x3 matrix [[a, b, c], [b, d, e], [c, e, f]], in closed
+ * form: the trigonometric solution of the characteristic cubic for the largest and the smallest;
+ * where the smallest is far below the two others, it is their determinant's share instead
+ * (det / (largest x middle)), which keeps it to a few ulps of the largest as an iterative solver
+ * does, where the cubic's angle would lose half the digits; the middle one from the trace. */
+static void sym3_eigenvalues(double a, double b, double c, double d, double e, double f, double *out) {
+    const double q = (a + d + f) / 3.0, off = b * b + c * c + e * e;
+    const double p2 = (a - q) * (a - q) + (d - q) * (d - q) + (f - q) * (f - q) + 2.0 * off;
+    if (!(p2 > 0.0)) {
+        out[0] = out[1] = out[2] = q;
+        return;
+    }
+    const double p = sqrt(p2 / 6.0);
+    const double x = (a - q) / p, y = (d - q) / p, z = (f - q) / p, u = b / p, v = c / p, w = e / p;
+    double r = (x * (y * z - w * w) - u * (u * z - w * v) + v * (u * w - y * v)) / 2.0;
+    r = r < -1.0 ? -1.0 : (r > 1.0 ? 1.0 : r);
+    const double phi = acos(r) / 3.0;
+    const double high = q + 2.0 * p * cos(phi);
+    double low = q + 2.0 * p * cos(phi + 2.0943951023931954923);
+    double mid = 3.0 * q - high - low;
+    if (low < 1e-3 * mid && mid > 1e-6 * high) {
+        const double det = a * (d * f - e * e) - b * (b * f - e * c) + c * (b * e - d * c);
+        low = det / (high * mid);
+        mid = 3.0 * q - high - low;
+    }
+    out[0] = low, out[1] = mid, out[2] = high;
+}
+
+/* The noise cues' patch terms (o3dvis/nn/noise.py): for each cell of a 2^level grid with at least
+ * min_count points, from its count and moments (o3dvis_cell_moments), the square root of the
+ * smallest eigenvalue of its covariance (moments / count less the mean's products; clamped at 0)
+ * times sqrt(count) times 2^level / 2, into thickness (in the cells' order); returns how many. */
+int64_t o3dvis_cell_thickness(int32_t level, const int64_t *counts, const double *moments, int64_t min_count,
+                              double *thickness) {
+    const int64_t cells = (int64_t)1 << (3 * level);
+    const double half = (double)((int64_t)1 << level) / 2.0;
+    int64_t k = 0;
+    for (int64_t i = 0; i < cells; i++) {
+        if (counts[i] < min_count) continue;
+        const double n = (double)counts[i], *m = moments + 9 * i;
+        const double mx = m[6] / n, my = m[7] / n, mz = m[8] / n;
+        double values[3];
+        sym3_eigenvalues(m[0] / n - mx * mx, m[1] / n - mx * my, m[2] / n - mx * mz, m[3] / n - my * my,
+                         m[4] / n - my * mz, m[5] / n - mz * mz, values);
+        thickness[k++] = sqrt(values[0] > 0.0 ? values[0] : 0.0) * sqrt(n) * half;
+    }
+    return k;
+}
+
+/* The noise cues' run terms (o3dvis/nn/noise.py): for each of the runs of `run` points from starts[r]
+ * (in the points' order), their scatter about their mean (in double), and the square root of its
+ * smallest over its middle eigenvalue (each clamped at 0, the middle at the smallest positive
+ * double), into flatness. */
+void o3dvis_run_flatness(int64_t runs, const int64_t *starts, int32_t run, const float *points, double *flatness) {
+    for (int64_t r = 0; r < runs; r++) {
+        const float *p = points + 3 * starts[r];
+        double mean[3] = {0.0, 0.0, 0.0}, s[6] = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0}, values[3];
+        for (int i = 0; i < run; i++)
+            for (int a = 0; a < 3; a++) mean[a] += (double)p[3 * i + a];
+        for (int a = 0; a < 3; a++) mean[a] /= (double)run;
+        for (int i = 0; i < run; i++) {
+            const double x = (double)p[3 * i] - mean[0], y = (double)p[3 * i + 1] - mean[1],
+                         z = (double)p[3 * i + 2] - mean[2];
+            s[0] += x * x, s[1] += x * y, s[2] += x * z, s[3] += y * y, s[4] += y * z, s[5] += z * z;
+        }
+        sym3_eigenvalues(s[0], s[1], s[2], s[3], s[4], s[5], values);
+        const double low = values[0] > 0.0 ? values[0] : 0.0, mid = values[1] > 0.0 ? values[1] : 0.0;
+        flatness[r] = sqrt(low / (mid > 2.2250738585072014e-308 ? mid : 2.2250738585072014e-308));
+    }
 }
 
 /* The U-Net's input per octree leaf, as o3dvis/nn/network.py's _signal computes it with torch ops:

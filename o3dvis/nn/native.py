@@ -27,7 +27,8 @@ from .features import LeafFeatures
 
 __all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "bounds", "normalize", "morton_keys", "sort_keys",
            "leaf_means",
-           "upsample", "has_gather_conv", "pack_conv", "gather_conv", "cell_moments", "project",
+           "upsample", "has_gather_conv", "pack_conv", "gather_conv", "cell_moments", "cell_thickness",
+           "run_flatness", "project",
            "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin",
            "fit_planes", "visibility_affinity", "affinity_table", "key_table",
            "grid_knn", "child_neighbours"]
@@ -52,6 +53,8 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_morton_keys": ([_I64, _PTR, _I32, _PTR], None),
     "o3dvis_sort_keys": ([_I64, _PTR, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_cell_moments": ([_I64, _PTR, _I32, _PTR, _PTR], None),
+    "o3dvis_cell_thickness": ([_I32, _PTR, _PTR, _I64, _PTR], _I64),
+    "o3dvis_run_flatness": ([_I64, _PTR, _I32, _PTR, _PTR], None),
     "o3dvis_leaf_means": ([_I64, _PTR, _PTR, _PTR, _I32, _I64, _PTR, _PTR], ctypes.c_int),
     "o3dvis_upsample": ([_I64, _PTR, _I64, _I32, _PTR, _PTR, _I32, _PTR, _I32, _PTR], ctypes.c_int),
     "o3dvis_has_gather_conv": ([], ctypes.c_int),
@@ -289,6 +292,37 @@ def cell_moments(points: Tensor, level: int) -> tuple[Tensor, Tensor]:
     moments = torch.zeros(8 ** level, 9, dtype=torch.float64)
     _LIBRARY.o3dvis_cell_moments(points.shape[0], points.data_ptr(), level, counts.data_ptr(), moments.data_ptr())
     return counts, moments
+
+
+def cell_thickness(counts: Tensor, moments: Tensor, level: int, min_count: int) -> Tensor:
+    """(M,) float64: for each cell of :func:`cell_moments`' ``counts`` and ``moments`` with at least
+    ``min_count`` points, in the cells' order, its thickness in point spacings: the square root of
+    the smallest eigenvalue of its covariance (closed form, see ``kernels.c``), times the square
+    root of its count, times ``2^level / 2``."""
+    if not 1 <= level <= 10:
+        raise ValueError(f"level must lie in [1, 10], got {level}")
+    _check("counts", counts, (8 ** level,), torch.long)
+    _check("moments", moments, (8 ** level, 9), torch.float64)
+    out = moments.new_empty(8 ** level)
+    full = _LIBRARY.o3dvis_cell_thickness(level, counts.data_ptr(), moments.data_ptr(), min_count, out.data_ptr())
+    return out[:full]
+
+
+def run_flatness(points: Tensor, starts: Tensor, run: int) -> Tensor:
+    """(R,) float64: for each run of ``run`` points of ``points`` (N, 3) float32 from ``starts`` (R,)
+    int64, the square root of the smallest over the middle eigenvalue of its scatter about its
+    mean (closed form, see ``kernels.c``).
+
+    Raises:
+        ValueError: tensors of the wrong shape or type, or a run that leaves the points.
+    """
+    _check("points", points, (points.shape[0], 3))
+    _check("starts", starts, (starts.shape[0],), torch.long)
+    if run < 1 or (len(starts) and (int(starts.min()) < 0 or int(starts.max()) + run > points.shape[0])):
+        raise ValueError(f"runs of {run} points from starts must lie in the {points.shape[0]} points")
+    out = points.new_empty(starts.shape[0], dtype=torch.float64)
+    _LIBRARY.o3dvis_run_flatness(starts.shape[0], starts.data_ptr(), run, points.data_ptr(), out.data_ptr())
+    return out
 
 
 def project(points: Tensor, camera: Tensor | None, direction: Tensor | None,

@@ -3,8 +3,8 @@
 Open3D users call ``hidden_point_removal`` once per camera with the same cloud; the
 drop-ins (:mod:`o3dvis.dropins`) then run the U-Net once and each further camera
 costs a query only. An encoding is reused when the same cloud object is asked
-again, with the same model, unchanged (its settings, its networks, and their weights,
-changed in place or put in anew by no one, an optimiser included), the same ``normals`` choice,
+again, with the same model, unchanged (its settings, and the weights of the networks the encoding
+came from, changed in place or put in anew by no one, an optimiser included), the same ``normals`` choice,
 and its points (and normals) still equal, value for value, to those encoded: a
 cloud changed in place, or a new cloud at the address of a freed one, is encoded
 anew. With a scene network, a camera inside the cloud's bounding box and one
@@ -41,7 +41,8 @@ class _Entry(NamedTuple):
     cloud: int  # id() of the cloud object
     model: "NeuralVisibility"  # held, so that no other model takes its id
     settings: tuple
-    tensors: list[tuple[Tensor, int, int]]  # each tensor of the networks, its version and address then
+    networks: list[torch.nn.Module]  # those of the model that the encoding depends on
+    tensors: list[tuple[Tensor, int, int]]  # each tensor of those networks, its version and address then
     points: Tensor  # copies of what was encoded
     normals: Tensor | None
     field: "VisibilityField"
@@ -59,10 +60,18 @@ def _settings(model: "NeuralVisibility", normals, points: Tensor, camera: Tensor
     return normals, str(model.device), model.precision, model.chunk_size, len(model.rotations), inside
 
 
-def _tensors(model: "NeuralVisibility") -> list[tuple[Tensor, int, int]]:
-    """Each parameter and buffer of the networks of ``model``, with its version (bumped by every
-    in-place change, an optimiser's step included) and its storage's address."""
-    return [(t, t._version, t.data_ptr()) for net in model.networks() for table in _tables(net)
+def _networks(model: "NeuralVisibility", field: "VisibilityField", normals, count: int) -> list[torch.nn.Module]:
+    """The networks of ``model`` that an encoding of ``count`` points depends on: the one that
+    encoded it, the scene network that answers its cameras inside the box, and with estimated
+    normals the first pass's."""
+    networks = [field.network, model.scene_network, model._points_network(count) if normals == "estimate" else None]
+    return [net for i, net in enumerate(networks) if net is not None and all(net is not n for n in networks[:i])]
+
+
+def _tensors(networks: list[torch.nn.Module]) -> list[tuple[Tensor, int, int]]:
+    """Each parameter and buffer of ``networks``, with its version (bumped by every in-place change,
+    an optimiser's step included) and its storage's address."""
+    return [(t, t._version, t.data_ptr()) for net in networks for table in _tables(net)
             for t in table.values() if t is not None]
 
 
@@ -90,7 +99,7 @@ def _holds(entry: _Entry | None, model: "NeuralVisibility", pcd, settings: tuple
            normals: Tensor | None) -> bool:
     """Whether ``entry`` is the encoding of this cloud, as it is now, by ``model`` as it is now."""
     return (entry is not None and entry.cloud == id(pcd) and entry.model is model and entry.settings == settings
-            and _same_tensors(entry.tensors, _tensors(model))
+            and _same_tensors(entry.tensors, _tensors(entry.networks))
             and _same(entry.points, points) and _same(entry.normals, normals))
 
 
@@ -129,7 +138,8 @@ def encode(model: "NeuralVisibility", pcd, normals=None, camera: Tensor | None =
         return last.field
     field = model._encode(pcd, normals, camera, (points, cloud_normals))
     if len(points) <= MAX_POINTS:
-        entry = _Entry(id(pcd), model, settings, _tensors(model), points.clone(),
+        networks = _networks(model, field, normals, len(points))
+        entry = _Entry(id(pcd), model, settings, networks, _tensors(networks), points.clone(),
                        None if cloud_normals is None else cloud_normals.clone(), field)
         with _lock:
             _last = entry

@@ -99,7 +99,11 @@ def test_another_model_or_changed_weights_are_encoded_anew(scene, counted):
     o3dvis.hidden_point_removal_neural(pcd, cameras[1], model=mine)
     assert [m is mine for m in counted] == [True, False, True]
     with torch.no_grad():
-        mine.network.unet.head.bias.add_(5.0)  # as an optimiser's step would
+        mine.network.unet.head.bias.add_(5.0)  # a network these 3 000 points are not encoded with
+    o3dvis.hidden_point_removal_neural(pcd, cameras[1], model=mine)
+    assert len(counted) == 3
+    with torch.no_grad():
+        mine.small_network.unet.head.bias.add_(5.0)  # the one that encodes them, as an optimiser's step would
     _, changed = o3dvis.hidden_point_removal_neural(pcd, cameras[1], model=mine)
     assert len(counted) == 4
     mine.chunk_size = 1000

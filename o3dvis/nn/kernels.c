@@ -1698,6 +1698,13 @@ void o3dvis_key_table(int64_t m, const int64_t *keys, int64_t size, int64_t *tab
 
 #define KNN_CHUNK 512 /* candidates gathered at once (the cell's points run over them while in cache) */
 
+/* The 27 cells around a cell, its own first, then those sharing a face, an edge, a corner */
+static const int8_t KNN_STEPS[27][3] = {
+    {0, 0, 0}, {-1, 0, 0}, {1, 0, 0}, {0, -1, 0}, {0, 1, 0}, {0, 0, -1}, {0, 0, 1},
+    {-1, -1, 0}, {-1, 1, 0}, {1, -1, 0}, {1, 1, 0}, {-1, 0, -1}, {-1, 0, 1}, {1, 0, -1}, {1, 0, 1},
+    {0, -1, -1}, {0, -1, 1}, {0, 1, -1}, {0, 1, 1},
+    {-1, -1, -1}, {-1, -1, 1}, {-1, 1, -1}, {-1, 1, 1}, {1, -1, -1}, {1, -1, 1}, {1, 1, -1}, {1, 1, 1}};
+
 /* Inserts the count candidates of squared distances d and indices index into the found (of k) nearest
  * so far, best (their squared distances) and row (their indices), nearest first; ties keep the earlier.
  * Blocks of 16 none of which is nearer than the k-th are passed at once. Returns how many are found. */
@@ -1730,7 +1737,9 @@ static int insert_nearest(const double *restrict d, const int64_t *restrict inde
  * answer is exact when it has k candidates and its k-th is nearer than the border of the 27
  * cells, less slack (a side on the grid's border has nothing beyond it; points may lie up to slack
  * outside the cell they are put in): exact is set to 0 elsewhere, for the caller to search again.
- * Ties keep the earlier point. k <= 64 (checked by the caller). */
+ * The cells are visited nearest first (the point's own, then those sharing a face, an edge, a
+ * corner with it: fewer candidates after them are nearer than the k-th so far); ties keep the
+ * point visited first. k <= 64 (checked by the caller). */
 void o3dvis_grid_knn(const double *points, const int64_t *cells, const int64_t *keys, const int64_t *starts,
                      int64_t size, const int64_t *table, int32_t level, const double *lo, double side,
                      double slack, int32_t k, int64_t first, int64_t last, int64_t *neighbours, uint8_t *exact) {
@@ -1739,21 +1748,15 @@ void o3dvis_grid_knn(const double *points, const int64_t *cells, const int64_t *
         const int64_t *cell = cells + 3 * c;
         int64_t from[27], to[27];
         int runs = 0;
-        for (int dx = -1; dx <= 1; dx++)
-            for (int dy = -1; dy <= 1; dy++)
-                for (int dz = -1; dz <= 1; dz++) {
-                    const int64_t x = cell[0] + dx, y = cell[1] + dy, z = cell[2] + dz;
-                    if (x < 0 || y < 0 || z < 0 || x > top || y > top || z > top) continue;
-                    const int64_t key = (int64_t)(spread_bits((uint64_t)x) << 2 | spread_bits((uint64_t)y) << 1 |
-                                                  spread_bits((uint64_t)z));
-                    const int64_t j = table[key_slot(table, size, keys, key)];
-                    if (j >= 0) from[runs] = starts[j], to[runs++] = starts[j + 1];
-                }
-        for (int r = 1; r < runs; r++) /* its own cell first: the nearest come first, few are inserted */
-            if (from[r] == starts[c]) {
-                const int64_t f = from[r], t = to[r];
-                from[r] = from[0], to[r] = to[0], from[0] = f, to[0] = t;
-            }
+        for (int t = 0; t < 27; t++) { /* nearest cells first: few candidates after them are inserted */
+            const int dx = KNN_STEPS[t][0], dy = KNN_STEPS[t][1], dz = KNN_STEPS[t][2];
+            const int64_t x = cell[0] + dx, y = cell[1] + dy, z = cell[2] + dz;
+            if (x < 0 || y < 0 || z < 0 || x > top || y > top || z > top) continue;
+            const int64_t key = (int64_t)(spread_bits((uint64_t)x) << 2 | spread_bits((uint64_t)y) << 1 |
+                                          spread_bits((uint64_t)z));
+            const int64_t j = table[key_slot(table, size, keys, key)];
+            if (j >= 0) from[runs] = starts[j], to[runs++] = starts[j + 1];
+        }
         double low[3], high[3]; /* the block's faces, infinitely far on the grid's border */
         for (int a = 0; a < 3; a++) {
             low[a] = cell[a] > 0 ? lo[a] + (double)(cell[a] - 1) * side : -INFINITY;

@@ -597,46 +597,45 @@ def test_noise_cues_do_not_depend_on_the_block_size(monkeypatch):
     torch.testing.assert_close(noise_cues(p), whole, atol=1e-6, rtol=0)
 
 
+def _cell_thickness_by_torch(p: torch.Tensor) -> torch.Tensor:
+    """Each full cell's thickness term as the C kernel computes it (offsets and their products in
+    float32, sums in float64), by torch ops, with eigvalsh: in the cells' order."""
+    import o3dvis.nn.noise as noise
+
+    res = 1 << noise._LEVEL
+    c = octree_module.grid_cells(p, noise._LEVEL)
+    cell = (c[:, 0] * res + c[:, 1]) * res + c[:, 2]
+    q = p - ((c + 0.5) * (2 / res) - 1)
+    products = torch.stack([q[:, i] * q[:, j] for i, j in noise._PAIRS] + list(q.unbind(1)), dim=1).double()
+    m = torch.zeros(res ** 3, 9, dtype=torch.float64).index_add_(0, cell, products)
+    count = torch.bincount(cell, minlength=res ** 3)
+    full = torch.nonzero(count >= noise._MIN_COUNT).squeeze(1)
+    m, n = m[full].T, count[full].double()
+    cov = m.new_zeros(len(full), 3, 3)
+    for k, (i, j) in enumerate(noise._PAIRS):
+        cov[:, i, j] = m[k] / n - (m[6 + i] / n) * (m[6 + j] / n)
+    return noise._eigenvalues(cov)[:, 0].sqrt() * n.sqrt() * (res / 2)
+
+
 @pytest.mark.skipif(not native.available(), reason="the C kernels are not built")
-def test_native_cell_moments_match_the_torch_sums(monkeypatch):
+def test_native_patch_terms_match_the_torch_eigenvalues(monkeypatch):
+    """The cells' thickness and the runs' flatness by C (sums along the Morton curve, eigenvalues in
+    closed form) against eigvalsh on the same sums by torch ops: equal to a few ulps of the largest
+    eigenvalue, on noisy patches and on degenerate ones (a plane, a line, one point, a cube's
+    corners of equal eigenvalues, a sheet 1e-6 thick); the cues from unordered points are those
+    of the ordered ones, and close to the torch path's (sums in float32)."""
     import o3dvis.nn.noise as noise
 
     p = _noisy_sphere(30_000, 0.003).float()
     p[:5] = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [-1.0, 1.0, 0.0], [0.5, -0.5, 1.0]])
-    counts, moments = noise._cell_moments(p)
-    assert counts.sum() == len(p) and (counts > 0).sum() > 100
-    monkeypatch.setattr(noise.native, "available", lambda: False)
-    torch_counts, torch_moments = noise._cell_moments(p)
-    assert torch.equal(counts, torch_counts)  # the same cells, to the point on a boundary
-    torch.testing.assert_close(moments, torch_moments.double(), atol=1e-6, rtol=1e-4)
-    with pytest.raises(ValueError, match="level"):
-        native.cell_moments(p, 11)
-    with pytest.raises(ValueError, match="points"):
-        native.cell_moments(p.double(), 5)
-
-
-@pytest.mark.skipif(not native.available(), reason="the C kernels are not built")
-def test_native_patch_terms_match_the_torch_eigenvalues():
-    """The cells' thickness and the runs' flatness with the covariances' eigenvalues in closed form
-    (C) against eigvalsh (torch ops) on the same sums: equal to a few ulps of the largest
-    eigenvalue, on noisy patches and on degenerate ones (a plane, a line, one point, a sphere of
-    equal eigenvalues, a sheet 1e-6 thick)."""
-    import o3dvis.nn.noise as noise
-
-    p = _noisy_sphere(30_000, 0.003).float()
-    p = p[morton_order(p)].contiguous()
-    counts, moments = noise._cell_moments(p)
-    full = torch.nonzero(counts >= noise._MIN_COUNT).squeeze(1)
-    m, n = moments[full].T, counts[full].double()
-    cov = m.new_zeros(len(full), 3, 3)
-    for k, (i, j) in enumerate(noise._PAIRS):
-        cov[:, i, j] = m[k] / n - (m[6 + i] / n) * (m[6 + j] / n)
-    expected = noise._eigenvalues(cov)[:, 0].sqrt() * n.sqrt() * 16
-    torch.testing.assert_close(native.cell_thickness(counts, moments, 5, noise._MIN_COUNT), expected,
-                               rtol=1e-6, atol=1e-9)
+    ordered = p[morton_order(p)].contiguous()
+    got = native.cell_thickness(ordered, noise._LEVEL, noise._MIN_COUNT)
+    expected = _cell_thickness_by_torch(p)
+    assert len(got) == len(expected) > 100
+    torch.testing.assert_close(got.sort().values, expected.sort().values, rtol=1e-6, atol=1e-9)
     g = torch.Generator().manual_seed(1)
     flat = torch.rand(16, 3, generator=g)
-    patches = [p[:16], flat * torch.tensor([1.0, 1.0, 0.0]), flat * torch.tensor([1.0, 0.0, 0.0]),
+    patches = [ordered[:16], flat * torch.tensor([1.0, 1.0, 0.0]), flat * torch.tensor([1.0, 0.0, 0.0]),
                torch.zeros(16, 3), torch.tensor([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0)
                                                  for z in (-1.0, 1.0)] * 2),
                flat * torch.tensor([1.0, 1.0, 1e-6])]
@@ -648,8 +647,16 @@ def test_native_patch_terms_match_the_torch_eigenvalues():
     want = (eig[:, 0] / eig[:, 1].clamp_min(torch.finfo(torch.float64).tiny)).sqrt()
     torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-7)
     assert got[4] == 1.0 and got[3] == 0.0 and got[2] == 0.0
+    assert torch.equal(noise_cues(p), noise_cues(ordered, ordered=True))
+    monkeypatch.setattr(noise.native, "available", lambda: False)
+    torch.testing.assert_close(noise_cues(ordered, ordered=True), noise_cues(p), atol=1e-5, rtol=1e-3)
+    monkeypatch.undo()
     with pytest.raises(ValueError, match="runs of 16 points"):
         native.run_flatness(runs, torch.tensor([len(runs) - 8]), 16)
+    with pytest.raises(ValueError, match="level"):
+        native.cell_thickness(ordered, 11, 8)
+    with pytest.raises(ValueError, match="points"):
+        native.cell_thickness(ordered.double(), 5, 8)
 
 
 def test_noise_cues_of_clouds_too_small_to_measure_are_zero():

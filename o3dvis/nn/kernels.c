@@ -20,8 +20,8 @@
  * o3dvis_sort_keys sorts them (a radix sort, faster than torch.sort), o3dvis_bounds and
  * o3dvis_normalize put a cloud in the unit cube, with its keys, in two passes instead of some ten,
  * o3dvis_child_neighbours a level's 3x3x3 neighbours from its parents' (Octree.neighbours)
- * in one instead of some ten, o3dvis_cell_moments the noise cue's per-cell sums (o3dvis/nn/noise.py)
- * and o3dvis_cell_thickness / o3dvis_run_flatness its patches' eigenvalues, o3dvis_upsample the
+ * in one instead of some ten, o3dvis_cell_thickness and o3dvis_run_flatness the noise cues' patch
+ * terms (o3dvis/nn/noise.py: sums and eigenvalues), o3dvis_upsample the
  * U-Net's up-samplings for the nodes that exist,
  * o3dvis_leaf_means the U-Net's input (o3dvis/nn/network.py) and, on the AMX tiles,
  * o3dvis_gather_conv each of its convolutions but the up-samplings (o3dvis/nn/conv.py, ConvBnRelu);
@@ -315,33 +315,6 @@ int o3dvis_sort_keys(int64_t n, const int64_t *keys, int64_t *sorted, int64_t *o
     return 0;
 }
 
-/* The moments of n points of [-1, 1]^3 about the centres of their cells of a 2^level grid
- * (1 <= level <= 10), as o3dvis/nn/noise.py's cell thickness sums them: each coordinate's cell as
- * in o3dvis_morton_keys, cell index (x res + y) res + z; counts[c] += 1 and moments[c] (9 values)
- * += the products qx qx, qx qy, qx qz, qy qy, qy qz, qz qz, then qx, qy, qz of q = the point less
- * its cell's centre (in float32, as torch computes it), summed in double. counts (8^level) and
- * moments (8^level x 9) are zeroed by the caller. */
-void o3dvis_cell_moments(int64_t n, const float *points, int32_t level, int64_t *counts, double *moments) {
-    const int res = 1 << level;
-    const float half = (float)(res / 2), top = (float)(res - 1), size = 2.0f / (float)res;
-    for (int64_t i = 0; i < n; i++) {
-        int c[3];
-        float q[3];
-        for (int a = 0; a < 3; a++) {
-            float u = (points[3 * i + a] + 1.0f) * half;
-            u = u >= 0.0f ? u : 0.0f;
-            c[a] = (int)(u < top ? u : top);
-            q[a] = points[3 * i + a] - (((float)c[a] + 0.5f) * size - 1.0f);
-        }
-        const int64_t cell = ((int64_t)c[0] * res + c[1]) * res + c[2];
-        double *m = moments + 9 * cell;
-        counts[cell]++;
-        m[0] += (double)(q[0] * q[0]), m[1] += (double)(q[0] * q[1]), m[2] += (double)(q[0] * q[2]);
-        m[3] += (double)(q[1] * q[1]), m[4] += (double)(q[1] * q[2]), m[5] += (double)(q[2] * q[2]);
-        m[6] += q[0], m[7] += q[1], m[8] += q[2];
-    }
-}
-
 /* An up-sampling of the U-Net in inference, as o3dvis/nn/conv.py's OctreeUpsample and ConvBnRelu
  * compute it, for the rows that exist only: out[i] = relu?(x[p] W_o + shift) with p = rows[i] / 8
  * the parent's row of x (parents, channels) and o = rows[i] % 8 the octant, W_o the octant's
@@ -424,23 +397,46 @@ static void sym3_eigenvalues(double a, double b, double c, double d, double e, d
     out[0] = low, out[1] = mid, out[2] = high;
 }
 
-/* The noise cues' patch terms (o3dvis/nn/noise.py): for each cell of a 2^level grid with at least
- * min_count points, from its count and moments (o3dvis_cell_moments), the square root of the
- * smallest eigenvalue of its covariance (moments / count less the mean's products; clamped at 0)
- * times sqrt(count) times 2^level / 2, into thickness (in the cells' order); returns how many. */
-int64_t o3dvis_cell_thickness(int32_t level, const int64_t *counts, const double *moments, int64_t min_count,
-                              double *thickness) {
-    const int64_t cells = (int64_t)1 << (3 * level);
-    const double half = (double)((int64_t)1 << level) / 2.0;
-    int64_t k = 0;
-    for (int64_t i = 0; i < cells; i++) {
-        if (counts[i] < min_count) continue;
-        const double n = (double)counts[i], *m = moments + 9 * i;
-        const double mx = m[6] / n, my = m[7] / n, mz = m[8] / n;
-        double values[3];
-        sym3_eigenvalues(m[0] / n - mx * mx, m[1] / n - mx * my, m[2] / n - mx * mz, m[3] / n - my * my,
-                         m[4] / n - my * mz, m[5] / n - mz * mz, values);
-        thickness[k++] = sqrt(values[0] > 0.0 ? values[0] : 0.0) * sqrt(n) * half;
+/* The noise cues' cell terms (o3dvis/nn/noise.py) of n points of [-1, 1]^3 sorted so that the
+ * points of each cell of a 2^level grid (1 <= level <= 10) are contiguous (along a Morton curve):
+ * for each cell with at least min_count points, in the points' order, the square root of the
+ * smallest eigenvalue of its covariance (its moments about its centre, summed in double in the
+ * points' order, over its count, less the mean's products; clamped at 0) times sqrt(count) times
+ * 2^level / 2, into thickness; returns how many. A point's cell is as o3dvis_morton_keys finds it,
+ * its offset from the cell's centre is in float32, as torch computes it. The sums of a cell are
+ * kept in registers while its points run: no table of the grid's cells is made. */
+int64_t o3dvis_cell_thickness(int64_t n, const float *points, int32_t level, int64_t min_count, double *thickness) {
+    const int res = 1 << level;
+    const float half = (float)(res / 2), top = (float)(res - 1), size = 2.0f / (float)res;
+    int64_t run = -1, count = 0, k = 0;
+    double s0 = 0, s1 = 0, s2 = 0, s3 = 0, s4 = 0, s5 = 0, s6 = 0, s7 = 0, s8 = 0;
+    for (int64_t i = 0; i <= n; i++) {
+        float q[3] = {0.0f, 0.0f, 0.0f};
+        int64_t cell = -1;
+        if (i < n) {
+            int c[3];
+            for (int a = 0; a < 3; a++) {
+                float u = (points[3 * i + a] + 1.0f) * half;
+                u = u >= 0.0f ? u : 0.0f;
+                c[a] = (int)(u < top ? u : top);
+                q[a] = points[3 * i + a] - (((float)c[a] + 0.5f) * size - 1.0f);
+            }
+            cell = ((int64_t)c[0] * res + c[1]) * res + c[2];
+        }
+        if (cell != run) {
+            if (count >= min_count && count > 0) {
+                const double m = (double)count, mx = s6 / m, my = s7 / m, mz = s8 / m;
+                double values[3];
+                sym3_eigenvalues(s0 / m - mx * mx, s1 / m - mx * my, s2 / m - mx * mz, s3 / m - my * my,
+                                 s4 / m - my * mz, s5 / m - mz * mz, values);
+                thickness[k++] = sqrt(values[0] > 0.0 ? values[0] : 0.0) * sqrt(m) * ((double)res / 2.0);
+            }
+            run = cell, count = 0, s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = 0.0;
+        }
+        count++;
+        s0 += (double)(q[0] * q[0]), s1 += (double)(q[0] * q[1]), s2 += (double)(q[0] * q[2]);
+        s3 += (double)(q[1] * q[1]), s4 += (double)(q[1] * q[2]), s5 += (double)(q[2] * q[2]);
+        s6 += q[0], s7 += q[1], s8 += q[2];
     }
     return k;
 }

@@ -27,7 +27,7 @@ from .features import LeafFeatures
 
 __all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "bounds", "normalize", "morton_keys", "sort_keys",
            "leaf_means",
-           "upsample", "has_gather_conv", "pack_conv", "gather_conv", "cell_moments", "cell_thickness",
+           "upsample", "has_gather_conv", "pack_conv", "gather_conv", "cell_thickness",
            "run_flatness", "project",
            "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin",
            "fit_planes", "visibility_affinity", "affinity_table", "key_table",
@@ -52,8 +52,7 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_normalize": ([_I64, _PTR, _PTR, ctypes.c_double, _PTR, _PTR, _PTR, _PTR], None),
     "o3dvis_morton_keys": ([_I64, _PTR, _I32, _PTR], None),
     "o3dvis_sort_keys": ([_I64, _PTR, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
-    "o3dvis_cell_moments": ([_I64, _PTR, _I32, _PTR, _PTR], None),
-    "o3dvis_cell_thickness": ([_I32, _PTR, _PTR, _I64, _PTR], _I64),
+    "o3dvis_cell_thickness": ([_I64, _PTR, _I32, _I64, _PTR], _I64),
     "o3dvis_run_flatness": ([_I64, _PTR, _I32, _PTR, _PTR], None),
     "o3dvis_leaf_means": ([_I64, _PTR, _PTR, _PTR, _I32, _I64, _PTR, _PTR], ctypes.c_int),
     "o3dvis_upsample": ([_I64, _PTR, _I64, _I32, _PTR, _PTR, _I32, _PTR, _I32, _PTR], ctypes.c_int),
@@ -278,9 +277,11 @@ def gather_conv(x: Tensor, index: Tensor, packed: Tensor, taps: int, outputs: in
     return out
 
 
-def cell_moments(points: Tensor, level: int) -> tuple[Tensor, Tensor]:
-    """The points' count (8^level,) int64 and moments (8^level, 9) float64 per cell of a
-    ``2^level`` grid over [-1, 1]^3 (see ``kernels.c``), in one pass over ``points`` (N, 3) float32.
+def cell_thickness(points: Tensor, level: int, min_count: int) -> Tensor:
+    """(M,) float64: for each cell of a ``2^level`` grid over [-1, 1]^3 (``1 <= level <= 10``) with at
+    least ``min_count`` of ``points`` (N, 3) float32, in the points' order, its thickness in point
+    spacings (the noise cue's cell term, see ``kernels.c``: the smallest eigenvalue of its
+    covariance in closed form). The points of each cell must be contiguous, as along a Morton curve.
 
     Raises:
         ValueError: points of the wrong shape or type, or a level out of [1, 10].
@@ -288,23 +289,8 @@ def cell_moments(points: Tensor, level: int) -> tuple[Tensor, Tensor]:
     _check("points", points, (points.shape[0], 3))
     if not 1 <= level <= 10:
         raise ValueError(f"level must lie in [1, 10], got {level}")
-    counts = torch.zeros(8 ** level, dtype=torch.long)
-    moments = torch.zeros(8 ** level, 9, dtype=torch.float64)
-    _LIBRARY.o3dvis_cell_moments(points.shape[0], points.data_ptr(), level, counts.data_ptr(), moments.data_ptr())
-    return counts, moments
-
-
-def cell_thickness(counts: Tensor, moments: Tensor, level: int, min_count: int) -> Tensor:
-    """(M,) float64: for each cell of :func:`cell_moments`' ``counts`` and ``moments`` with at least
-    ``min_count`` points, in the cells' order, its thickness in point spacings: the square root of
-    the smallest eigenvalue of its covariance (closed form, see ``kernels.c``), times the square
-    root of its count, times ``2^level / 2``."""
-    if not 1 <= level <= 10:
-        raise ValueError(f"level must lie in [1, 10], got {level}")
-    _check("counts", counts, (8 ** level,), torch.long)
-    _check("moments", moments, (8 ** level, 9), torch.float64)
-    out = moments.new_empty(8 ** level)
-    full = _LIBRARY.o3dvis_cell_thickness(level, counts.data_ptr(), moments.data_ptr(), min_count, out.data_ptr())
+    out = points.new_empty(points.shape[0], dtype=torch.float64)
+    full = _LIBRARY.o3dvis_cell_thickness(points.shape[0], points.data_ptr(), level, min_count, out.data_ptr())
     return out[:full]
 
 

@@ -17,9 +17,10 @@ not move it:
 Invariant to the order of the points (up to float32 rounding of the cell sums and
 the order of coincident points), to translation and to scale (of normalised
 points); linear in the number of points but for one sort. A cloud too small for
-a full cell or a run gets 0 for that cue. On the CPU the sums and the patches'
-eigenvalues are computed by C (closed form, within a few ulps of the largest
-eigenvalue of what ``eigvalsh`` gives), else by torch ops.
+a full cell or a run gets 0 for that cue. On the CPU the sums (in float64) and the
+patches' eigenvalues (closed form, within a few ulps of the largest eigenvalue of
+what ``eigvalsh`` gives) are computed by C over the points in Morton order, else by
+torch ops (sums in float32).
 """
 
 from __future__ import annotations
@@ -45,12 +46,9 @@ def _eigenvalues(cov: Tensor) -> Tensor:
 
 def _cell_moments(points: Tensor) -> tuple[Tensor, Tensor]:
     """Each cell's count (res^3,) and moments (res^3, 9) about its centre: the second moments in
-    ``_PAIRS``' order, then the first; in one pass of C (sums in float64) for float32 points on the
-    CPU, else by torch ops (sums in float32: small numbers about the cells' centres)."""
+    ``_PAIRS``' order, then the first (sums in float32: small numbers about the cells' centres)."""
     res = 1 << _LEVEL
     points = points.detach()
-    if _native(points):
-        return native.cell_moments(points.contiguous(), _LEVEL)
     c = grid_cells(points, _LEVEL)
     cell = (c[:, 0] * res + c[:, 1]) * res + c[:, 2]
     q = points.float() - ((c + 0.5) * (2 / res) - 1)
@@ -67,14 +65,14 @@ def _native(points: Tensor) -> bool:
     return points.device.type == "cpu" and points.dtype == torch.float32 and native.available()
 
 
-def _cell_thickness(points: Tensor) -> Tensor:
+def _cell_thickness(points: Tensor, ordered: bool) -> Tensor:
     """Lower quartile of the cells' thickness in point spacings."""
     res = 1 << _LEVEL
-    count, m = _cell_moments(points)
-    if _native(points):  # the covariances' eigenvalues in closed form, in one pass of C
-        thickness = native.cell_thickness(count, m, _LEVEL, _MIN_COUNT)
+    if ordered and _native(points):  # each cell's points contiguous: sums and eigenvalues in one pass of C
+        thickness = native.cell_thickness(points.detach().contiguous(), _LEVEL, _MIN_COUNT)
         return (torch.quantile(thickness, _QUANTILE) if len(thickness) else
                 torch.zeros((), dtype=torch.float64, device=points.device))
+    count, m = _cell_moments(points)
     full = torch.nonzero(count >= _MIN_COUNT).squeeze(1)
     if full.numel() == 0:
         return torch.zeros((), dtype=torch.float64, device=points.device)
@@ -116,4 +114,6 @@ def noise_cues(points: Tensor, ordered: bool = False) -> Tensor:
     Returns:
         (cell thickness in spacings, run thickness over width), in the points' dtype and device.
     """
-    return torch.stack([_cell_thickness(points), _run_flatness(points, ordered)]).to(points.dtype)
+    if not ordered and _native(points):  # the C kernels read cells and runs as contiguous points
+        points, ordered = points.detach().index_select(0, morton_order(points)), True
+    return torch.stack([_cell_thickness(points, ordered), _run_flatness(points, ordered)]).to(points.dtype)

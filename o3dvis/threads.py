@@ -32,7 +32,9 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import threading
 from collections.abc import Callable, Iterable, Iterator
+from concurrent import futures
 from concurrent.futures import ThreadPoolExecutor
 
 import torch
@@ -189,6 +191,30 @@ def torch_threads(count: int) -> Iterator[None]:
         torch.set_num_threads(before)
 
 
+_POOL: ThreadPoolExecutor | None = None  # the worker threads, made on first use and kept
+_POOL_LOCK = threading.Lock()
+_WORKER = threading.local()  # whether the current thread is running an item of threaded_map
+
+
+def _worker_pool() -> ThreadPoolExecutor:
+    """The threads :func:`threaded_map` runs on: kept between calls (starting threads cost a
+    fraction of a millisecond a call), made anew in a forked child (which has none of them)."""
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None:
+            _POOL = ThreadPoolExecutor(thread_name_prefix="o3dvis-views")
+        return _POOL
+
+
+def _forget_pool() -> None:
+    global _POOL, _POOL_LOCK
+    _POOL, _POOL_LOCK = None, threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
+
+
 def threaded_map(fn: Callable, items: Iterable, workers: int) -> Iterator:
     """``map(fn, items)`` on ``workers`` threads, each running torch ops on one thread of its own.
 
@@ -197,19 +223,54 @@ def threaded_map(fn: Callable, items: Iterable, workers: int) -> Iterator:
     (a split op waits for its slowest part), and each thread's buffers stay in its
     own cache. Each item runs without autograd (grad mode is per thread). A
     worker takes its own thread count before setting it to 1, and the caller's
-    count is put back when each item is done: ``torch.set_num_threads`` also sets
-    the count that threads new to torch start with.
+    count is put back when it is done: ``torch.set_num_threads`` also sets the
+    count that threads new to torch start with. The threads are kept for the next
+    call; an item that calls this again runs the inner items on its own thread.
+    When an item fails, or the caller stops early, the items not yet started are
+    dropped, and the call returns once the started ones are done.
     """
+    items = list(items)
+    if getattr(_WORKER, "active", False):  # already on a worker: no threads on top of the planned ones
+        yield from map(fn, items)
+        return
     caller = torch.get_num_threads()
+    results: list = [None] * len(items)
+    ready = [threading.Event() for _ in items]
+    state, lock = {"next": 0, "stop": False}, threading.Lock()
 
-    def task(item):
+    def take() -> int | None:
+        with lock:
+            if state["stop"] or state["next"] >= len(items):
+                return None
+            state["next"] += 1
+            return state["next"] - 1
+
+    def run() -> None:
+        _WORKER.active = True
         torch.get_num_threads()  # this thread's count is settled now, not at its first parallel op
         torch.set_num_threads(1)
         try:
-            with torch.inference_mode():
-                return fn(item)
+            while (i := take()) is not None:
+                try:
+                    with torch.inference_mode():
+                        results[i] = (fn(items[i]), None)
+                except BaseException as error:  # handed to the caller at its turn
+                    results[i] = (None, error)
+                ready[i].set()
         finally:
             torch.set_num_threads(caller)
+            _WORKER.active = False
 
-    with ThreadPoolExecutor(workers, thread_name_prefix="o3dvis-views") as pool:
-        yield from pool.map(task, items)
+    pool = _worker_pool()
+    runners = [pool.submit(run) for _ in range(min(workers, len(items)))]
+    try:
+        for i in range(len(items)):
+            ready[i].wait()
+            value, error = results[i]
+            if error is not None:
+                raise error
+            yield value
+    finally:
+        with lock:
+            state["stop"] = True
+        futures.wait(runners)

@@ -184,3 +184,38 @@ def test_answers_do_not_depend_on_the_thread_count(points):
         o3dvis.set_num_threads(count)
         answers.append(vis.encode(shrunk).probabilities(cloud.cameras[:4]))
     assert torch.equal(answers[0], answers[1])
+
+
+def test_worker_threads_are_kept_between_calls_and_nested_calls_stay_on_their_worker():
+    """threaded_map's threads serve the next call too; an item that maps again runs its items on
+    its own worker (no threads beyond those planned); the caller's torch count is kept."""
+    torch.set_num_threads(2)
+    ran_on = {t for _ in range(10) for t in threads.threaded_map(lambda _: threading.current_thread(), range(8), 2)}
+    assert threading.current_thread() not in ran_on and all(t.is_alive() for t in ran_on)  # kept, idle
+    assert len(ran_on) <= threads._worker_pool()._max_workers
+
+    def inner(k):
+        here = threading.get_ident()
+        return k, {threading.get_ident() for _ in threads.threaded_map(lambda _: None, range(3), 2)} | {here}
+
+    for k, ran_on in threads.threaded_map(inner, range(4), 2):
+        assert len(ran_on) == 1 and threading.get_ident() not in ran_on
+    assert list(threads.threaded_map(lambda x: x * x, range(5), 3)) == [0, 1, 4, 9, 16]
+    assert torch.get_num_threads() == 2
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="no fork here")
+def test_worker_threads_are_made_anew_in_a_forked_child():
+    """A child forked after the threads were made has none of them: its calls make their own
+    (a kept pool of the parent's threads would wait for them forever)."""
+    import os
+    import signal
+
+    list(threads.threaded_map(lambda x: x, range(4), 2))
+    pid = os.fork()
+    if pid == 0:  # the child: exit 0 only if the map answers within the alarm
+        signal.alarm(20)
+        ok = list(threads.threaded_map(lambda x: x + 1, range(6), 2)) == [1, 2, 3, 4, 5, 6]
+        os._exit(0 if ok else 1)
+    _, status = os.waitpid(pid, 0)
+    assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0

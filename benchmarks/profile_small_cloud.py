@@ -35,18 +35,19 @@ def _cpu_ms(fn, repeats: int) -> float:
 
 def _unet_mflop(network, octree, signal) -> float:
     """Multiply-adds x 2 of the U-Net's matrix products on ``octree``, counted by a hook on ``@``
-    (with the convolutions as torch ops, whose products are the fused kernel's)."""
-    flops, matmul, fused = [0], torch.Tensor.__matmul__, native.has_gather_conv
+    (with the layers as torch ops: the convolutions' products are the fused kernel's, the
+    up-samplings' cover all eight octants of every parent)."""
+    flops, matmul, available = [0], torch.Tensor.__matmul__, native.available
 
     def counted(a, b):
         flops[0] += 2 * a.shape[0] * a.shape[1] * b.shape[-1]
         return matmul(a, b)
 
-    torch.Tensor.__matmul__, native.has_gather_conv = counted, lambda: False
+    torch.Tensor.__matmul__, native.available = counted, lambda: False
     try:
         network.unet(signal, octree)
     finally:
-        torch.Tensor.__matmul__, native.has_gather_conv = matmul, fused
+        torch.Tensor.__matmul__, native.available = matmul, available
     return flops[0] / 1e6
 
 

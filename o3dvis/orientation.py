@@ -261,6 +261,11 @@ def _votes(points: np.ndarray, normals: np.ndarray, cameras: np.ndarray, visibil
     """:func:`vote`, and its agreement (N,): the vote over the sum of the absolute values of its
     terms, 1 where every camera that votes sees the point's normal side, 0 where none votes or
     the cameras on the two sides weigh the same."""
+    if native.available() and len(cameras):  # one pass of C over the points, a camera at a time
+        tensors = [torch.from_numpy(np.ascontiguousarray(a, dtype=t)) for a, t in (
+            (points, np.float64), (normals, np.float64), (cameras, np.float64), (visibility, np.float32))]
+        parts = list(_on_threads(lambda rows: native.votes(*tensors, rows), len(points)))
+        return tuple(torch.cat([part[k] for part in parts]).numpy() if parts else np.empty(0) for k in (0, 1))
     vote, agreement = np.empty(len(points)), np.empty(len(points))
 
     def chunk(rows: slice) -> None:  # (points, views) products, no per-view pass

@@ -81,6 +81,32 @@ def test_layer_sides_tell_the_faces_of_a_thin_wall_apart():
     assert np.array_equal(layer_sides(points, near[rows], np.tile([0.0, 0.0, 1.0], (len(rows), 1))), sides[rows])
 
 
+@pytest.mark.skipif(not native.available(), reason="C kernels turned off (O3DVIS_NATIVE=0)")
+@pytest.mark.parametrize("answers", ["probabilities", "bool"])
+def test_votes_in_c_equal_the_numpy_ones(answers, monkeypatch):
+    """The cameras' votes and their agreement by one pass of C (on the planned threads) against the
+    numpy ops: equal to rounding, the same signs."""
+    import o3dvis.orientation as orientation
+
+    g = np.random.default_rng(4)
+    points, normals = g.normal(size=(5000, 3)), _sphere(5000, 1)
+    cameras = g.normal(size=(10, 3)) * 4
+    visibility = g.random((10, 5000)).astype(np.float32)
+    visibility = visibility if answers == "probabilities" else visibility > 0.5
+    fast = orientation._votes(points, normals, cameras, visibility)
+    monkeypatch.setattr(orientation.native, "available", lambda: False)
+    slow = orientation._votes(points, normals, cameras, visibility)
+    for a, b in zip(fast, slow):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+    assert np.array_equal(np.sign(fast[0]), np.sign(slow[0]))
+    monkeypatch.undo()
+    tensors = [torch.from_numpy(a) for a in (points, normals, cameras, visibility.astype(np.float32))]
+    with pytest.raises(ValueError, match="step 1"):
+        native.votes(*tensors, slice(0, 10, 2))
+    with pytest.raises(ValueError, match="visibility must be"):
+        native.votes(*tensors[:3], tensors[3][:, 1:], slice(0, 10))
+
+
 def test_a_split_vote_leaves_the_side_to_the_faces_of_a_thin_wall():
     points = _thin_plate(4000, seed=1)
     cameras = np.array([[0.0, 0.0, 3.0], [0.0, 0.0, -3.0], [2.0, 0.0, 2.0], [-2.0, 0.0, -2.0]])

@@ -26,7 +26,8 @@
  * o3dvis_leaf_means the U-Net's input (o3dvis/nn/network.py) and, on the AMX tiles,
  * o3dvis_gather_conv each of its convolutions but the up-samplings (o3dvis/nn/conv.py, ConvBnRelu);
  * for oriented normals, o3dvis_fit_planes the plane fits of
- * o3dvis/orientation.py, o3dvis_visibility_affinity their neighbours' weights, and o3dvis_grid_knn the nearest neighbours it fits
+ * o3dvis/orientation.py, o3dvis_visibility_affinity their neighbours' weights, o3dvis_votes the
+ * cameras' votes on their sides, and o3dvis_grid_knn the nearest neighbours it fits
  * them to, sought in the cells of a grid (o3dvis_key_table hashes the cells).
  *
  * The arithmetic is torch's, op for op, but: sin, cos, log, atan2, exp and tanh
@@ -1700,6 +1701,31 @@ static const int8_t KNN_STEPS[27][3] = {
     {-1, -1, 0}, {-1, 1, 0}, {1, -1, 0}, {1, 1, 0}, {-1, 0, -1}, {-1, 0, 1}, {1, 0, -1}, {1, 0, 1},
     {0, -1, -1}, {0, -1, 1}, {0, 1, -1}, {0, 1, 1},
     {-1, -1, -1}, {-1, -1, 1}, {-1, 1, -1}, {-1, 1, 1}, {1, -1, -1}, {1, -1, 1}, {1, 1, -1}, {1, 1, 1}};
+
+/* The orienting votes of the points first .. first + m - 1 (o3dvis/orientation.py, _votes): for
+ * each, over the v cameras, the cosine between its normal and the direction to the camera
+ * (n . (c - p) over |c - p|, the distance from |c|^2 - 2 p . c + |p|^2 as the numpy ops take it,
+ * at least 1e-300), weighted by max(0, 2 q - 1) of the camera's probability q of seeing it
+ * (visibility: (v, n_all) float32), summed into vote; agreement = |vote| over the sum of the
+ * terms' absolute values (at least 1e-300). points, normals: (n_all, 3); cameras: (v, 3). */
+void o3dvis_votes(int64_t first, int64_t m, int64_t n_all, int32_t v, const double *points, const double *normals,
+                  const double *cameras, const float *visibility, double *vote, double *agreement) {
+    for (int64_t i = 0; i < m; i++) vote[i] = 0.0, agreement[i] = 0.0; /* agreement: the absolute sums */
+    for (int32_t j = 0; j < v; j++) {
+        const double *c = cameras + 3 * j, cc = c[0] * c[0] + c[1] * c[1] + c[2] * c[2];
+        const float *q = visibility + j * n_all + first;
+        for (int64_t i = 0; i < m; i++) {
+            const double *p = points + 3 * (first + i), *nrm = normals + 3 * (first + i);
+            const double reach = (nrm[0] * c[0] + nrm[1] * c[1] + nrm[2] * c[2]) -
+                                 (nrm[0] * p[0] + nrm[1] * p[1] + nrm[2] * p[2]);
+            double d2 = cc - 2.0 * (p[0] * c[0] + p[1] * c[1] + p[2] * c[2]) + (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
+            d2 = d2 > 1e-300 ? d2 : 1e-300;
+            const double w = 2.0 * (double)q[i] - 1.0, term = (w > 0.0 ? w : 0.0) * (reach / sqrt(d2));
+            vote[i] += term, agreement[i] += fabs(term);
+        }
+    }
+    for (int64_t i = 0; i < m; i++) agreement[i] = fabs(vote[i]) / (agreement[i] > 1e-300 ? agreement[i] : 1e-300);
+}
 
 /* Inserts the count candidates of squared distances d and indices index into the found (of k) nearest
  * so far, best (their squared distances) and row (their indices), nearest first; ties keep the earlier.

@@ -30,7 +30,7 @@ __all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "bounds", "no
            "upsample", "has_gather_conv", "pack_conv", "gather_conv", "cell_thickness",
            "run_flatness", "project",
            "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin",
-           "fit_planes", "visibility_affinity", "affinity_table", "key_table",
+           "fit_planes", "visibility_affinity", "affinity_table", "votes", "key_table",
            "grid_knn", "child_neighbours"]
 
 _I64, _I32, _PTR = ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
@@ -70,6 +70,7 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_fit_planes": ([_I64, _I64, _I32, _PTR, _PTR, _PTR, _PTR, _PTR], None),
     "o3dvis_visibility_affinity": ([_I64, _I32, _I32, _I32, _I64, _PTR, _PTR, ctypes.c_float, ctypes.c_float, _PTR],
                                    None),
+    "o3dvis_votes": ([_I64, _I64, _I64, _I32, _PTR, _PTR, _PTR, _PTR, _PTR, _PTR], None),
     "o3dvis_key_table": ([_I64, _PTR, _I64, _PTR], None),
     "o3dvis_child_neighbours": ([_I64, _PTR, _PTR, _PTR, _I64, _PTR, _PTR, _PTR, _PTR], None),
     "o3dvis_grid_knn": ([_PTR, _PTR, _PTR, _PTR, _I64, _PTR, _I32, _PTR, ctypes.c_double, ctypes.c_double, _I32,
@@ -664,6 +665,31 @@ def visibility_affinity(table: Tensor, cameras: int, neighbours: Tensor, first: 
         _LIBRARY.o3dvis_visibility_affinity(m, k, cameras, stride, first, table.data_ptr(), neighbours.data_ptr(),
                                             1.0 / scale ** 2, floor, weight.data_ptr())
     return weight
+
+
+def votes(points: Tensor, normals: Tensor, cameras: Tensor, visibility: Tensor, rows: slice
+          ) -> tuple[Tensor, Tensor]:
+    """``(vote, agreement)``, each (M,) float64: :func:`o3dvis.orientation.vote` and its agreement
+    for the points ``rows`` (a slice with step 1) of ``points`` and ``normals`` (N, 3) float64, from
+    ``cameras`` (V, 3) float64 and their probabilities ``visibility`` (V, N) float32; in one pass.
+
+    Raises:
+        ValueError: tensors of the wrong shapes or types, or rows past the points.
+    """
+    n, v = points.shape[0], cameras.shape[0]
+    _check("points", points, (n, 3), torch.float64)
+    _check("normals", normals, (n, 3), torch.float64)
+    _check("cameras", cameras, (v, 3), torch.float64)
+    _check("visibility", visibility, (v, n))
+    first, last, step = rows.indices(n)
+    if step != 1:
+        raise ValueError(f"rows must be a slice with step 1, got {rows}")
+    m = max(0, last - first)
+    vote, agreement = points.new_empty(m), points.new_empty(m)
+    if m:
+        _LIBRARY.o3dvis_votes(first, m, n, v, points.data_ptr(), normals.data_ptr(), cameras.data_ptr(),
+                              visibility.data_ptr(), vote.data_ptr(), agreement.data_ptr())
+    return vote, agreement
 
 
 def affinity_table(visibility: Tensor) -> Tensor:

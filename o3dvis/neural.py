@@ -27,7 +27,7 @@ from .nn.noise import noise_cues
 from .nn.octree import MORTON_DEPTH, bounding_box, coarser_keys, cube_frame, morton_sort, normalize_points
 from .nn.conv import products_in
 from .nn.predictor import resolve_precision
-from .orientation import LAYER_NEIGHBOURS, nearest_neighbours, oriented_planes, surface_variation
+from .orientation import NeighbourSearch, oriented_planes, surface_variation
 from .threads import plan_threads, torch_threads
 
 __all__ = ["NeuralVisibility"]
@@ -142,7 +142,8 @@ def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray
         order = np.empty_like(rank)
         order[rank] = np.arange(len(rank))
         points = points[order]
-    near = nearest_neighbours(points, LAYER_NEIGHBOURS)
+    search = NeighbourSearch(points)
+    near = search.query(min(_PLANE_NEIGHBOURS, len(points)))  # the weak votes' wider planes: asked later
     if len(points) < _CUE_ALONE_POINTS:
         sample = near[::max(1, len(near) // _VARIATION_SAMPLE), :_PLANE_NEIGHBOURS]
         if np.quantile(surface_variation(points, sample), 0.25) >= _ESTIMATE_MAX_VARIATION:
@@ -150,7 +151,7 @@ def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray
     cameras = viewpoints_around(points, _ORIENTING_VIEWS)
     visibility = field.stored_probabilities(cameras).cpu().numpy()
     try:
-        normals = oriented_planes(points, near, cameras, visibility, fit=_PLANE_NEIGHBOURS)
+        normals = oriented_planes(points, near, cameras, visibility, fit=_PLANE_NEIGHBOURS, search=search)
     except ValueError:  # no plane fits anywhere: every neighbourhood is one point repeated, or a line
         return None
     return normals if rank is None else normals[rank]

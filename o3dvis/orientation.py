@@ -28,7 +28,7 @@ from .nn import native
 from .nn.octree import cell_keys, morton_decode, normalize_points
 from .threads import plan_threads, threaded_map
 
-__all__ = ["voted_normals", "oriented_planes", "nearest_neighbours", "fit_planes", "smallest_eigenvectors", "vote",
+__all__ = ["voted_normals", "oriented_planes", "nearest_neighbours", "NeighbourSearch", "fit_planes", "smallest_eigenvectors", "vote",
            "visibility_affinity", "layer_sides", "surface_variation", "orient_by_vote", "complete_orientation",
            "row_chunks"]
 
@@ -39,8 +39,9 @@ _CELL_POINTS = 6  # points per occupied cell the neighbour search's grid aims at
 _GRID_MIN_POINTS = 100_000  # smaller clouds are searched with a k-d tree (as fast there)
 _KEY_SLACK = 1e-6  # how far off its cell float32 keys may put a point, in normalised coordinates
 _PARALLEL_ROWS = 8192  # rows below which the plane fits, the votes and the search run on one thread
-_BRUTE_FORCE_PAIRS = 1 << 22  # (row, point) distances the search again computes before taking a k-d tree
-_CHUNK_PAIRS = 1 << 18  # of those, at once
+# (row, point) distances the search again computes before taking a k-d tree: 2^24 take about as
+# long as building one for 200 k points
+_BRUTE_FORCE_PAIRS = 1 << 24
 # the scale of the visibility differences that weigh a plane fit's neighbours (visibility_affinity):
 # on the validation meshes 0.1 gave the normals model 0.3-0.75 point more than unweighted fits at
 # 2-32 k points (0.05: as good; 0.03 and 0.3: 0.1-0.3 point less)
@@ -83,7 +84,7 @@ def nearest_neighbours(points: np.ndarray, k: int) -> np.ndarray:
     not nearer than the border of those cells, in a sparse corner of the cloud, is searched again
     among all points. The grid is the octree's (:func:`~o3dvis.nn.octree.cell_keys`), so points in
     the order of an encoding are sorted by cell already and are not moved. Small clouds and ``k``
-    over 64 take a k-d tree.
+    over 64 take a k-d tree. :class:`NeighbourSearch` asks again for some of the points.
 
     Args:
         points: (N, 3) finite points.
@@ -92,44 +93,81 @@ def nearest_neighbours(points: np.ndarray, k: int) -> np.ndarray:
     Returns:
         (N, k) int64 indices.
     """
-    count = len(points)
-    if not (native.available() and count >= _GRID_MIN_POINTS and k <= 64):
-        return cKDTree(points, balanced_tree=False).query(points, k=k, workers=-1)[1].reshape(count, k)
-    points = np.ascontiguousarray(points, dtype=np.float64)
-    normalised, _, scale = normalize_points(torch.from_numpy(points))
-    if float(scale) <= torch.finfo(torch.float64).tiny:  # one point, repeated
-        return np.broadcast_to(np.arange(k), (count, k)).copy()
-    keys = cell_keys(normalised.float(), _GRID_DEPTH).numpy()  # as the octree's: an encoding's order sorts them
-    order = np.argsort(keys, kind="stable")
-    ordered = bool((order[1:] > order[:-1]).all())
-    sorted_points = normalised.numpy() if ordered else normalised.numpy()[order]
-    keys = keys if ordered else keys[order]
-    level = 1  # the finest grid whose occupied cells hold _CELL_POINTS points on average
-    while level < _GRID_DEPTH and count >= _CELL_POINTS * _occupied(keys, 3 * (_GRID_DEPTH - level - 1)):
-        level += 1
-    coarse = keys >> (3 * (_GRID_DEPTH - level))
-    first = np.flatnonzero(np.diff(coarse, prepend=-1))
-    unique = torch.from_numpy(coarse[first])
-    near, exact = torch.empty((count, k), dtype=torch.long), torch.empty(count, dtype=torch.uint8)
-    tensors = [torch.from_numpy(sorted_points), morton_decode(unique, level), unique,
-               torch.from_numpy(np.append(first, count)), native.key_table(unique)]
-    corner = torch.full((3,), -1.0, dtype=torch.float64)
-    workers = plan_threads(count, 2 * _PARALLEL_ROWS)
-    bounds = np.searchsorted(first, np.linspace(0, count, workers + 1)[1:-1]).tolist()
-    side = 2.0 / (1 << level)
-    cell_ranges = list(zip([0, *bounds], [*bounds, len(first)]))
-    for _ in _side_by_side(lambda cells: native.grid_knn(*tensors, level, corner, side, _KEY_SLACK, k, cells, near,
-                                                         exact), cell_ranges, workers):
-        pass
-    result = near.numpy()
-    if not ordered:
-        result = np.empty_like(result)
-        result[order] = order[near.numpy()]
-    again = np.flatnonzero(exact.numpy() == 0)
-    if len(again):
-        again = again if ordered else order[again]
-        result[again] = _nearest_by_search(points, again, k)
-    return result
+    return NeighbourSearch(points).query(k)
+
+
+class NeighbourSearch:
+    """:func:`nearest_neighbours` of one cloud, asked for all its points or some, as often as
+    needed: the grid (or the k-d tree) is made once.
+
+    Args:
+        points: (N, 3) finite points.
+    """
+
+    def __init__(self, points: np.ndarray):
+        self.points = points
+        self._tree: cKDTree | None = None
+        self._grid: tuple | None = None
+
+    def query(self, k: int, rows: np.ndarray | None = None) -> np.ndarray:
+        """(M, k) int64: the ``k`` nearest points (at most N) to each of the points ``rows``
+        ((M,) indices; None: all), nearest first, as :func:`nearest_neighbours` finds them."""
+        count = len(self.points)
+        asked = np.arange(count) if rows is None else np.asarray(rows, dtype=np.int64)
+        if not (native.available() and count >= _GRID_MIN_POINTS and k <= 64):
+            if self._tree is None:
+                self._tree = cKDTree(self.points, balanced_tree=False)
+            return self._tree.query(self.points[asked], k=k, workers=-1)[1].reshape(len(asked), k)
+        grid = self._grid_of()
+        if grid is None:  # one point, repeated
+            return np.broadcast_to(np.arange(k), (len(asked), k)).copy()
+        order, ordered, first, tensors, level, corner, side = grid
+        near, exact = torch.empty((count, k), dtype=torch.long), torch.empty(count, dtype=torch.uint8)
+        place = asked if ordered else np.argsort(order)[asked]  # the rows' places in the sorted points
+        cells = wanted = None
+        if rows is not None:  # the cells holding the rows, and in them the rows alone
+            cells = torch.from_numpy(np.unique(np.searchsorted(first, place, side="right") - 1))
+            wanted = torch.zeros(count, dtype=torch.bool)
+            wanted[torch.from_numpy(place)] = True
+        todo = len(first) if cells is None else len(cells)
+        workers = plan_threads(len(asked), 2 * _PARALLEL_ROWS)
+        bounds = (np.searchsorted(first, np.linspace(0, count, workers + 1)[1:-1]).tolist() if cells is None else
+                  np.linspace(0, todo, workers + 1)[1:-1].astype(int).tolist())
+        ranges = list(zip([0, *bounds], [*bounds, todo]))
+        for _ in _side_by_side(lambda span: native.grid_knn(*tensors, level, corner, side, _KEY_SLACK, k, span, near,
+                                                            exact, cells, wanted), ranges, workers):
+            pass
+        found = near.numpy()[place]
+        result = found if ordered else order[found]
+        again = np.flatnonzero(exact.numpy()[place] == 0)
+        if len(again):
+            result[again] = _nearest_by_search(self.points, asked[again], k)
+        return result
+
+    def _grid_of(self) -> tuple | None:
+        """The grid's arrays (made on first use), None for a cloud of one point repeated."""
+        if self._grid is None:
+            points = np.ascontiguousarray(self.points, dtype=np.float64)
+            count = len(points)
+            normalised, _, scale = normalize_points(torch.from_numpy(points))
+            if float(scale) <= torch.finfo(torch.float64).tiny:
+                return None
+            keys = cell_keys(normalised.float(), _GRID_DEPTH).numpy()  # as the octree's: an encoding's order sorts them
+            order = np.argsort(keys, kind="stable")
+            ordered = bool((order[1:] > order[:-1]).all())
+            sorted_points = normalised.numpy() if ordered else normalised.numpy()[order]
+            keys = keys if ordered else keys[order]
+            level = 1  # the finest grid whose occupied cells hold _CELL_POINTS points on average
+            while level < _GRID_DEPTH and count >= _CELL_POINTS * _occupied(keys, 3 * (_GRID_DEPTH - level - 1)):
+                level += 1
+            coarse = keys >> (3 * (_GRID_DEPTH - level))
+            first = np.flatnonzero(np.diff(coarse, prepend=-1))
+            unique = torch.from_numpy(coarse[first])
+            tensors = [torch.from_numpy(sorted_points), morton_decode(unique, level), unique,
+                       torch.from_numpy(np.append(first, count)), native.key_table(unique)]
+            self._grid = (order, ordered, first, tensors, level, torch.full((3,), -1.0, dtype=torch.float64),
+                          2.0 / (1 << level))
+        return self._grid
 
 
 def _occupied(sorted_keys: np.ndarray, shift: int) -> int:
@@ -139,17 +177,13 @@ def _occupied(sorted_keys: np.ndarray, shift: int) -> int:
 
 
 def _nearest_by_search(points: np.ndarray, rows: np.ndarray, k: int) -> np.ndarray:
-    """(len(rows), k) the ``k`` nearest points to ``points[rows]``, nearest first: by distances to all
-    points for a few rows, by a k-d tree for many."""
+    """(len(rows), k) the ``k`` nearest points to ``points[rows]``, nearest first: by their distances
+    to all points in C for a few rows (the grid's kernels are built wherever this is asked), by a
+    k-d tree for many."""
     if len(rows) * len(points) > _BRUTE_FORCE_PAIRS:
         return cKDTree(points, balanced_tree=False).query(points[rows], k=k, workers=-1)[1].reshape(-1, k)
-    out = np.empty((len(rows), k), dtype=np.int64)
-    for chunk in row_chunks(len(rows), max(1, _CHUNK_PAIRS // len(points))):
-        # differences, not |p|^2 - 2 p.q + |q|^2: no cancellation far from the origin
-        distance = np.square(points[None] - points[rows[chunk], None]).sum(axis=2)
-        part = np.argpartition(distance, k - 1, axis=1)[:, :k] if k < len(points) else np.indices(distance.shape)[1]
-        out[chunk] = np.take_along_axis(part, np.argsort(np.take_along_axis(distance, part, 1), axis=1), 1)
-    return out
+    return native.brute_knn(torch.from_numpy(np.ascontiguousarray(points, dtype=np.float64)),
+                            torch.from_numpy(np.asarray(rows, dtype=np.int64)), k).numpy()
 
 
 def fit_planes(points: np.ndarray, neighbours: np.ndarray, weight: np.ndarray | None = None
@@ -482,10 +516,12 @@ def voted_normals(points: np.ndarray, cameras: np.ndarray, visibility: np.ndarra
 
 
 def oriented_planes(points: np.ndarray, neighbours: np.ndarray, cameras: np.ndarray, visibility: np.ndarray,
-                    affinity: float | None = _AFFINITY_SCALE, fit: int | None = None) -> np.ndarray:
+                    affinity: float | None = _AFFINITY_SCALE, fit: int | None = None,
+                    search: NeighbourSearch | None = None) -> np.ndarray:
     """:func:`voted_normals` of points whose neighbours are found already: (N, K) indices, nearest
     first, as :func:`nearest_neighbours` gives them. The weighted planes fit the first ``fit`` of
-    them (None: all K); where the vote is weak, the plane through all K decides."""
+    them (None: all K); where the vote is weak, the plane through all K decides, or with the
+    cloud's ``search`` the plane through the :data:`LAYER_NEIGHBOURS` it finds for those points."""
     near = neighbours if fit is None else neighbours[:, :fit]
     weight = None if affinity is None else visibility_affinity(visibility, near, affinity)
     normals, defined = fit_planes(points, near, weight)
@@ -498,8 +534,9 @@ def oriented_planes(points: np.ndarray, neighbours: np.ndarray, cameras: np.ndar
     # votes, a plane through all K neighbours, unweighted, turned to the side of their centroid
     # that the point lies on, tells the faces apart
     weak = np.flatnonzero(agreement < _WEAK_AGREEMENT)
-    planes, fitted = fit_planes(points, neighbours[weak])
-    sides = layer_sides(points, neighbours[weak], planes)
+    wide = neighbours[weak] if search is None else search.query(min(LAYER_NEIGHBOURS, len(points)), weak)
+    planes, fitted = fit_planes(points, wide)
+    sides = layer_sides(points, wide, planes)
     turned = fitted & (sides != 0)
     normals[weak[turned]] = planes[turned] * sides[turned, None]
     oriented[weak[turned]] = True

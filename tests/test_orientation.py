@@ -212,6 +212,47 @@ def test_nearest_neighbours_search_again_where_the_grid_is_too_coarse(grid_searc
     np.testing.assert_allclose(np.linalg.norm(points[near] - points[:, None], axis=2), distance, atol=1e-12)
 
 
+@pytest.mark.parametrize("grid", [False, True])
+@pytest.mark.parametrize("shuffled", [False, True])
+def test_a_search_asked_for_some_points_answers_as_for_all(monkeypatch, grid, shuffled):
+    """NeighbourSearch.query of some rows (the grid's cells of those rows only, the rows alone in
+    them; or the k-d tree) gives the rows of the query of all points: in a dense cluster, and in a
+    sparse shell whose points the grid cannot answer (searched again among all points)."""
+    from o3dvis.orientation import NeighbourSearch
+
+    if grid:
+        monkeypatch.setattr("o3dvis.orientation._GRID_MIN_POINTS", 1)
+    rng = np.random.default_rng(7)
+    points = np.concatenate([rng.normal(size=(20000, 3)) * 0.01, _sphere(300, seed=6) * 10])
+    order = (rng.permutation(len(points)) if shuffled else
+             morton_order(normalize_points(torch.from_numpy(points))[0].float()).numpy())  # as an encoding's
+    points = points[order]
+    search = NeighbourSearch(points)
+    every = search.query(16)
+    rows = np.sort(rng.choice(len(points), 700, replace=False))
+    some = search.query(16, rows)
+    distance = lambda near, at: np.linalg.norm(points[near] - points[at][:, None], axis=2)  # noqa: E731
+    np.testing.assert_allclose(distance(some, rows), distance(every[rows], rows), atol=1e-12)
+    np.testing.assert_allclose(distance(some, rows), cKDTree(points).query(points[rows], k=16)[0], atol=1e-12)
+    assert search.query(8).shape == (len(points), 8) and search.query(4, np.array([], dtype=np.int64)).shape == (0, 4)
+
+
+@pytest.mark.skipif(not native.available(), reason="C kernels turned off (O3DVIS_NATIVE=0)")
+def test_brute_force_search_finds_the_nearest_and_checks_its_arguments():
+    rng = np.random.default_rng(8)
+    points = torch.from_numpy(rng.random((3000, 3)))
+    rows = torch.tensor([0, 17, 2999])
+    near = native.brute_knn(points, rows, 12).numpy()
+    distance, _ = cKDTree(points.numpy()).query(points.numpy()[rows.numpy()], k=12)
+    np.testing.assert_allclose(np.linalg.norm(points.numpy()[near] - points.numpy()[rows.numpy()][:, None], axis=2),
+                               distance, atol=1e-12)
+    assert (near[:, 0] == rows.numpy()).all()
+    with pytest.raises(ValueError, match="k must lie"):
+        native.brute_knn(points, rows, 65)
+    with pytest.raises(IndexError, match="rows must lie"):
+        native.brute_knn(points, rows + 1, 4)
+
+
 @pytest.mark.skipif(not native.available(), reason="C kernels turned off (O3DVIS_NATIVE=0)")
 def test_grid_search_checks_its_arguments():
     long = torch.zeros(2, dtype=torch.long)
@@ -227,6 +268,12 @@ def test_grid_search_checks_its_arguments():
     with pytest.raises(ValueError, match="points must be"):
         native.grid_knn(args[0].float(), *args[1:], table, 1, torch.zeros(3, dtype=torch.float64), 1.0, 0.0, 8,
                         (0, 1), *out)
+    with pytest.raises(ValueError, match="cell_list must lie"):
+        native.grid_knn(*args, table, 1, torch.zeros(3, dtype=torch.float64), 1.0, 0.0, 8, (0, 1), *out,
+                        torch.tensor([1]))
+    with pytest.raises(ValueError, match="wanted must be"):
+        native.grid_knn(*args, table, 1, torch.zeros(3, dtype=torch.float64), 1.0, 0.0, 8, (0, 1), *out,
+                        torch.tensor([0]), torch.ones(2, dtype=torch.bool))
 
 
 @pytest.mark.skipif(not native.available(), reason="C kernels turned off (O3DVIS_NATIVE=0)")

@@ -28,7 +28,8 @@
  * for oriented normals, o3dvis_fit_planes the plane fits of
  * o3dvis/orientation.py, o3dvis_visibility_affinity their neighbours' weights, o3dvis_votes the
  * cameras' votes on their sides, and o3dvis_grid_knn the nearest neighbours it fits
- * them to, sought in the cells of a grid (o3dvis_key_table hashes the cells).
+ * them to, sought in the cells of a grid (o3dvis_key_table hashes the cells; o3dvis_brute_knn
+ * searches all points for the few the grid cannot answer).
  *
  * The arithmetic is torch's, op for op, but: sin, cos, log, atan2, exp and tanh
  * are short polynomials (a few float32 ulps off, with fused multiply-adds where
@@ -1751,6 +1752,29 @@ static int insert_nearest(const double *restrict d, const int64_t *restrict inde
     return found;
 }
 
+/* The k nearest of the n points (n, 3) to each of the m points rows, itself included, nearest first
+ * (o3dvis/orientation.py, _nearest_by_search), among all points: k <= min(n, 64), ties keep the
+ * point of the lower index. neighbours: (m, k). */
+void o3dvis_brute_knn(int64_t n, const double *points, int64_t m, const int64_t *rows, int32_t k,
+                      int64_t *neighbours) {
+    for (int64_t r = 0; r < m; r++) {
+        const double *p = points + 3 * rows[r];
+        double best[64], d[KNN_CHUNK];
+        int64_t row[64], index[KNN_CHUNK];
+        int found = 0;
+        for (int64_t j0 = 0; j0 < n; j0 += KNN_CHUNK) {
+            const int count = n - j0 < KNN_CHUNK ? (int)(n - j0) : KNN_CHUNK;
+            for (int t = 0; t < count; t++) {
+                const double *q = points + 3 * (j0 + t);
+                const double u = q[0] - p[0], v = q[1] - p[1], w = q[2] - p[2];
+                d[t] = u * u + v * v + w * w, index[t] = j0 + t;
+            }
+            found = insert_nearest(d, index, count, k, best, row, found);
+        }
+        memcpy(neighbours + r * k, row, (size_t)k * sizeof(int64_t));
+    }
+}
+
 /* The k nearest points to each point of the cells first..last - 1, itself included, nearest first
  * (o3dvis/orientation.py, nearest_neighbours), among the points of its cell and the 26 around it.
  * points: (n, 3) sorted by cell, the cells of a 2^level grid of side `side` from the corner lo;
@@ -1761,12 +1785,16 @@ static int insert_nearest(const double *restrict d, const int64_t *restrict inde
  * outside the cell they are put in): exact is set to 0 elsewhere, for the caller to search again.
  * The cells are visited nearest first (the point's own, then those sharing a face, an edge, a
  * corner with it: fewer candidates after them are nearer than the k-th so far); ties keep the
- * point visited first. k <= 64 (checked by the caller). */
+ * point visited first. k <= 64 (checked by the caller). list: NULL, or the cells to visit, of
+ * which entries first..last - 1 are visited; wanted: NULL, or (n,) nonzero for the points whose
+ * rows are written (the others' rows are left as they are). */
 void o3dvis_grid_knn(const double *points, const int64_t *cells, const int64_t *keys, const int64_t *starts,
                      int64_t size, const int64_t *table, int32_t level, const double *lo, double side,
-                     double slack, int32_t k, int64_t first, int64_t last, int64_t *neighbours, uint8_t *exact) {
+                     double slack, int32_t k, int64_t first, int64_t last, const int64_t *list,
+                     const uint8_t *wanted, int64_t *neighbours, uint8_t *exact) {
     const int64_t top = ((int64_t)1 << level) - 1;
-    for (int64_t c = first; c < last; c++) {
+    for (int64_t at = first; at < last; at++) {
+        const int64_t c = list ? list[at] : at;
         const int64_t *cell = cells + 3 * c;
         int64_t from[27], to[27];
         int runs = 0;
@@ -1800,6 +1828,7 @@ void o3dvis_grid_knn(const double *points, const int64_t *cells, const int64_t *
                 skip += length;
             }
             for (int64_t i = starts[c]; i < starts[c + 1]; i++) {
+                if (wanted && !wanted[i]) continue;
                 const double *p = points + 3 * i;
                 double best[64];
                 int64_t row[64];

@@ -30,7 +30,7 @@ __all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "bounds", "no
            "upsample", "has_gather_conv", "pack_conv", "gather_conv", "cell_thickness",
            "run_flatness", "project",
            "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin",
-           "fit_planes", "visibility_affinity", "affinity_table", "votes", "key_table",
+           "fit_planes", "visibility_affinity", "affinity_table", "votes", "brute_knn", "key_table",
            "grid_knn", "child_neighbours"]
 
 _I64, _I32, _PTR = ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
@@ -72,9 +72,10 @@ _SIGNATURES = {  # name: (argument types, result type)
                                    None),
     "o3dvis_votes": ([_I64, _I64, _I64, _I32, _PTR, _PTR, _PTR, _PTR, _PTR, _PTR], None),
     "o3dvis_key_table": ([_I64, _PTR, _I64, _PTR], None),
+    "o3dvis_brute_knn": ([_I64, _PTR, _I64, _PTR, _I32, _PTR], None),
     "o3dvis_child_neighbours": ([_I64, _PTR, _PTR, _PTR, _I64, _PTR, _PTR, _PTR, _PTR], None),
     "o3dvis_grid_knn": ([_PTR, _PTR, _PTR, _PTR, _I64, _PTR, _I32, _PTR, ctypes.c_double, ctypes.c_double, _I32,
-                         _I64, _I64, _PTR, _PTR], None),
+                         _I64, _I64, _PTR, _PTR, _PTR, _PTR], None),
 }
 # the most points a view of the kernels takes: its depth buffers (about 1.4 values a point over four
 # scales) are then indexed by int32
@@ -692,6 +693,27 @@ def votes(points: Tensor, normals: Tensor, cameras: Tensor, visibility: Tensor, 
     return vote, agreement
 
 
+def brute_knn(points: Tensor, rows: Tensor, k: int) -> Tensor:
+    """(M, k) int64: the ``k`` nearest of ``points`` (N, 3) float64 to each of the points ``rows``
+    (M,) int64, nearest first (ties: the lower index), by their distances to all points.
+
+    Raises:
+        ValueError: tensors of the wrong shapes or types, or ``k`` outside [1, min(N, 64)].
+        IndexError: rows out of range.
+    """
+    n, m = points.shape[0], rows.shape[0]
+    _check("points", points, (n, 3), torch.float64)
+    _check("rows", rows, (m,), torch.long)
+    if not 1 <= k <= min(n, 64):
+        raise ValueError(f"k must lie in [1, {min(n, 64)}], got {k}")
+    if m and (int(rows.min()) < 0 or int(rows.max()) >= n):
+        raise IndexError(f"rows must lie in [0, {n})")
+    out = torch.empty(m, k, dtype=torch.long)
+    if m:
+        _LIBRARY.o3dvis_brute_knn(n, points.data_ptr(), m, rows.data_ptr(), k, out.data_ptr())
+    return out
+
+
 def affinity_table(visibility: Tensor) -> Tensor:
     """The (N, S) table :func:`visibility_affinity` reads of answers ``visibility`` (V, N): each
     point's row, padded with zeros to S, the multiple of 16 from V up."""
@@ -747,10 +769,12 @@ def child_neighbours(keys: Tensor, parent: Tensor, above: Tensor, children: Tens
 
 def grid_knn(points: Tensor, cells: Tensor, keys: Tensor, starts: Tensor, table: Tensor, level: int, lo: Tensor,
              side: float, slack: float, k: int, cell_range: tuple[int, int], neighbours: Tensor,
-             exact: Tensor) -> None:
-    """The ``k`` nearest of ``points`` to each point of the cells ``cell_range`` among the 27 cells
-    around it, written to rows of ``neighbours`` (N, k) int64 and ``exact`` (N,) uint8 (see
-    ``o3dvis_grid_knn`` in kernels.c; :func:`o3dvis.orientation.nearest_neighbours` prepares them).
+             exact: Tensor, cell_list: Tensor | None = None, wanted: Tensor | None = None) -> None:
+    """The ``k`` nearest of ``points`` to each point of the cells ``cell_range`` (or of the cells
+    ``cell_list[cell_range[0]:cell_range[1]]``; of their points only those where ``wanted`` (N,)
+    bool is set) among the 27 cells around it, written to rows of ``neighbours`` (N, k) int64 and
+    ``exact`` (N,) uint8 (see ``o3dvis_grid_knn`` in kernels.c;
+    :class:`o3dvis.orientation.NeighbourSearch` prepares them).
 
     Args:
         points: (N, 3) float64, sorted by cell.
@@ -776,8 +800,15 @@ def grid_knn(points: Tensor, cells: Tensor, keys: Tensor, starts: Tensor, table:
                                   ("neighbours", neighbours, (n, k), torch.long), ("exact", exact, (n,), torch.uint8)):
         _check(name, t, shape, dtype)
     first, last = cell_range
-    if not 0 <= first <= last <= m:
-        raise ValueError(f"cell range {cell_range} outside [0, {m}]")
+    if cell_list is not None:
+        _check("cell_list", cell_list, (cell_list.shape[0],), torch.long)
+        if len(cell_list) and (int(cell_list.min()) < 0 or int(cell_list.max()) >= m):
+            raise ValueError(f"cell_list must lie in [0, {m})")
+    if wanted is not None:
+        _check("wanted", wanted, (n,), torch.bool)
+    if not 0 <= first <= last <= (m if cell_list is None else len(cell_list)):
+        raise ValueError(f"cell range {cell_range} outside [0, {m if cell_list is None else len(cell_list)}]")
     _LIBRARY.o3dvis_grid_knn(points.data_ptr(), cells.data_ptr(), keys.data_ptr(), starts.data_ptr(), size,
                              table.data_ptr(), level, lo.data_ptr(), side, slack, k, first, last,
-                             neighbours.data_ptr(), exact.data_ptr())
+                             None if cell_list is None else cell_list.data_ptr(),
+                             None if wanted is None else wanted.data_ptr(), neighbours.data_ptr(), exact.data_ptr())

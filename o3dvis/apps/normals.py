@@ -14,9 +14,6 @@ see the point then orient it. No triangulation, so faster (``docs/results.md``).
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
@@ -26,6 +23,7 @@ from ..cameras import viewpoints_around
 from ..clouds import cloud_normals, cloud_points, set_cloud_normals
 from ..methods import accepts_method_keyword, resolve_method
 from ..orientation import complete_orientation, fit_planes, orient_by_vote, row_chunks, vote
+from ..threads import plan_threads, threaded_map
 from .triangulation import DEFAULT_EDGE_FACTOR, facing_triangles, local_spacing
 
 __all__ = ["estimate_normals_neural", "orient_normals_neural", "multiview_normals",
@@ -40,8 +38,9 @@ def _add_triangle_normals(total: np.ndarray, points: np.ndarray, cameras: np.nda
                           progress: bool, desc: str) -> None:
     """Adds to ``total`` the unit normals of the triangles each view makes at each point.
 
-    The views are triangulated on all cores (the triangulation releases the GIL), each worker also
-    making its triangles' unit normals, and added in order.
+    The views are triangulated on the threads :func:`~o3dvis.threads.plan_threads` gives (the
+    triangulation releases the GIL), each worker also making its triangles' unit normals, and
+    added in order.
     """
     from tqdm import tqdm
 
@@ -49,11 +48,11 @@ def _add_triangle_normals(total: np.ndarray, points: np.ndarray, cameras: np.nda
         cam, vis = view
         return facing_triangles(points, cam, np.flatnonzero(vis if subset is None else vis & subset), max_edge)
 
-    with ThreadPoolExecutor(max(1, min(len(cameras), os.cpu_count() or 1))) as pool:
-        for triangles, unit in tqdm(pool.map(triangulate, zip(cameras, visibility)), total=len(cameras),
-                                    disable=not progress, desc=desc, unit="view"):
-            for corner in triangles.T:
-                np.add.at(total, corner, unit)
+    views, workers = list(zip(cameras, visibility)), plan_threads(len(cameras), 2)
+    for triangles, unit in tqdm(threaded_map(triangulate, views, workers) if workers > 1 else map(triangulate, views),
+                                total=len(cameras), disable=not progress, desc=desc, unit="view"):
+        for corner in triangles.T:
+            np.add.at(total, corner, unit)
 
 
 def neighbourhoods(points: np.ndarray, search_param, tree: cKDTree | None = None) -> np.ndarray:

@@ -1719,7 +1719,8 @@ void o3dvis_votes(int64_t first, int64_t m, int64_t n_all, int32_t v, const doub
             const double *p = points + 3 * (first + i), *nrm = normals + 3 * (first + i);
             const double reach = (nrm[0] * c[0] + nrm[1] * c[1] + nrm[2] * c[2]) -
                                  (nrm[0] * p[0] + nrm[1] * p[1] + nrm[2] * p[2]);
-            double d2 = cc - 2.0 * (p[0] * c[0] + p[1] * c[1] + p[2] * c[2]) + (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
+            double d2 = cc - 2.0 * (p[0] * c[0] + p[1] * c[1] + p[2] * c[2]) +
+                        (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
             d2 = d2 > 1e-300 ? d2 : 1e-300;
             const double w = 2.0 * (double)q[i] - 1.0, term = (w > 0.0 ? w : 0.0) * (reach / sqrt(d2));
             vote[i] += term, agreement[i] += fabs(term);

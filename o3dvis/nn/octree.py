@@ -14,8 +14,8 @@ from torch import Tensor
 
 from . import native
 
-__all__ = ["Octree", "bounding_box", "cube_frame", "cell_keys", "coarser_keys", "grid_cells", "morton_encode", "morton_decode",
-           "morton_order", "morton_sort", "normalize_points", "MORTON_DEPTH"]
+__all__ = ["Octree", "bounding_box", "cube_frame", "cell_keys", "coarser_keys", "grid_cells", "morton_encode",
+           "morton_decode", "morton_order", "morton_sort", "normalize_points", "MORTON_DEPTH"]
 
 # The most cells (all clouds of the batch, a border of one cell included) of a level whose node
 # lookups go through a dense table; larger levels search their sorted keys.

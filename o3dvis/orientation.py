@@ -123,7 +123,12 @@ class NeighbourSearch:
             return np.broadcast_to(np.arange(k), (len(asked), k)).copy()
         order, ordered, first, tensors, level, corner, side = grid
         near, exact = torch.empty((count, k), dtype=torch.long), torch.empty(count, dtype=torch.uint8)
-        place = asked if ordered else np.argsort(order)[asked]  # the rows' places in the sorted points
+        if ordered:  # the rows' places in the sorted points
+            place = asked
+        else:
+            inverse = np.empty_like(order)
+            inverse[order] = np.arange(count)
+            place = inverse[asked]
         cells = wanted = None
         if rows is not None:  # the cells holding the rows, and in them the rows alone
             cells = torch.from_numpy(np.unique(np.searchsorted(first, place, side="right") - 1))
@@ -137,9 +142,10 @@ class NeighbourSearch:
         for _ in _side_by_side(lambda span: native.grid_knn(*tensors, level, corner, side, _KEY_SLACK, k, span, near,
                                                             exact, cells, wanted), ranges, workers):
             pass
-        found = near.numpy()[place]
+        every = rows is None and ordered  # the rows as the kernel wrote them
+        found = near.numpy() if every else near.numpy()[place]
         result = found if ordered else order[found]
-        again = np.flatnonzero(exact.numpy()[place] == 0)
+        again = np.flatnonzero((exact.numpy() if every else exact.numpy()[place]) == 0)
         if len(again):
             result[again] = _nearest_by_search(self.points, asked[again], k)
         return result

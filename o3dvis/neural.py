@@ -100,16 +100,16 @@ def _unit_frame(points: Tensor) -> tuple[Tensor, Tensor | None, Tensor, Tensor, 
     float64 normalised points and :func:`~o3dvis.nn.octree.cell_keys` of the float32 ones; on the
     CPU in two passes of C (the float64 normalised points are made only for a cloud that may be
     flat)."""
-    if not (points.device.type == "cpu" and points.dtype == torch.float64 and native.available()):
+    in_c = points.device.type == "cpu" and points.dtype == torch.float64 and native.available()
+    if in_c:
+        points = points.contiguous()
+        lo, hi, total = native.bounds(points)
+    else:
         lo, hi = bounding_box(points)
+    if not (in_c and (hi - lo).amax() > 0):  # torch ops, or all points coincide
         normalized, center, scale = _normalize(points, (lo, hi))
         hull = _flat_hull(normalized, ((hi - lo) / scale).norm())  # float64: flat to the last bits
         return normalized.float(), None, center, scale, (lo, hi), hull
-    points = points.contiguous()
-    lo, hi, total = native.bounds(points)
-    if not (hi - lo).amax() > 0:  # all points coincide
-        normalized, center, scale = _normalize(points, (lo, hi))
-        return normalized.float(), None, center, scale, (lo, hi), _flat_hull(normalized, (hi - lo).norm())
     center, scale = cube_frame(lo, hi)
     normalized, keys, scatter = native.normalize(points, center, float(scale), (total / len(points) - center) / scale)
     diagonal = ((hi - lo) / scale).norm()

@@ -267,7 +267,7 @@ def test_leaf_means_equal_the_torch_ones(normals, monkeypatch):
 
 @pytest.mark.skipif(not native.has_gather_conv(), reason="no AMX tiles here")
 @pytest.mark.parametrize("shape", [(16, 16, 27, 700), (32, 48, 27, 77), (8, 16, 8, 130), (96, 96, 27, 64),
-                                   (48, 32, 27, 301), (64, 112, 27, 17)])
+                                   (48, 32, 27, 301), (64, 112, 27, 17), (6, 16, 27, 50), (40, 32, 8, 90)])
 def test_gather_conv_equals_the_torch_ops(shape):
     """A convolution over gathered rows on the AMX tiles against the torch ops of ConvBnRelu in
     inference: bfloat16 rows gathered (the input's length gathers zeros), one product rounded to

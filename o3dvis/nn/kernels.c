@@ -1364,6 +1364,35 @@ static void conv_block(const uint16_t *a, int kp, int m, const uint32_t *packed,
                 }
         }
 }
+
+/* Copies the rows taken[0 .. taps - 1] of xb, pairs int32 each, one after the other into dst: whole
+ * vector moves for the widths of the U-Net's layers, masked ones for the others. */
+static inline void gather_row(uint32_t *restrict dst, const uint32_t *restrict xb, const int64_t *taken, int taps,
+                              int pairs) {
+#define GATHER_ROW(MOVE)                                                                                     \
+    for (int t = 0; t < taps; t++) {                                                                         \
+        const uint32_t *src = xb + taken[t] * pairs;                                                         \
+        uint32_t *to = dst + t * pairs;                                                                      \
+        MOVE;                                                                                                \
+    }                                                                                                        \
+    return
+#define MOVE16(c) _mm512_storeu_si512(to + (c), _mm512_loadu_si512(src + (c)))
+    switch (pairs) {
+    case 4: GATHER_ROW(_mm_storeu_si128((__m128i *)to, _mm_loadu_si128((const __m128i *)src)));
+    case 8: GATHER_ROW(_mm256_storeu_si256((__m256i *)to, _mm256_loadu_si256((const __m256i *)src)));
+    case 16: GATHER_ROW(MOVE16(0));
+    case 32: GATHER_ROW(MOVE16(0); MOVE16(16));
+    case 48: GATHER_ROW(MOVE16(0); MOVE16(16); MOVE16(32));
+    default:
+        GATHER_ROW(for (int c = 0; c < pairs; c += 16) {
+            const __mmask16 lanes = pairs - c >= 16 ? 0xffff : (__mmask16)((1u << (pairs - c)) - 1);
+            _mm512_mask_storeu_epi32(to + c, lanes, _mm512_maskz_loadu_epi32(lanes, src + c));
+        });
+    }
+#undef MOVE16
+#undef GATHER_ROW
+}
+
 #endif
 
 /* A convolution over gathered rows, as o3dvis/nn/conv.py's gather_matmul and ConvBnRelu compute it
@@ -1393,16 +1422,10 @@ int o3dvis_gather_conv(int64_t n, const float *x, int64_t rows, int32_t channels
     configure_tiles();
     for (int64_t r0 = 0; r0 < n; r0 += 64) {
         const int m = n - r0 < 64 ? (int)(n - r0) : 64;
-        for (int r = 0; r < (m + 15) / 16 * 16; r++) { /* rows past n gather zeros */
-            uint32_t *dst = (uint32_t *)(a + (int64_t)r * kp);
-            for (int t = 0; t < taps; t++) { /* a row's pairs, 16 at a time */
-                const uint32_t *src = xb + (r < m ? index[(r0 + r) * taps + t] : rows) * pairs;
-                for (int c = 0; c < pairs; c += 16) {
-                    const __mmask16 lanes = pairs - c >= 16 ? 0xffff : (__mmask16)((1u << (pairs - c)) - 1);
-                    _mm512_mask_storeu_epi32(dst + t * pairs + c, lanes, _mm512_maskz_loadu_epi32(lanes, src + c));
-                }
-            }
-        }
+        for (int r = 0; r < m; r++)
+            gather_row((uint32_t *)(a + (int64_t)r * kp), xb, index + (r0 + r) * taps, taps, pairs);
+        for (int r = m; r < (m + 15) / 16 * 16; r++) /* rows past n: zeros */
+            memset(a + (int64_t)r * kp, 0, sizeof *a * 2 * (size_t)taps * pairs);
         conv_block(a, kp, m, packed, outputs, shift, residual ? residual + r0 * outputs : NULL, relu, sums,
                    out + r0 * outputs);
     }

@@ -36,7 +36,7 @@ _GRAPH_NEIGHBOURS = 10  # neighbours of a point in the graph that propagates ori
 _CHUNK = 4096  # rows of neighbourhoods handled at once
 _GRID_DEPTH = 16  # the finest grid of the neighbour search
 _CELL_POINTS = 6  # points per occupied cell the neighbour search's grid aims at, at least
-_GRID_MIN_POINTS = 100_000  # smaller clouds are searched with a k-d tree (as fast there)
+_GRID_MIN_POINTS = 2_000  # smaller clouds are searched with a k-d tree (faster there)
 _KEY_SLACK = 1e-6  # how far off its cell float32 keys may put a point, in normalised coordinates
 _PARALLEL_ROWS = 8192  # rows below which the plane fits, the votes and the search run on one thread
 # (row, point) distances the search again computes before taking a k-d tree: 2^24 take about as

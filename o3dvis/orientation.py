@@ -247,15 +247,8 @@ def smallest_eigenvectors(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     # what numpy does fast, not reductions over axes of 3
     xx, xy, xz, yy, yz, zz = (matrices[:, i, j] / np.where(scale > 0, scale, 1)
                               for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)))
-    third = (xx + yy + zz) / 3
-    dx, dy, dz = xx - third, yy - third, zz - third
-    spread = np.sqrt((dx * dx + dy * dy + dz * dz + 2 * (xy * xy + xz * xz + yz * yz)) / 6)
-    det = dx * (dy * dz - yz * yz) - xy * (xy * dz - yz * xz) + xz * (xy * yz - dy * xz)
-    half_det = np.clip(det / (2 * np.where(spread > 0, spread, 1) ** 3), -1, 1)
-    angle = np.arccos(half_det) / 3
-    largest = third + 2 * spread * np.cos(angle)
-    low = half_det < 0  # then the smallest eigenvalue is the one far from the middle
-    far = np.where(low, third + 2 * spread * np.cos(angle + 2 * np.pi / 3), largest)
+    largest, smallest, low = _outer_eigenvalues(xx, xy, xz, yy, yz, zz)
+    far = np.where(low, smallest, largest)
     rows = ((xx - far, xy, xz), (xy, yy - far, yz), (xz, yz, zz - far))
     crosses = np.stack([_cross(rows[i], rows[j]) for i, j in ((0, 1), (0, 2), (1, 2))])  # (3, 3, M)
     length = np.sqrt((crosses ** 2).sum(axis=1))
@@ -279,6 +272,21 @@ def smallest_eigenvectors(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     mean, radius = (uu + vv) / 2, np.hypot((uu - vv) / 2, uv)
     middle = np.where(low, mean - radius, mean + radius)
     return np.where(low, axis, minor).T, middle > 1e-12 * largest
+
+
+def _outer_eigenvalues(xx, xy, xz, yy, yz, zz) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The largest and the smallest eigenvalues of symmetric 3x3 matrices given as their six
+    distinct entries (M,) each, by the trigonometric solution of the characteristic cubic, and
+    whether the smallest is the one farther from the middle eigenvalue (then it is the accurate one
+    of the two; the other is off by a few ulps of the largest)."""
+    third = (xx + yy + zz) / 3
+    dx, dy, dz = xx - third, yy - third, zz - third
+    spread = np.sqrt((dx * dx + dy * dy + dz * dz + 2 * (xy * xy + xz * xz + yz * yz)) / 6)
+    det = dx * (dy * dz - yz * yz) - xy * (xy * dz - yz * xz) + xz * (xy * yz - dy * xz)
+    half_det = np.clip(det / (2 * np.where(spread > 0, spread, 1) ** 3), -1, 1)
+    angle = np.arccos(half_det) / 3
+    return (third + 2 * spread * np.cos(angle), third + 2 * spread * np.cos(angle + 2 * np.pi / 3),
+            half_det < 0)
 
 
 def _cross(p, q) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -559,7 +567,9 @@ def surface_variation(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
     """
     if neighbours.shape[1] < 3:
         raise ValueError(f"a surface variation needs at least 3 neighbours, got {neighbours.shape[1]}")
-    near = points[neighbours]
-    near = near - near.mean(axis=1, keepdims=True)
-    eigenvalues = np.linalg.eigvalsh(np.einsum("mki,mkj->mij", near, near))
-    return eigenvalues[:, 0] / np.maximum(eigenvalues.sum(axis=1), 1e-300)
+    x, y, z = (c - c.mean(axis=1, keepdims=True) for c in np.moveaxis(points[neighbours], 2, 0))
+    sums = [(p * q).sum(axis=1) for p, q in ((x, x), (x, y), (x, z), (y, y), (y, z), (z, z))]
+    trace = sums[0] + sums[3] + sums[5]
+    # the scatter over its trace, whose eigenvalues sum to 1 (and stay far from under- and overflow)
+    _, smallest, _ = _outer_eigenvalues(*(v / np.where(trace > 0, trace, 1) for v in sums))
+    return np.maximum(smallest, 0)

@@ -28,7 +28,7 @@ from .nn.octree import MORTON_DEPTH, bounding_box, coarser_keys, cube_frame, mor
 from .nn.conv import products_in
 from .nn.predictor import resolve_precision
 from .orientation import NeighbourSearch, oriented_planes, surface_variation
-from .threads import plan_threads, torch_threads
+from .threads import plan_threads, torch_threads, workers_only
 
 __all__ = ["NeuralVisibility"]
 
@@ -410,7 +410,8 @@ class NeuralVisibility:
         shared = {"keys": keys}
         field = self._field(network, unit, *frame, scene=scene, shared=shared)
         if two_pass:
-            normals = first_pass_normals(field, points.detach().cpu().double().numpy())
+            with workers_only():
+                normals = first_pass_normals(field, points.detach().cpu().double().numpy())
             if normals is not None:
                 unit = torch.from_numpy(normals).to(self.device).index_select(0, order).float()
                 field = self._field(self.normals_network, unit, *frame, scene=scene, shared=shared)

@@ -4,7 +4,8 @@ o3dvis uses two kinds of threads: torch's intra-op threads (an OpenMP team that
 splits each op, used while encoding a cloud) and its own worker threads (views or
 chunks of points answered side by side, each worker on one torch thread). One
 task uses one kind at a time, so the threads it runs on are what
-:func:`plan_threads` gives, never more than the cores this process may use.
+:func:`plan_threads` gives, never more than the cores this process may use; a
+block whose parallel work is the workers' runs inside :func:`workers_only`.
 
 The policy (``"auto"``, the default) for a task of ``work`` points or rows:
 
@@ -40,7 +41,7 @@ from concurrent.futures import ThreadPoolExecutor
 import torch
 
 __all__ = ["set_num_threads", "get_num_threads", "usable_cores", "busy_cores", "plan_threads", "torch_threads",
-           "threaded_map", "cpu_pressure", "ENV_VAR", "MAX_PRESSURE"]
+           "workers_only", "threaded_map", "cpu_pressure", "ENV_VAR", "MAX_PRESSURE"]
 
 ENV_VAR = "O3DVIS_NUM_THREADS"
 """Environment variable fixing the thread count (a positive int; ``auto`` or unset: the policy)."""
@@ -171,7 +172,7 @@ def plan_threads(work: int, min_work: int) -> int:
     cores = usable_cores()
     if fixed is not None:
         return min(fixed, cores)
-    limit = min(torch.get_num_threads(), cores)
+    limit = min(getattr(_OWN, "limit", None) or torch.get_num_threads(), cores)
     if limit <= 1 or work < min_work or (cpu_pressure() or 0.0) > MAX_PRESSURE:
         return 1
     return max(1, min(limit, cores - busy_cores()))
@@ -189,6 +190,24 @@ def torch_threads(count: int) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(before)
+
+
+_OWN = threading.local()  # limit: torch's thread count where workers_only runs, else absent
+
+
+@contextlib.contextmanager
+def workers_only() -> Iterator[None]:
+    """Runs the block with one torch intra-op thread on the calling thread, while :func:`plan_threads`
+    plans as with torch's count before it: for blocks whose parallel work runs on the library's
+    own workers (:func:`threaded_map`). After each op it splits, torch's OpenMP team spins some
+    milliseconds, on a core that the workers then share with it."""
+    before = getattr(_OWN, "limit", None)
+    _OWN.limit = before or torch.get_num_threads()
+    try:
+        with torch_threads(1):
+            yield
+    finally:
+        _OWN.limit = before
 
 
 _POOL: ThreadPoolExecutor | None = None  # the worker threads, made on first use and kept

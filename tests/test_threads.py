@@ -76,6 +76,32 @@ def test_automatic_count_takes_small_work_torch_count_cores_and_load(monkeypatch
     assert threads.plan_threads(1000, 1000) == 4
 
 
+def test_workers_only_gives_torch_one_thread_and_plans_as_before(monkeypatch):
+    """Inside workers_only the caller's torch ops run on one thread while the library's workers are
+    planned with torch's count from before (nested blocks too), and the two-pass encode's
+    orientation step runs inside it; torch's count is back after."""
+    monkeypatch.setattr(threads, "usable_cores", lambda: 4)
+    monkeypatch.setattr(threads, "busy_cores", lambda: 0)
+    monkeypatch.setattr(threads, "cpu_pressure", lambda: None)
+    torch.set_num_threads(3)
+    with threads.workers_only():
+        assert torch.get_num_threads() == 1 and threads.plan_threads(1000, 1000) == 3
+        with threads.workers_only():
+            assert torch.get_num_threads() == 1 and threads.plan_threads(1000, 1000) == 3
+        assert torch.get_num_threads() == 1 and threads.plan_threads(1000, 1000) == 3
+    assert torch.get_num_threads() == 3 and threads.plan_threads(1000, 1000) == 3
+    seen = []
+    first_pass = o3dvis.neural.first_pass_normals
+
+    def spy(*args):
+        seen.append((torch.get_num_threads(), threads.plan_threads(10 ** 6, 1)))
+        return first_pass(*args)
+
+    monkeypatch.setattr(o3dvis.neural, "first_pass_normals", spy)
+    o3dvis.NeuralVisibility.pretrained().encode(bench_cloud(3_000, 1).points, normals="estimate")
+    assert seen == [(1, 3)] and torch.get_num_threads() == 3
+
+
 def test_busy_processes_on_every_core_are_seen():
     cores = threads.usable_cores()
     context = multiprocessing.get_context("fork")

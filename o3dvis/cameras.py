@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from ._open3d import is_open3d, require_open3d
-from .geometry import fibonacci_sphere
+from .geometry import bounds, fibonacci_sphere
 
 if TYPE_CHECKING:
     import open3d as o3d
@@ -312,7 +312,7 @@ def viewpoints_around(points: np.ndarray, count: int, distance: float | None = N
     Returns:
         (count, 3) positions.
     """
-    lo, hi = points.min(axis=0), points.max(axis=0)
+    lo, hi = bounds(points)
     if distance is None:
         distance = float(np.linalg.norm(hi - lo))
     if not distance > 0:
@@ -428,7 +428,7 @@ def make_view(points: np.ndarray, camera, width: int | None = None, height: int 
     """
     location, extrinsic, frustum = _extrinsic_of(camera)
     if extrinsic is None:
-        lo, hi = points.min(axis=0), points.max(axis=0)
+        lo, hi = bounds(points)
         extrinsic = look_at(location, (lo + hi) / 2, up)
     if intrinsic is None and frustum is not None:
         intrinsic, width, height = frustum.intrinsic, frustum.width, frustum.height

@@ -8,12 +8,24 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["diagonal", "random_rotation", "fixed_rotations", "fibonacci_sphere"]
+__all__ = ["bounds", "diagonal", "random_rotation", "fixed_rotations", "fibonacci_sphere"]
+
+
+def bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The lowest and highest corners (D,) of the axis-aligned bounding box of points (N, D), N > 0.
+
+    A column at a time: numpy reduces an (N, 3) array along its rows three values per step, many
+    times slower than along each column (NaN propagates alike).
+    """
+    if not len(points):
+        raise ValueError("the bounding box of no points is undefined")
+    return (np.array([column.min() for column in points.T]), np.array([column.max() for column in points.T]))
 
 
 def diagonal(points: np.ndarray) -> float:
     """Length of the diagonal of the axis-aligned bounding box."""
-    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    lo, hi = bounds(points)
+    return float(np.linalg.norm(hi - lo))
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:

@@ -16,7 +16,7 @@ from o3dvis.cameras import all_finite, as_views, viewpoints_around
 from o3dvis.cli import build_parser
 from o3dvis.cli._common import split_vectors
 from o3dvis.models import file_sha256
-from o3dvis.geometry import fixed_rotations
+from o3dvis.geometry import bounds, fixed_rotations
 from o3dvis.nn import NetworkConfig, VisibilityNetwork
 from o3dvis.orientation import voted_normals
 from o3dvis.pretrained import shared_pretrained
@@ -326,6 +326,18 @@ def test_fixed_rotations_are_rotations_and_the_same_each_call():
     torch.testing.assert_close(torch.linalg.det(r), torch.ones(5, dtype=torch.float64))
     torch.testing.assert_close(fixed_rotations(3), r[:3], rtol=0, atol=0)
     assert (r[1:] - torch.eye(3, dtype=torch.float64)).abs().amax(dim=(1, 2)).min() > 0.1
+
+
+def test_bounds_are_numpy_s_min_and_max_along_the_rows():
+    points = np.random.default_rng(0).normal(size=(1000, 3)) * [1.0, 1e6, 1e-6]
+    for lo, hi in [bounds(points), bounds(points[:, :2]), bounds(points[:1])]:
+        assert lo.shape == hi.shape and lo.dtype == np.float64
+    np.testing.assert_array_equal(np.stack(bounds(points)), np.stack([points.min(axis=0), points.max(axis=0)]))
+    points[7, 1] = np.nan
+    lo, hi = bounds(points)
+    assert np.isnan(lo[1]) and np.isnan(hi[1]) and np.isfinite(lo[[0, 2]]).all()
+    with pytest.raises(ValueError, match="no points"):
+        bounds(np.empty((0, 3)))
 
 
 def test_rotations_average_the_network_over_rotated_copies(network, points):

@@ -7,6 +7,7 @@ import torch
 
 from ..cameras import fibonacci_sphere
 from ..clouds import cloud_points
+from ..geometry import bounds
 from ..methods import accepts_method_keyword, resolve_soft_method
 
 __all__ = ["best_view"]
@@ -48,7 +49,7 @@ def best_view(pcd, maximize: bool = True, steps: int = 300, model=None, *, start
         raise ValueError(f"steps and starts must be at least 1, got {steps} and {starts}")
     points = cloud_points(pcd)
     soft = resolve_soft_method(model, points)
-    lo, hi = points.min(axis=0), points.max(axis=0)
+    lo, hi = bounds(points)
     radius = float(np.linalg.norm(hi - lo)) if distance is None else float(distance)
     if not radius > 0:
         raise ValueError("the camera distance must be positive (the points span no volume)")

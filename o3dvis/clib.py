@@ -21,7 +21,7 @@ import threading
 import warnings
 from dataclasses import dataclass
 
-__all__ = ["VARIANTS", "X86_64_ARGS", "Variant", "cpu_flags", "is_x86", "load", "runnable_variants"]
+__all__ = ["VARIANTS", "X86_64_ARGS", "Variant", "cpu_flags", "cpu_name", "is_x86", "load", "runnable_variants"]
 
 
 @dataclass(frozen=True)
@@ -68,6 +68,19 @@ def cpu_flags() -> frozenset[str]:
         import torch
 
         return frozenset(_CAPABILITY_FLAGS.get(torch.backends.cpu.get_cpu_capability(), ()))
+
+
+def cpu_name() -> str:
+    """The CPU's model name as ``/proc/cpuinfo`` gives it, else the platform's processor string
+    (empty where neither says)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            line = next((line for line in f if line.startswith("model name")), "")
+        if line:
+            return line.partition(":")[2].strip()
+    except OSError:
+        pass
+    return platform.processor()
 
 
 def runnable_variants() -> list[str]:

@@ -273,8 +273,13 @@ def test_benchmark_times_methods_against_open3d(capsys):
     assert "neural: absent" in text
     from o3dvis.nn import native
 
-    said = "C kernels (o3dvis.nn.native)" if native.available() else "torch ops (no C kernels built)"
-    assert f"per-view steps of the neural methods on the CPU: {said}" in text
+    from o3dvis.clib import cpu_name
+    from o3dvis.threads import usable_cores
+
+    said = (f"C kernels (o3dvis.nn.native, {native.variant()} variant)" if native.available()
+            else "torch ops (no C kernels built)")
+    assert f"per-view steps of the neural methods on the CPU: {said}; " in text
+    assert f"{cpu_name() or 'CPU unnamed'}, {usable_cores()} cores usable" in text
 
 
 def test_peak_memory_sees_a_transient_allocation():

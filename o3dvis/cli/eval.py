@@ -202,7 +202,9 @@ def _drop_refusing(methods: dict, absent: dict, path: Path, points: int, views: 
 
 def run_bench(args) -> int:
     """``o3dvis bench``: prints the timing table; ``--out`` also writes JSON."""
+    from ..clib import cpu_name
     from ..nn import native
+    from ..threads import usable_cores
     from ..training.speed import benchmark, markdown_table
 
     _check_out(args.out)
@@ -210,14 +212,16 @@ def run_bench(args) -> int:
     methods, absent = _methods(args, {"hpr": [2.0], "hpr-exp": [-0.01]})
     single = {name: next(iter(sweep.values())) for name, sweep in methods.items()}
     rows = benchmark(single, args.points, args.views, args.repeats, args.seed)
-    kernels = native.available()
+    kernels, cpu = native.variant(), cpu_name()
     report = {"settings": {"points": args.points, "views": args.views, "repeats": args.repeats,
-                           "threads": args.threads, "seed": args.seed, "c_kernels": kernels,
+                           "threads": args.threads, "seed": args.seed, "c_kernels": kernels is not None,
+                           "kernel_variant": kernels, "cpu": cpu, "cores": usable_cores(),
                            "methods": {n: getattr(m, "__name__", n) for n, m in single.items()}},
               "absent": absent, "results": rows}
     markdown = (markdown_table(rows) + "".join(f"\n{n}: absent ({r})" for n, r in absent.items())
                 + "\nper-view steps of the neural methods on the CPU: "
-                + ("C kernels (o3dvis.nn.native)\n" if kernels else "torch ops (no C kernels built)\n"))
+                + (f"C kernels (o3dvis.nn.native, {kernels} variant)" if kernels else "torch ops (no C kernels built)")
+                + f"; {cpu or 'CPU unnamed'}, {usable_cores()} cores usable\n")
     _write(args.out, report, markdown)
     return 0
 

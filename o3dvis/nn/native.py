@@ -25,8 +25,8 @@ from torch import Tensor
 from .. import clib
 from .features import LeafFeatures
 
-__all__ = ["MAX_POINTS", "available", "usable", "has_view_margin", "bounds", "normalize", "morton_keys", "sort_keys",
-           "leaf_means",
+__all__ = ["MAX_POINTS", "available", "variant", "usable", "has_view_margin", "bounds", "normalize", "morton_keys",
+           "sort_keys", "leaf_means",
            "upsample", "has_gather_conv", "pack_conv", "gather_conv", "cell_thickness",
            "run_flatness", "project",
            "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin",
@@ -86,6 +86,11 @@ _LIBRARY = clib.load(f"{__package__}._kernels", _SIGNATURES)
 def available() -> bool:
     """Whether the C kernels are built and loaded."""
     return _LIBRARY is not None
+
+
+def variant() -> str | None:
+    """The variant of the kernels loaded (a key of :data:`o3dvis.clib.VARIANTS`), None where none is."""
+    return None if _LIBRARY is None else _LIBRARY.variant
 
 
 def usable(*tensors: Tensor | None) -> bool:

@@ -265,14 +265,19 @@ def test_leaf_means_equal_the_torch_ones(normals, monkeypatch):
         native.leaf_means(points, unit, leaf, 0, int(leaf.max()) + 1)
 
 
-@pytest.mark.skipif(not native.has_gather_conv(), reason="no AMX tiles here")
+@needs_kernels
 @pytest.mark.parametrize("shape", [(16, 16, 27, 700), (32, 48, 27, 77), (8, 16, 8, 130), (96, 96, 27, 64),
-                                   (48, 32, 27, 301), (64, 112, 27, 17), (6, 16, 27, 50), (40, 32, 8, 90)])
-def test_gather_conv_equals_the_torch_ops(shape):
-    """A convolution over gathered rows on the AMX tiles against the torch ops of ConvBnRelu in
-    inference: bfloat16 rows gathered (the input's length gathers zeros), one product rounded to
-    bfloat16, the shift, the residual and the ReLU. The sums may run in another order than
-    oneDNN's: a bfloat16 step apart at most, and rarely."""
+                                   (48, 32, 27, 301), (64, 112, 27, 17), (6, 16, 27, 50), (40, 32, 8, 90),
+                                   (32, 64, 27, 9), (64, 32, 8, 3)])
+def test_gather_conv_equals_the_torch_ops(shape, variant):
+    """A convolution over gathered rows, in each variant that has one (AMX tiles, or AVX-512
+    bfloat16 dot products), against the torch ops of ConvBnRelu in inference: bfloat16 rows
+    gathered (the input's length gathers zeros), one product rounded to bfloat16, the shift, the
+    residual and the ReLU. The sums may run in another order than oneDNN's: a bfloat16 step apart
+    at most, and rarely."""
+    if not native.has_gather_conv():
+        assert variant in ("base", "avx2")
+        pytest.skip(f"the {variant} kernels have no gathered convolution")
     channels, outputs, taps, n = shape
     g = torch.Generator().manual_seed(4)
     x = torch.randn(3 * n, channels, generator=g)
@@ -293,10 +298,12 @@ def test_gather_conv_equals_the_torch_ops(shape):
         native.gather_conv(x, index, packed[1:], taps, outputs, shift)
 
 
-@pytest.mark.skipif(not native.has_gather_conv(), reason="no AMX tiles here")
-def test_the_unet_on_the_tiles_answers_as_the_torch_ops(monkeypatch):
+@pytest.mark.skipif(not native.has_gather_conv(), reason="no AVX-512 bfloat16 kernels here")
+def test_the_unet_of_gathered_convolutions_answers_as_the_torch_ops(monkeypatch):
     """The encoding with every gathered convolution (3x3x3 and down-sampling) in one pass of C:
-    the features of the torch ops, but for sums that oneDNN orders otherwise."""
+    the features of the torch ops, but for sums that oneDNN orders otherwise (its order is the
+    tiles' on a CPU with AMX, not on every CPU with AVX-512 bfloat16 alone: there a product a
+    bfloat16 step apart in one layer moves every feature after it by a few such steps)."""
     from o3dvis.nn.conv import products_in
     from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
 
@@ -310,7 +317,7 @@ def test_the_unet_on_the_tiles_answers_as_the_torch_ops(monkeypatch):
         assert len(calls) == 23  # 5 down-samplings, 9 residual blocks of 2
         monkeypatch.setattr(native, "has_gather_conv", lambda: False)
         plain = network.encode(points)
-    assert (fused == plain).float().mean() > 0.999
+    assert float((fused - plain).abs().mean()) < 4e-3 * float(plain.abs().mean())
     torch.testing.assert_close(fused, plain, atol=1e-2 * float(plain.abs().max()), rtol=0)
 
 

@@ -181,12 +181,12 @@ class ConvBnRelu(nn.Module):
 
     def fused(self, x: Tensor, octree: Octree, level: int, residual: Tensor | None = None) -> Tensor | None:
         """This layer in inference in one pass of C: an up-sampling for the nodes that exist only
-        (:func:`~o3dvis.nn.native.upsample`, the same float32 sums), a convolution on the AMX tiles
-        (:func:`~o3dvis.nn.native.gather_conv`): as :meth:`forward`, or with a ``residual``
+        (:func:`~o3dvis.nn.native.upsample`, the same float32 sums), a convolution in bfloat16 dot
+        products (:func:`~o3dvis.nn.native.gather_conv`): as :meth:`forward`, or with a ``residual``
         ``relu(residual + convolution + shift)`` (a :class:`ResBlock`'s end). None where that does
         not run: training, gradients, another device or dtype, the kernels not built; for a
         convolution also products in float32, an odd number of input channels or output channels
-        that are no multiple of 16 (the kernel's tiles), or no tiles here."""
+        that are no multiple of 16 (the kernel's blocks), or no AVX-512 bfloat16 kernels here."""
         if (self.training or torch.is_grad_enabled() or x.device.type != "cpu" or x.dtype != torch.float32
                 or not native.available()):
             return None

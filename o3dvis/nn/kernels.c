@@ -23,8 +23,9 @@
  * in one instead of some ten, o3dvis_cell_thickness and o3dvis_run_flatness the noise cues' patch
  * terms (o3dvis/nn/noise.py: sums and eigenvalues), o3dvis_upsample the
  * U-Net's up-samplings for the nodes that exist,
- * o3dvis_leaf_means the U-Net's input (o3dvis/nn/network.py) and, on the AMX tiles,
- * o3dvis_gather_conv each of its convolutions but the up-samplings (o3dvis/nn/conv.py, ConvBnRelu);
+ * o3dvis_leaf_means the U-Net's input (o3dvis/nn/network.py) and, with bfloat16 dot products
+ * (on the AMX tiles where there are some), o3dvis_gather_conv each of its convolutions but the
+ * up-samplings (o3dvis/nn/conv.py, ConvBnRelu);
  * for oriented normals, o3dvis_fit_planes the plane fits of
  * o3dvis/orientation.py, o3dvis_visibility_affinity their neighbours' weights, o3dvis_votes the
  * cameras' votes on their sides, and o3dvis_grid_knn the nearest neighbours it fits
@@ -1096,6 +1097,95 @@ static void last_margins(const uint32_t *x, int pairs, const uint32_t *w, float 
 }
 #endif
 
+#ifdef __AVX512BF16__
+/* The end of one row's 16 outputs of o3dvis_gather_conv from their float32 sums: rounded to
+ * bfloat16 and back (torch's bfloat16 product), plus the shift (and the residual), through the ReLU. */
+static inline void finish_sums(const float *sums, int64_t row, int col, int outputs, const float *shift,
+                               const float *residual, int relu, float *out) {
+    const __m256i rounded = (__m256i)_mm512_cvtneps_pbh(_mm512_loadu_ps(sums));
+    __m512 v = _mm512_add_ps((__m512)_mm512_slli_epi32(_mm512_cvtepu16_epi32(rounded), 16),
+                             _mm512_loadu_ps(shift + col));
+    if (residual) v = _mm512_add_ps(_mm512_loadu_ps(residual + row * outputs + col), v);
+    if (relu) v = _mm512_max_ps(v, _mm512_setzero_ps());
+    _mm512_storeu_ps(out + row * outputs + col, v);
+}
+
+/* Copies the rows taken[0 .. taps - 1] of xb, pairs int32 each, one after the other into dst: whole
+ * vector moves for the widths of the U-Net's layers, masked ones for the others. */
+static inline void gather_row(uint32_t *restrict dst, const uint32_t *restrict xb, const int64_t *taken, int taps,
+                              int pairs) {
+#define GATHER_ROW(MOVE)                                                                                     \
+    for (int t = 0; t < taps; t++) {                                                                         \
+        const uint32_t *src = xb + taken[t] * pairs;                                                         \
+        uint32_t *to = dst + t * pairs;                                                                      \
+        MOVE;                                                                                                \
+    }                                                                                                        \
+    return
+#define MOVE16(c) _mm512_storeu_si512(to + (c), _mm512_loadu_si512(src + (c)))
+    switch (pairs) {
+    case 4: GATHER_ROW(_mm_storeu_si128((__m128i *)to, _mm_loadu_si128((const __m128i *)src)));
+    case 8: GATHER_ROW(_mm256_storeu_si256((__m256i *)to, _mm256_loadu_si256((const __m256i *)src)));
+    case 16: GATHER_ROW(MOVE16(0));
+    case 32: GATHER_ROW(MOVE16(0); MOVE16(16));
+    case 48: GATHER_ROW(MOVE16(0); MOVE16(16); MOVE16(32));
+    default:
+        GATHER_ROW(for (int c = 0; c < pairs; c += 16) {
+            const __mmask16 lanes = pairs - c >= 16 ? 0xffff : (__mmask16)((1u << (pairs - c)) - 1);
+            _mm512_mask_storeu_epi32(to + c, lanes, _mm512_maskz_loadu_epi32(lanes, src + c));
+        });
+    }
+#undef MOVE16
+#undef GATHER_ROW
+}
+
+
+/* rows x tiles of 16 outputs of a block of o3dvis_gather_conv in registers, each summed along the
+ * kp / 2 pairs of inputs in order with bfloat16 dot products (as a tile sums them): a, the rows'
+ * gathered inputs (pairs a row); packed as conv_block reads it; o0, the first output tile. */
+static inline __attribute__((always_inline)) void conv_rows(const uint32_t *a, int kp, int rows, const uint32_t *packed,
+                                                            int otiles, int o0, int tiles, int m, int r0, int outputs,
+                                                            const float *shift, const float *residual, int relu,
+                                                            float *out) {
+    __m512 sum[8][4];
+    for (int r = 0; r < rows; r++)
+        for (int o = 0; o < tiles; o++) sum[r][o] = _mm512_setzero_ps();
+    for (int kc = 0; kc < kp / 32; kc++)
+        for (int p = 0; p < 16; p++) {
+            __m512bh w[4];
+            for (int o = 0; o < tiles; o++)
+                w[o] = (__m512bh)_mm512_loadu_si512(packed + ((int64_t)kc * otiles + o0 + o) * 256 + 16 * p);
+            for (int r = 0; r < rows; r++) {
+                const __m512bh x = (__m512bh)_mm512_set1_epi32((int)a[(int64_t)(r0 + r) * (kp / 2) + 16 * kc + p]);
+                for (int o = 0; o < tiles; o++) sum[r][o] = _mm512_dpbf16_ps(sum[r][o], x, w[o]);
+            }
+        }
+    float lanes[16];
+    for (int r = 0; r < rows && r0 + r < m; r++)
+        for (int o = 0; o < tiles; o++) {
+            _mm512_storeu_ps(lanes, sum[r][o]);
+            finish_sums(lanes, r0 + r, 16 * (o0 + o), outputs, shift, residual, relu, out);
+        }
+}
+
+/* conv_block with AVX-512 dot products instead of the tiles: the same sums in the same order. */
+static void conv_block_vectors(const uint16_t *a, int kp, int m, const uint32_t *packed, int outputs,
+                               const float *shift, const float *residual, int relu, float *out) {
+    const uint32_t *pairs = (const uint32_t *)a;
+    const int otiles = outputs / 16;
+    for (int r0 = 0; r0 < m; r0 += 8) {
+        int o0 = 0;
+        for (; o0 + 4 <= otiles; o0 += 4) {
+            conv_rows(pairs, kp, 4, packed, otiles, o0, 4, m, r0, outputs, shift, residual, relu, out);
+            conv_rows(pairs, kp, 4, packed, otiles, o0, 4, m, r0 + 4, outputs, shift, residual, relu, out);
+        }
+        for (; o0 + 2 <= otiles; o0 += 2)
+            conv_rows(pairs, kp, 8, packed, otiles, o0, 2, m, r0, outputs, shift, residual, relu, out);
+        for (; o0 < otiles; o0++)
+            conv_rows(pairs, kp, 8, packed, otiles, o0, 1, m, r0, outputs, shift, residual, relu, out);
+    }
+}
+#endif
+
 #ifdef __AMX_BF16__
 #include <sys/syscall.h>
 #include <unistd.h>
@@ -1267,10 +1357,11 @@ int o3dvis_view_margin_bf16(int64_t n, const struct view *v, int32_t layers, con
 #endif
 }
 
-/* Whether this build and the operating system run o3dvis_gather_conv (the AMX tiles). */
+/* Whether this build runs o3dvis_gather_conv: on the AMX tiles where the operating system grants them,
+   else with AVX-512 bfloat16 dot products. */
 int o3dvis_has_gather_conv(void) {
-#ifdef __AMX_BF16__
-    return tiles_granted();
+#ifdef __AVX512BF16__
+    return 1;
 #else
     return 0;
 #endif
@@ -1349,65 +1440,26 @@ static void conv_block(const uint16_t *a, int kp, int m, const uint32_t *packed,
             for (int r = 0; r < rg; r++)
                 for (int o = 0; o < ot; o++) store_sums(r * ot + o, sums + 256 * (r * ot + o));
             for (int r = 0; r < rg; r++)
-                for (int o = 0; o < ot; o++) {
-                    const int c = r * ot + o, col = 16 * (o0 + o);
-                    for (int i = 0; i < 16 && 16 * (g0 + r) + i < m; i++) {
-                        const int64_t row = 16 * (g0 + r) + i;
-                        /* rounded to bfloat16 and back, plus the shift (and the residual), through the ReLU */
-                        const __m256i rounded = (__m256i)_mm512_cvtneps_pbh(_mm512_loadu_ps(sums + 256 * c + 16 * i));
-                        __m512 v = _mm512_add_ps((__m512)_mm512_slli_epi32(_mm512_cvtepu16_epi32(rounded), 16),
-                                                 _mm512_loadu_ps(shift + col));
-                        if (residual) v = _mm512_add_ps(_mm512_loadu_ps(residual + row * outputs + col), v);
-                        if (relu) v = _mm512_max_ps(v, _mm512_setzero_ps());
-                        _mm512_storeu_ps(out + row * outputs + col, v);
-                    }
-                }
+                for (int o = 0; o < ot; o++)
+                    for (int i = 0; i < 16 && 16 * (g0 + r) + i < m; i++)
+                        finish_sums(sums + 256 * (r * ot + o) + 16 * i, 16 * (g0 + r) + i, 16 * (o0 + o), outputs,
+                                    shift, residual, relu, out);
         }
 }
-
-/* Copies the rows taken[0 .. taps - 1] of xb, pairs int32 each, one after the other into dst: whole
- * vector moves for the widths of the U-Net's layers, masked ones for the others. */
-static inline void gather_row(uint32_t *restrict dst, const uint32_t *restrict xb, const int64_t *taken, int taps,
-                              int pairs) {
-#define GATHER_ROW(MOVE)                                                                                     \
-    for (int t = 0; t < taps; t++) {                                                                         \
-        const uint32_t *src = xb + taken[t] * pairs;                                                         \
-        uint32_t *to = dst + t * pairs;                                                                      \
-        MOVE;                                                                                                \
-    }                                                                                                        \
-    return
-#define MOVE16(c) _mm512_storeu_si512(to + (c), _mm512_loadu_si512(src + (c)))
-    switch (pairs) {
-    case 4: GATHER_ROW(_mm_storeu_si128((__m128i *)to, _mm_loadu_si128((const __m128i *)src)));
-    case 8: GATHER_ROW(_mm256_storeu_si256((__m256i *)to, _mm256_loadu_si256((const __m256i *)src)));
-    case 16: GATHER_ROW(MOVE16(0));
-    case 32: GATHER_ROW(MOVE16(0); MOVE16(16));
-    case 48: GATHER_ROW(MOVE16(0); MOVE16(16); MOVE16(32));
-    default:
-        GATHER_ROW(for (int c = 0; c < pairs; c += 16) {
-            const __mmask16 lanes = pairs - c >= 16 ? 0xffff : (__mmask16)((1u << (pairs - c)) - 1);
-            _mm512_mask_storeu_epi32(to + c, lanes, _mm512_maskz_loadu_epi32(lanes, src + c));
-        });
-    }
-#undef MOVE16
-#undef GATHER_ROW
-}
-
 #endif
 
 /* A convolution over gathered rows, as o3dvis/nn/conv.py's gather_matmul and ConvBnRelu compute it
  * in inference: out[r] = relu?(residual[r] + (bf16(sum_t bf16(x[index[r][t]]) W_t) + shift)), the
- * products in bfloat16 on the AMX tiles with float32 sums, rounded to bfloat16 as torch rounds a
- * bfloat16 product. x: (rows, channels) float32, channels even; index: (n, taps), rows meaning a
- * row of zeros; packed: the weight as o3dvis/nn/native.py's pack_conv lays it out; outputs a
- * multiple of 16; shift: (outputs,); residual: (n, outputs) or NULL; out: (n, outputs). Returns
- * 0, or with nothing written -1 when out of memory, -2 in a build or on a system without the
- * tiles, -3 for an index out of [0, rows]. */
+ * products in bfloat16 with float32 sums (on the AMX tiles where the build and the operating system
+ * have them, else in AVX-512 vectors), rounded to bfloat16 as torch rounds a bfloat16 product.
+ * x: (rows, channels) float32, channels even; index: (n, taps), rows meaning a row of zeros; packed:
+ * the weight as o3dvis/nn/native.py's pack_conv lays it out; outputs a multiple of 16; shift:
+ * (outputs,); residual: (n, outputs) or NULL; out: (n, outputs). Returns 0, or with nothing written
+ * -1 when out of memory, -2 in a build without AVX-512 bfloat16, -3 for an index out of [0, rows]. */
 int o3dvis_gather_conv(int64_t n, const float *x, int64_t rows, int32_t channels, const int64_t *index,
                        int32_t taps, const uint32_t *packed, int32_t outputs, const float *shift,
                        const float *residual, int32_t relu, float *out) {
-#ifdef __AMX_BF16__
-    if (!tiles_granted()) return -2;
+#ifdef __AVX512BF16__
     int outside = 0;
     for (int64_t i = 0; i < n * taps; i++) outside |= (index[i] < 0) | (index[i] > rows);
     if (outside) return -3;
@@ -1419,17 +1471,28 @@ int o3dvis_gather_conv(int64_t n, const float *x, int64_t rows, int32_t channels
     for (int64_t i = 0; i < rows * pairs; i++)
         xb[i] = bf16_of(x[2 * i]) | (uint32_t)bf16_of(x[2 * i + 1]) << 16;
     memset(xb + rows * pairs, 0, sizeof *xb * pairs);
-    configure_tiles();
+#ifdef __AMX_BF16__
+    const int tiles = tiles_granted();
+    if (tiles) configure_tiles();
+#endif
     for (int64_t r0 = 0; r0 < n; r0 += 64) {
         const int m = n - r0 < 64 ? (int)(n - r0) : 64;
         for (int r = 0; r < m; r++)
             gather_row((uint32_t *)(a + (int64_t)r * kp), xb, index + (r0 + r) * taps, taps, pairs);
         for (int r = m; r < (m + 15) / 16 * 16; r++) /* rows past n: zeros */
             memset(a + (int64_t)r * kp, 0, sizeof *a * 2 * (size_t)taps * pairs);
-        conv_block(a, kp, m, packed, outputs, shift, residual ? residual + r0 * outputs : NULL, relu, sums,
-                   out + r0 * outputs);
+        const float *res = residual ? residual + r0 * outputs : NULL;
+#ifdef __AMX_BF16__
+        if (tiles) {
+            conv_block(a, kp, m, packed, outputs, shift, res, relu, sums, out + r0 * outputs);
+            continue;
+        }
+#endif
+        conv_block_vectors(a, kp, m, packed, outputs, shift, res, relu, out + r0 * outputs);
     }
-    release_tiles();
+#ifdef __AMX_BF16__
+    if (tiles) release_tiles();
+#endif
     free(a), free(xb), free(sums);
     return 0;
 #else

@@ -1,14 +1,14 @@
 """A view's projection, the predictor's inputs and its MLP in a few passes of C, for queries on the
 CPU; and for the encoding the octree's Morton keys, their sort and neighbours, the U-Net's input
-and, on CPUs with AMX tiles, its convolutions, each in one pass.
+and, on CPUs with AVX-512 bfloat16 dot products, its convolutions, each in one pass.
 
 ``kernels.c`` computes what :class:`~o3dvis.nn.cues.ViewProjection` and the view
 embedding times the projected features compute in some seventy eager torch
 ops, each a pass over memory, and runs the predictor's MLP on those inputs
 while they are in cache (``docs/results.md`` measures what it saves).
 It is C with no dependency, built with the package for a baseline CPU, AVX2,
-AVX-512 with bfloat16 and AMX (the MLP's hidden layers and the U-Net's gathered
-convolutions on its tiles), and called through ``ctypes`` (see :mod:`o3dvis.clib`).
+AVX-512 with bfloat16 (the U-Net's gathered convolutions) and AMX (those and the MLP's
+hidden layers on its tiles), and called through ``ctypes`` (see :mod:`o3dvis.clib`).
 Where it was not built, or with ``O3DVIS_NATIVE=0`` in the environment, queries
 run the torch ops instead, with a warning; gradients and CUDA always do.
 This module only checks shapes and passes pointers; the callers own the tensors.
@@ -220,8 +220,8 @@ def upsample(x: Tensor, rows: Tensor, weight: Tensor, shift: Tensor, relu: bool)
 
 
 def has_gather_conv() -> bool:
-    """Whether :func:`gather_conv` runs here: the kernels' AMX variant is loaded and the operating
-    system grants the process the tiles (asked once per library loaded)."""
+    """Whether :func:`gather_conv` runs here: a variant of the kernels with AVX-512 bfloat16 dot
+    products is loaded (the AMX one runs it on the tiles where the operating system grants them)."""
     if _LIBRARY is None:
         return False
     if getattr(_LIBRARY, "gather_conv", None) is None:
@@ -246,8 +246,9 @@ def pack_conv(weight: Tensor, taps: int) -> Tensor:
 def gather_conv(x: Tensor, index: Tensor, packed: Tensor, taps: int, outputs: int, shift: Tensor,
                 residual: Tensor | None = None, relu: bool = False) -> Tensor:
     """(n, outputs) float32: each row's ``taps`` rows of ``x`` gathered (an index of ``len(x)``: a
-    row of zeros) times the weight :func:`pack_conv` packed, in bfloat16 on the AMX tiles with
-    float32 sums and the result rounded to bfloat16, then plus ``shift``, plus ``residual``, and
+    row of zeros) times the weight :func:`pack_conv` packed, in bfloat16 with float32 sums (on
+    the AMX tiles where there are some, else AVX-512 dot products in the same order) and the
+    result rounded to bfloat16, then plus ``shift``, plus ``residual``, and
     through a ReLU where ``relu``: a :class:`~o3dvis.nn.conv.ConvBnRelu` in inference in one pass.
 
     Args:
@@ -259,7 +260,7 @@ def gather_conv(x: Tensor, index: Tensor, packed: Tensor, taps: int, outputs: in
 
     Raises:
         ValueError: tensors of the wrong shape or type, or an index out of range.
-        RuntimeError: no tiles here (see :func:`has_gather_conv`).
+        RuntimeError: no AVX-512 bfloat16 kernels here (see :func:`has_gather_conv`).
     """
     rows, channels = x.shape
     n = index.shape[0]
@@ -278,7 +279,7 @@ def gather_conv(x: Tensor, index: Tensor, packed: Tensor, taps: int, outputs: in
     if code == -3:
         raise ValueError(f"index must lie in [0, {rows}]")
     if code == -2:
-        raise RuntimeError("gather_conv needs the AMX tiles (see has_gather_conv)")
+        raise RuntimeError("gather_conv needs the AVX-512 bfloat16 kernels (see has_gather_conv)")
     if code:
         raise MemoryError("gather_conv: out of memory")
     return out

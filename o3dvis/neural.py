@@ -117,7 +117,7 @@ def _unit_frame(points: Tensor) -> tuple[Tensor, Tensor | None, Tensor, Tensor, 
     return normalized, keys, center, scale, (lo, hi), hull
 
 
-def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray | None:
+def first_pass_normals(field: VisibilityField, points: np.ndarray, stored: bool = False) -> np.ndarray | None:
     """The normals ``normals="estimate"`` gives the normals model: a plane through each point's
     nearest neighbours, those the first pass sees alike from a few cameras around the cloud
     weighing most, oriented by the vote of those cameras, or where they split, by the side of its
@@ -128,6 +128,8 @@ def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray
     Args:
         field: a points-only model's encoding of the cloud.
         points: (N, 3) the cloud's points, in its order.
+        stored: ``points``, and the normals returned, in the order the field stores them (along
+            the Morton curve; see :meth:`VisibilityField.stored_probabilities`).
 
     Returns:
         (N, 3) unit normals, or None.
@@ -137,7 +139,7 @@ def first_pass_normals(field: VisibilityField, points: np.ndarray) -> np.ndarray
         return None
     # in the field's order along the Morton curve: neighbours close in memory make the KNN search
     # and the plane fits cache-friendly (at 200 k points 380 -> 245 ms)
-    rank = None if field.rank is None else field.rank.cpu().numpy()
+    rank = None if stored or field.rank is None else field.rank.cpu().numpy()
     if rank is not None:
         order = np.empty_like(rank)
         order[rank] = np.arange(len(rank))
@@ -411,9 +413,10 @@ class NeuralVisibility:
         field = self._field(network, unit, *frame, scene=scene, shared=shared)
         if two_pass:
             with workers_only():
-                normals = first_pass_normals(field, points.detach().cpu().double().numpy())
+                stored = points.detach().cpu().double().index_select(0, order.cpu()).numpy()
+                normals = first_pass_normals(field, stored, stored=True)
             if normals is not None:
-                unit = torch.from_numpy(normals).to(self.device).index_select(0, order).float()
+                unit = torch.from_numpy(normals).to(self.device).float()
                 field = self._field(self.normals_network, unit, *frame, scene=scene, shared=shared)
         return field
 

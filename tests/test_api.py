@@ -17,6 +17,7 @@ from o3dvis.cli import build_parser
 from o3dvis.cli._common import split_vectors
 from o3dvis.models import file_sha256
 from o3dvis.geometry import bounds, fixed_rotations
+from o3dvis.neural import first_pass_normals
 from o3dvis.nn import NetworkConfig, VisibilityNetwork
 from o3dvis.orientation import voted_normals
 from o3dvis.pretrained import shared_pretrained
@@ -634,6 +635,9 @@ def test_normals_estimated_in_a_first_pass_for_dense_clean_clouds(network):
     cameras = viewpoints_around(sphere, 14)  # the first pass's probabilities orient the normals
     expected = voted_normals(sphere, cameras, paired.encode(sphere, normals=False).probabilities(cameras).numpy())
     np.testing.assert_allclose(field.normals[field.rank].numpy(), expected, atol=1e-6)
+    first, rank = paired.encode(sphere, normals=False), field.rank.numpy()
+    np.testing.assert_array_equal(first_pass_normals(first, sphere[np.argsort(rank)], stored=True)[rank],
+                                  first_pass_normals(first, sphere))  # in the field's order or the cloud's
     given = paired.encode(sphere, normals=field.normals[field.rank].double().numpy())  # the passes share
     torch.testing.assert_close(field.probabilities(cameras), given.probabilities(cameras))  # octree, noise
     assert paired.encode(sphere).network is network  # by default: one pass for a cloud without normals

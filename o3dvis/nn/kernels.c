@@ -1138,7 +1138,6 @@ static inline void gather_row(uint32_t *restrict dst, const uint32_t *restrict x
 #undef GATHER_ROW
 }
 
-
 /* rows x tiles of 16 outputs of a block of o3dvis_gather_conv in registers, each summed along the
  * kp / 2 pairs of inputs in order with bfloat16 dot products (as a tile sums them): a, the rows'
  * gathered inputs (pairs a row); packed as conv_block reads it; o0, the first output tile. */

@@ -93,9 +93,9 @@ def test_workers_only_gives_torch_one_thread_and_plans_as_before(monkeypatch):
     seen = []
     first_pass = o3dvis.neural.first_pass_normals
 
-    def spy(*args):
+    def spy(*args, **kwargs):
         seen.append((torch.get_num_threads(), threads.plan_threads(10 ** 6, 1)))
-        return first_pass(*args)
+        return first_pass(*args, **kwargs)
 
     monkeypatch.setattr(o3dvis.neural, "first_pass_normals", spy)
     o3dvis.NeuralVisibility.pretrained().encode(bench_cloud(3_000, 1).points, normals="estimate")

@@ -212,16 +212,16 @@ def run_bench(args) -> int:
     methods, absent = _methods(args, {"hpr": [2.0], "hpr-exp": [-0.01]})
     single = {name: next(iter(sweep.values())) for name, sweep in methods.items()}
     rows = benchmark(single, args.points, args.views, args.repeats, args.seed)
-    kernels, cpu = native.variant(), cpu_name()
+    kernels, cpu, cores = native.variant(), cpu_name(), usable_cores()
     report = {"settings": {"points": args.points, "views": args.views, "repeats": args.repeats,
                            "threads": args.threads, "seed": args.seed, "c_kernels": kernels is not None,
-                           "kernel_variant": kernels, "cpu": cpu, "cores": usable_cores(),
+                           "kernel_variant": kernels, "cpu": cpu, "cores": cores,
                            "methods": {n: getattr(m, "__name__", n) for n, m in single.items()}},
               "absent": absent, "results": rows}
     markdown = (markdown_table(rows) + "".join(f"\n{n}: absent ({r})" for n, r in absent.items())
                 + "\nper-view steps of the neural methods on the CPU: "
                 + (f"C kernels (o3dvis.nn.native, {kernels} variant)" if kernels else "torch ops (no C kernels built)")
-                + f"; {cpu or 'CPU unnamed'}, {usable_cores()} cores usable\n")
+                + f"; {cpu or 'CPU unnamed'}, {cores} cores usable\n")
     _write(args.out, report, markdown)
     return 0
 

@@ -23,7 +23,7 @@ descheduled for whole time slices, so two threads on two busy cores run many
 times slower than one, while one thread on a free machine is at most as many
 times slower as there are threads. Hence two signals: the runnable tasks of
 right now catch a load that has just started, the pressure of the last seconds
-one that pauses now and then. :func:`set_num_threads` (or
+one that pauses now and then. Each is read again after 50 ms at most. :func:`set_num_threads` (or
 ``O3DVIS_NUM_THREADS`` in the environment) fixes the count instead, whatever
 the load and the size.
 """
@@ -34,6 +34,7 @@ import contextlib
 import math
 import os
 import threading
+import time
 from collections.abc import Callable, Iterable, Iterator
 from concurrent import futures
 from concurrent.futures import ThreadPoolExecutor
@@ -128,13 +129,35 @@ def _own_running() -> int:
     return max(1, running)
 
 
+_READING_AGE = 0.05
+"""Seconds a reading of the load (:func:`busy_cores`, :func:`cpu_pressure`) is used again: the
+two read some ten files of ``/proc`` in about 80 µs, a small cloud's call plans twice, and a
+load that matters lasts longer than this."""
+
+_readings: dict[str, tuple[float, object]] = {}
+
+
+def _recent(name: str, read: Callable[[], object]) -> object:
+    """``read()``, or what it gave under ``name`` less than :data:`_READING_AGE` seconds ago."""
+    now = time.monotonic()
+    kept = _readings.get(name)
+    if kept is None or not 0 <= now - kept[0] < _READING_AGE:
+        kept = _readings[name] = (now, read())
+    return kept[1]
+
+
 def busy_cores() -> int:
     """How many of this process's :func:`usable_cores` other processes keep busy right now.
 
     The runnable tasks of the machine (``/proc/loadavg``) without this process's
     own, scaled to the share of the machine's CPUs this process may use; 0 where
-    ``/proc/loadavg`` does not exist.
+    ``/proc/loadavg`` does not exist. Read at most :data:`_READING_AGE` seconds ago.
     """
+    return _recent("busy_cores", _busy_cores)
+
+
+def _busy_cores() -> int:
+    """:func:`busy_cores`, read now."""
     try:
         with open("/proc/loadavg", "rb") as f:
             running = int(f.read().split()[3].split(b"/")[0])
@@ -147,7 +170,12 @@ def busy_cores() -> int:
 def cpu_pressure() -> float | None:
     """The share of the last ten seconds in which some task waited for a CPU (Linux pressure stall
     information: of this process's cgroup where it has its own, else of the machine), in [0, 1];
-    None where unknown."""
+    None where unknown. Read at most :data:`_READING_AGE` seconds ago."""
+    return _recent("cpu_pressure", _cpu_pressure)
+
+
+def _cpu_pressure() -> float | None:
+    """:func:`cpu_pressure`, read now."""
     for path in ("/sys/fs/cgroup/cpu.pressure", "/proc/pressure/cpu"):
         try:
             with open(path, "rb") as f:

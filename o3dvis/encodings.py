@@ -17,7 +17,6 @@ points; :func:`clear` frees it.
 from __future__ import annotations
 
 import threading
-import weakref
 from typing import TYPE_CHECKING, NamedTuple
 
 import torch
@@ -26,6 +25,7 @@ from torch import Tensor
 from .clouds import cloud_arrays
 from .field import inside_box
 from .nn.octree import bounding_box
+from .nn.state import WeightsState
 
 if TYPE_CHECKING:  # type hints only: o3dvis.neural and o3dvis.field stay unloaded until used
     from .field import VisibilityField
@@ -42,7 +42,7 @@ class _Entry(NamedTuple):
     model: "NeuralVisibility"  # held, so that no other model takes its id
     settings: tuple
     networks: list[torch.nn.Module]  # those of the model that the encoding depends on
-    tensors: list[tuple[Tensor, int, int]]  # each tensor of those networks, its version and address then
+    state: WeightsState  # their weights then
     points: Tensor  # copies of what was encoded
     normals: Tensor | None
     field: "VisibilityField"
@@ -62,33 +62,11 @@ def _settings(model: "NeuralVisibility", normals, points: Tensor, camera: Tensor
 
 def _networks(model: "NeuralVisibility", field: "VisibilityField", normals, count: int) -> list[torch.nn.Module]:
     """The networks of ``model`` that an encoding of ``count`` points depends on: the one that
-    encoded it, the scene network that answers its cameras inside the box, and with estimated
-    normals the first pass's."""
-    networks = [field.network, model.scene_network, model._points_network(count) if normals == "estimate" else None]
+    encoded it, and with estimated normals the first pass's. Not the scene network where another
+    encoded it: the encoding is reused for cameras on the same side of the box only (see
+    :func:`_settings`), and those outside never ask the scene network."""
+    networks = [field.network, model._points_network(count) if normals == "estimate" else None]
     return [net for i, net in enumerate(networks) if net is not None and all(net is not n for n in networks[:i])]
-
-
-def _tensors(networks: list[torch.nn.Module]) -> list[tuple[Tensor, int, int]]:
-    """Each parameter and buffer of ``networks``, with its version (bumped by every in-place change,
-    an optimiser's step included) and its storage's address."""
-    return [(t, t._version, t.data_ptr()) for net in networks for table in _tables(net)
-            for t in table.values() if t is not None]
-
-
-_TREES: "weakref.WeakKeyDictionary[torch.nn.Module, tuple[list, list]]" = weakref.WeakKeyDictionary()
-
-
-def _tables(net: torch.nn.Module) -> list[dict]:
-    """The parameter and buffer tables of every module of ``net``: kept per network with its tree of
-    modules, and walked anew when a module has been put in or taken out (walking a network's
-    modules took a fifth of a small cloud's drop-in call)."""
-    kept = _TREES.get(net)
-    if kept is None or any(tuple(children.values()) != before for children, before in kept[0]):
-        modules = list(net.modules())
-        kept = ([(m._modules, tuple(m._modules.values())) for m in modules],
-                [table for m in modules for table in (m._parameters, m._buffers)])
-        _TREES[net] = kept
-    return kept[1]
 
 
 def _same(a: Tensor | None, b: Tensor | None) -> bool:
@@ -99,14 +77,8 @@ def _holds(entry: _Entry | None, model: "NeuralVisibility", pcd, settings: tuple
            normals: Tensor | None) -> bool:
     """Whether ``entry`` is the encoding of this cloud, as it is now, by ``model`` as it is now."""
     return (entry is not None and entry.cloud == id(pcd) and entry.model is model and entry.settings == settings
-            and _same_tensors(entry.tensors, _tensors(entry.networks))
+            and entry.state.holds(entry.networks)
             and _same(entry.points, points) and _same(entry.normals, normals))
-
-
-def _same_tensors(kept: list[tuple[Tensor, int, int]], now: list[tuple[Tensor, int, int]]) -> bool:
-    """Whether the networks hold the same tensors as when ``kept`` was taken, unchanged since."""
-    return len(kept) == len(now) and all(a is b and version == now_version and address == now_address
-                                         for (a, version, address), (b, now_version, now_address) in zip(kept, now))
 
 
 def encode(model: "NeuralVisibility", pcd, normals=None, camera: Tensor | None = None) -> "VisibilityField":
@@ -139,7 +111,7 @@ def encode(model: "NeuralVisibility", pcd, normals=None, camera: Tensor | None =
     field = model._encode(pcd, normals, camera, (points, cloud_normals))
     if len(points) <= MAX_POINTS:
         networks = _networks(model, field, normals, len(points))
-        entry = _Entry(id(pcd), model, settings, networks, _tensors(networks), points.clone(),
+        entry = _Entry(id(pcd), model, settings, networks, WeightsState(networks), points.clone(),
                        None if cloud_normals is None else cloud_normals.clone(), field)
         with _lock:
             _last = entry

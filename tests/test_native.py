@@ -298,6 +298,46 @@ def test_gather_conv_equals_the_torch_ops(shape, variant):
         native.gather_conv(x, index, packed[1:], taps, outputs, shift)
 
 
+@needs_kernels
+@pytest.mark.parametrize("missing", [0.0, 0.5, 0.9, 1.0])
+def test_gather_conv_skips_the_missing_neighbours_exactly(missing, variant):
+    """With most neighbours missing (a surface's nodes have about half of their 27), the products
+    with the row of zeros are skipped: the sums of every product, value for value; the lists made
+    once serve several convolutions over the same index; lists that are not the kernel's are refused."""
+    if not native.has_gather_conv():
+        pytest.skip(f"the {variant} kernels have no gathered convolution")
+    g = torch.Generator().manual_seed(5)
+    n, channels, outputs, taps = 300, 32, 48, 27
+    x = torch.randn(n, channels, generator=g)
+    index = torch.randint(0, n, (n, taps), generator=g)
+    index[torch.rand(n, taps, generator=g) < missing] = n
+    weight, shift = torch.randn(taps * channels, outputs, generator=g) / taps, torch.randn(outputs, generator=g)
+    packed = native.pack_conv(weight, taps)
+    padded = torch.cat([x, x.new_zeros(1, channels)]).to(torch.bfloat16)
+    expected = torch.relu((padded[index].flatten(1) @ weight.to(torch.bfloat16)).float() + shift)
+    entries = native.conv_entries(index, n)
+    got = native.gather_conv(x, index, packed, taps, outputs, shift, relu=True, entries=entries)
+    assert torch.equal(got, native.gather_conv(x, index, packed, taps, outputs, shift, relu=True))
+    assert (got == expected).float().mean() > 0.999
+    torch.testing.assert_close(got, expected, atol=0.01 * float(expected.abs().max()), rtol=0)
+    other = torch.randn(n, channels, generator=g)
+    assert torch.equal(native.gather_conv(other, index, packed, taps, outputs, shift, entries=entries),
+                       native.gather_conv(other, index, packed, taps, outputs, shift))
+    lists = -(-n // 64) * taps
+    if len(entries) > lists + 1:
+        for bad in (entries[lists + 1] + (n + 1 << 8), entries[lists + 1] | 255, -1):
+            broken = entries.clone()
+            broken[lists + 1] = bad
+            with pytest.raises(ValueError, match="entries must be"):
+                native.gather_conv(x, index, packed, taps, outputs, shift, entries=broken)
+        with pytest.raises(ValueError, match="entries must be"):  # cut short
+            native.gather_conv(x, index, packed, taps, outputs, shift, entries=entries[:-8])
+    broken = entries.clone()
+    broken[1] = broken[0] + 3  # a list that is no whole number of groups of 8
+    with pytest.raises(ValueError, match="entries must be"):
+        native.gather_conv(x, index, packed, taps, outputs, shift, entries=broken)
+
+
 @pytest.mark.skipif(not native.has_gather_conv(), reason="no AVX-512 bfloat16 kernels here")
 def test_the_unet_of_gathered_convolutions_answers_as_the_torch_ops(monkeypatch):
     """The encoding with every gathered convolution (3x3x3 and down-sampling) in one pass of C:
@@ -357,9 +397,9 @@ def test_the_unet_with_native_upsamplings_answers_as_the_torch_ops(monkeypatch):
     with torch.no_grad(), conv.products_in(torch.float32):
         fused = network.encode(points)
         assert len(calls) == 5  # four decoder stages and the leaves
-        fused_layer = conv.ConvBnRelu.fused
-        monkeypatch.setattr(conv.ConvBnRelu, "fused", lambda layer, x, *args, **kw: None if isinstance(
-            layer.conv, conv.OctreeUpsample) else fused_layer(layer, x, *args, **kw))
+        native_step = conv.ConvBnRelu._native_step
+        monkeypatch.setattr(conv.ConvBnRelu, "_native_step", lambda layer, *args: None if isinstance(
+            layer.conv, conv.OctreeUpsample) else native_step(layer, *args))
         plain = network.encode(points)
     assert torch.equal(fused, plain)
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import contextlib
 import math
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import torch
 from torch import Tensor, nn
@@ -17,9 +17,10 @@ from torch import Tensor, nn
 from ..threads import torch_threads
 from . import native
 from .octree import Octree
+from .state import WeightsState
 
-__all__ = ["OctreeConv", "OctreeDownsample", "OctreeUpsample", "ConvBnRelu", "ResBlock", "gather_rows",
-           "products_in"]
+__all__ = ["OctreeConv", "OctreeDownsample", "OctreeUpsample", "ConvBnRelu", "ResBlock", "LayerStep",
+           "gather_rows", "products_in", "step_conditions"]
 
 _PRODUCTS = threading.local()
 
@@ -157,6 +158,11 @@ class OctreeUpsample(_GatherMatmul):
         return gather_rows(per_octant, octree.octant_rows(level + 1))
 
 
+LayerStep = Callable[..., Tensor]
+"""A layer in inference, ``step(x, octree, level)``; a :class:`ConvBnRelu`'s also takes a
+``residual``: see :meth:`ConvBnRelu.step`."""
+
+
 class ConvBnRelu(nn.Module):
     """A convolution, batch norm and ReLU; in inference (eval mode, no gradient) the batch norm is
     folded into the convolution's weight, scaled per output channel, and a shift."""
@@ -172,56 +178,83 @@ class ConvBnRelu(nn.Module):
         if self.training or torch.is_grad_enabled():
             x = self.bn(self.conv(x, octree, level))
             return torch.relu(x) if self.relu else x
-        fused = self.fused(x, octree, level)
-        if fused is not None:
-            return fused
-        weight, shift = self._folded(self.conv.product_dtype(x))
-        x = self.conv(x, octree, level, weight).add_(shift)
-        return x.relu_() if self.relu else x
+        return self.inference_step(x)(x, octree, level)
 
-    def fused(self, x: Tensor, octree: Octree, level: int, residual: Tensor | None = None) -> Tensor | None:
-        """This layer in inference in one pass of C: an up-sampling for the nodes that exist only
-        (:func:`~o3dvis.nn.native.upsample`, the same float32 sums), a convolution in bfloat16 dot
-        products (:func:`~o3dvis.nn.native.gather_conv`): as :meth:`forward`, or with a ``residual``
-        ``relu(residual + convolution + shift)`` (a :class:`ResBlock`'s end). None where that does
-        not run: training, gradients, another device or dtype, the kernels not built; for a
-        convolution also products in float32, an odd number of input channels or output channels
-        that are no multiple of 16 (the kernel's blocks), or no AVX-512 bfloat16 kernels here."""
-        if (self.training or torch.is_grad_enabled() or x.device.type != "cpu" or x.dtype != torch.float32
-                or not native.available()):
-            return None
-        if isinstance(self.conv, OctreeUpsample):
-            if residual is not None:
-                return None
-            weight, shift = self._folded(x.dtype)
-            return native.upsample(x.contiguous(), octree.octant_rows(level + 1).contiguous(), weight.contiguous(),
-                                   shift.contiguous(), self.relu)
-        if (self.conv.product_dtype(x) != torch.bfloat16 or x.shape[1] % 2 or self.conv.out_channels % 16
+    def inference_step(self, x: Tensor) -> LayerStep:
+        """:meth:`step` for inputs like ``x``, kept until the weights change."""
+        conditions = step_conditions(self.conv, x)
+        cached = self.__dict__.get("_step")
+        if cached is None or cached[0] != conditions or not cached[1].holds([self]):
+            cached = self.__dict__["_step"] = (conditions, WeightsState([self]), self.step(x))
+        return cached[2]
+
+    def step(self, x: Tensor) -> LayerStep:
+        """This layer in inference for inputs like ``x``, with its weights as they are now:
+        ``step(x, octree, level, residual=None)``, with a ``residual`` ``relu(residual + convolution
+        + shift)`` (a :class:`ResBlock`'s end). The batch norm is folded into the weight (rounded to
+        the layer's :meth:`~_GatherMatmul.product_dtype`) and a shift. One pass of C where the
+        kernels take it: an up-sampling for the nodes that exist only (:func:`~o3dvis.nn.native.upsample`,
+        the same float32 sums), a convolution in bfloat16 dot products (:func:`~o3dvis.nn.native.gather_conv`,
+        for an even number of input channels and outputs a multiple of 16, on a CPU with AVX-512
+        bfloat16); torch ops elsewhere."""
+        dtype = self.conv.product_dtype(x)
+        weight, shift = self._folded(dtype)
+        in_c = x.device.type == "cpu" and x.dtype == torch.float32 and native.available()
+        return (self._native_step(weight, shift) if in_c else None) or self._torch_step(weight, shift)
+
+    def _native_step(self, weight: Tensor, shift: Tensor) -> LayerStep | None:
+        """:meth:`step` in one pass of C with the folded ``weight`` and ``shift``, or None where the
+        kernels do not take this layer."""
+        conv, relu, finish = self.conv, self.relu, self._finish
+        if isinstance(conv, OctreeUpsample):
+            weight, shift = weight.contiguous(), shift.contiguous()
+
+            def upsample(x: Tensor, octree: Octree, level: int, residual: Tensor | None = None) -> Tensor:
+                rows = octree.octant_rows(level + 1).contiguous()
+                return finish(native.upsample(x.contiguous(), rows, weight, shift, relu and residual is None), residual)
+            return upsample
+        if (weight.dtype != torch.bfloat16 or conv.in_channels % 2 or conv.out_channels % 16
                 or not native.has_gather_conv()):
             return None
-        weight, shift = self._folded(torch.bfloat16)
-        cached = self.__dict__.get("_packed")
-        if cached is None or cached[0] is not weight:
-            packed = native.pack_conv(weight, len(weight) // x.shape[1])
-            cached = self.__dict__["_packed"] = (weight, packed, shift.float().contiguous())
-        index = self.conv.index(octree, level).contiguous()
-        return native.gather_conv(x.contiguous(), index, cached[1], index.shape[1], self.conv.out_channels,
-                                  cached[2], residual, relu=self.relu if residual is None else True)
+        taps, outputs = len(weight) // conv.in_channels, conv.out_channels
+        packed, shift = native.pack_conv(weight, taps), shift.float().contiguous()
+
+        def gathered(x: Tensor, octree: Octree, level: int, residual: Tensor | None = None) -> Tensor:
+            index = conv.index(octree, level).contiguous()
+            entries = octree.derived(("conv entries", taps, level), lambda: native.conv_entries(index, len(x)))
+            return native.gather_conv(x.contiguous(), index, packed, taps, outputs, shift,
+                                      None if residual is None else residual.contiguous(),
+                                      relu=relu or residual is not None, entries=entries)
+        return gathered
+
+    def _torch_step(self, weight: Tensor, shift: Tensor) -> LayerStep:
+        """:meth:`step` in torch ops with the folded ``weight`` and ``shift``."""
+        conv, finish = self.conv, self._finish
+
+        def torch_ops(x: Tensor, octree: Octree, level: int, residual: Tensor | None = None) -> Tensor:
+            return finish(conv(x, octree, level, weight).add_(shift), residual)
+        return torch_ops
+
+    def _finish(self, out: Tensor, residual: Tensor | None) -> Tensor:
+        """A convolution plus shift ``out`` (in place) plus ``residual`` through the ReLU, or without
+        one through this layer's ReLU where it has one."""
+        if residual is not None:
+            return out.add_(residual).relu_()
+        return out.relu_() if self.relu else out
 
     def _folded(self, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
-        """The convolution's weight times the batch norm's scale (in ``dtype``) and the batch norm's
-        shift, computed once per change of either (an optimiser's step or a load included)."""
+        """The convolution's weight times the batch norm's scale (in ``dtype``) and the batch norm's shift."""
         bn, weight = self.bn, self.conv.weight
-        tensors = (weight, bn.weight, bn.bias, bn.running_mean, bn.running_var)
-        key = (dtype, *((t._version, t.data_ptr()) for t in tensors))
-        cached = self.__dict__.get("_fold")
-        if cached is None or cached[0] != key:
-            scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
-            shift = bn.bias - bn.running_mean * scale
-            # an up-sampling's columns are (octant, channel): its scale repeats per octant
-            folded = (weight * scale.repeat(weight.shape[1] // scale.shape[0])).to(dtype)
-            cached = self.__dict__["_fold"] = (key, folded.detach(), shift.detach())
-        return cached[1], cached[2]
+        scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
+        shift = bn.bias - bn.running_mean * scale
+        # an up-sampling's columns are (octant, channel): its scale repeats per octant
+        folded = (weight * scale.repeat(weight.shape[1] // scale.shape[0])).to(dtype)
+        return folded.detach(), shift.detach()
+
+
+def step_conditions(conv: _GatherMatmul, x: Tensor) -> tuple:
+    """What a layer's :meth:`ConvBnRelu.step` depends on besides its weights."""
+    return conv.product_dtype(x), x.dtype, x.device, native.available(), native.has_gather_conv()
 
 
 class ResBlock(nn.Module):
@@ -233,6 +266,11 @@ class ResBlock(nn.Module):
         self.b = ConvBnRelu(channels, channels, relu=False)
 
     def forward(self, x: Tensor, octree: Octree, level: int) -> Tensor:
-        y = self.a(x, octree, level)
-        fused = self.b.fused(y, octree, level, residual=x.contiguous())
-        return fused if fused is not None else torch.relu(x + self.b(y, octree, level))
+        if self.training or torch.is_grad_enabled():
+            return torch.relu(x + self.b(self.a(x, octree, level), octree, level))
+        return self.b.inference_step(x)(self.a(x, octree, level), octree, level, x)
+
+    def step(self, x: Tensor) -> LayerStep:
+        """This block in inference for inputs like ``x`` (see :meth:`ConvBnRelu.step`)."""
+        a, b = self.a.step(x), self.b.step(x)
+        return lambda x, octree, level: b(a(x, octree, level), octree, level, x)

@@ -25,7 +25,8 @@
  * U-Net's up-samplings for the nodes that exist,
  * o3dvis_leaf_means the U-Net's input (o3dvis/nn/network.py) and, with bfloat16 dot products
  * (on the AMX tiles where there are some), o3dvis_gather_conv each of its convolutions but the
- * up-samplings (o3dvis/nn/conv.py, ConvBnRelu);
+ * up-samplings (o3dvis/nn/conv.py, ConvBnRelu), skipping the missing neighbours by the lists of
+ * o3dvis_conv_entries;
  * for oriented normals, o3dvis_fit_planes the plane fits of
  * o3dvis/orientation.py, o3dvis_visibility_affinity their neighbours' weights, o3dvis_votes the
  * cameras' votes on their sides, and o3dvis_grid_knn the nearest neighbours it fits
@@ -1138,50 +1139,64 @@ static inline void gather_row(uint32_t *restrict dst, const uint32_t *restrict x
 #undef GATHER_ROW
 }
 
-/* rows x tiles of 16 outputs of a block of o3dvis_gather_conv in registers, each summed along the
- * kp / 2 pairs of inputs in order with bfloat16 dot products (as a tile sums them): a, the rows'
- * gathered inputs (pairs a row); packed as conv_block reads it; o0, the first output tile. */
-static inline __attribute__((always_inline)) void conv_rows(const uint32_t *a, int kp, int rows, const uint32_t *packed,
-                                                            int otiles, int o0, int tiles, int m, int r0, int outputs,
-                                                            const float *shift, const float *residual, int relu,
-                                                            float *out) {
-    __m512 sum[8][4];
+#define CONV_BLOCK 64 /* output rows of a block of o3dvis_gather_conv */
+
+/* One tap of a block of o3dvis_gather_conv in AVX-512 vectors, rows x tiles of 16 outputs at a time:
+ * the float32 sums of rows of the block (in sums, outputs a row) plus the pairs of their neighbours
+ * (rows of xb, pairs a row) times the tap's weights, pair after pair, with bfloat16 dot products.
+ * entry: the rows, each its neighbour << 8 | its row in the block; k0: the tap's first pair along
+ * the inputs; packed as conv_block reads it. */
+static inline __attribute__((always_inline)) void tap_rows(const uint32_t *xb, int pairs, const int64_t *entry,
+                                                           int rows, const uint32_t *packed, int otiles, int o0,
+                                                           int tiles, int k0, float *sums, int outputs) {
+    __m512 acc[8][4];
+    const uint32_t *from[8];
+    for (int r = 0; r < rows; r++) {
+        from[r] = xb + (entry[r] >> 8) * pairs;
+        for (int o = 0; o < tiles; o++)
+            acc[r][o] = _mm512_loadu_ps(sums + (entry[r] & 255) * outputs + 16 * (o0 + o));
+    }
+    for (int p = 0; p < pairs; p++) {
+        const int k = k0 + p;
+        __m512bh w[4];
+        for (int o = 0; o < tiles; o++)
+            w[o] = (__m512bh)_mm512_loadu_si512(packed + ((int64_t)(k / 16) * otiles + o0 + o) * 256 + 16 * (k % 16));
+        for (int r = 0; r < rows; r++) {
+            const __m512bh x = (__m512bh)_mm512_set1_epi32((int)from[r][p]);
+            for (int o = 0; o < tiles; o++) acc[r][o] = _mm512_dpbf16_ps(acc[r][o], x, w[o]);
+        }
+    }
     for (int r = 0; r < rows; r++)
-        for (int o = 0; o < tiles; o++) sum[r][o] = _mm512_setzero_ps();
-    for (int kc = 0; kc < kp / 32; kc++)
-        for (int p = 0; p < 16; p++) {
-            __m512bh w[4];
-            for (int o = 0; o < tiles; o++)
-                w[o] = (__m512bh)_mm512_loadu_si512(packed + ((int64_t)kc * otiles + o0 + o) * 256 + 16 * p);
-            for (int r = 0; r < rows; r++) {
-                const __m512bh x = (__m512bh)_mm512_set1_epi32((int)a[(int64_t)(r0 + r) * (kp / 2) + 16 * kc + p]);
-                for (int o = 0; o < tiles; o++) sum[r][o] = _mm512_dpbf16_ps(sum[r][o], x, w[o]);
-            }
-        }
-    float lanes[16];
-    for (int r = 0; r < rows && r0 + r < m; r++)
-        for (int o = 0; o < tiles; o++) {
-            _mm512_storeu_ps(lanes, sum[r][o]);
-            finish_sums(lanes, r0 + r, 16 * (o0 + o), outputs, shift, residual, relu, out);
-        }
+        for (int o = 0; o < tiles; o++) _mm512_storeu_ps(sums + (entry[r] & 255) * outputs + 16 * (o0 + o), acc[r][o]);
 }
 
-/* conv_block with AVX-512 dot products instead of the tiles: the same sums in the same order. */
-static void conv_block_vectors(const uint16_t *a, int kp, int m, const uint32_t *packed, int outputs,
-                               const float *shift, const float *residual, int relu, float *out) {
-    const uint32_t *pairs = (const uint32_t *)a;
+/* conv_block with AVX-512 dot products instead of the tiles, tap by tap: each tap for the rows that
+ * have that neighbour only (a surface's nodes miss about half of their 27), so that each row's sum
+ * runs along its inputs in the order of the tiles' but for the products with a row of zeros, which
+ * add nothing. offsets, entry: the block's lists of o3dvis_conv_entries (rows of xb, x in bfloat16
+ * pairs); sums: CONV_BLOCK + 1 rows of outputs floats (the last takes the made-up rows). */
+static void conv_block_vectors(const uint32_t *xb, int pairs, const int64_t *offsets, const int64_t *entry,
+                               int taps, int m, const uint32_t *packed, int outputs, const float *shift,
+                               const float *residual, int relu, float *sums, float *out) {
     const int otiles = outputs / 16;
-    for (int r0 = 0; r0 < m; r0 += 8) {
+    memset(sums, 0, sizeof *sums * (size_t)(CONV_BLOCK + 1) * outputs);
+    for (int t = 0; t < taps; t++) {
+        const int64_t *e = entry + offsets[t];
+        const int count = (int)(offsets[t + 1] - offsets[t]);
         int o0 = 0;
-        for (; o0 + 4 <= otiles; o0 += 4) {
-            conv_rows(pairs, kp, 4, packed, otiles, o0, 4, m, r0, outputs, shift, residual, relu, out);
-            conv_rows(pairs, kp, 4, packed, otiles, o0, 4, m, r0 + 4, outputs, shift, residual, relu, out);
-        }
+        for (; o0 + 4 <= otiles; o0 += 4)
+            for (int g = 0; g < count; g += 4)
+                tap_rows(xb, pairs, e + g, 4, packed, otiles, o0, 4, t * pairs, sums, outputs);
         for (; o0 + 2 <= otiles; o0 += 2)
-            conv_rows(pairs, kp, 8, packed, otiles, o0, 2, m, r0, outputs, shift, residual, relu, out);
+            for (int g = 0; g < count; g += 8)
+                tap_rows(xb, pairs, e + g, 8, packed, otiles, o0, 2, t * pairs, sums, outputs);
         for (; o0 < otiles; o0++)
-            conv_rows(pairs, kp, 8, packed, otiles, o0, 1, m, r0, outputs, shift, residual, relu, out);
+            for (int g = 0; g < count; g += 8)
+                tap_rows(xb, pairs, e + g, 8, packed, otiles, o0, 1, t * pairs, sums, outputs);
     }
+    for (int r = 0; r < m; r++)
+        for (int o = 0; o < otiles; o++)
+            finish_sums(sums + (int64_t)r * outputs + 16 * o, r, 16 * o, outputs, shift, residual, relu, out);
 }
 #endif
 
@@ -1447,47 +1462,109 @@ static void conv_block(const uint16_t *a, int kp, int m, const uint32_t *packed,
 }
 #endif
 
+/* The lists of conv_block_vectors for an index of o3dvis_gather_conv, made once for the convolutions
+ * over the same index: for the rows of each block of CONV_BLOCK (block b) that have neighbour t, from
+ * entries[offsets[b * taps + t]] to entries[offsets[b * taps + t + 1] - 1], each neighbour << 8 | its
+ * row in the block, in order, made up to a whole number of groups of 8 with absent << 8 | CONV_BLOCK.
+ * index: (n, taps) in [0, absent], absent meaning none (the zeros of a missing neighbour: they add
+ * nothing); offsets: room for lists = ceil(n / CONV_BLOCK) * taps, and one; entries for
+ * n * taps + 8 * (lists + 1) (the made-up ones, and what a vector store writes past the last).
+ * None where gather_conv runs on the AMX tiles: they run every product. Returns the number of
+ * entries, or -2 in a build without AVX-512 bfloat16. */
+int64_t o3dvis_conv_entries(int64_t n, const int64_t *index, int32_t taps, int64_t absent, int64_t *offsets,
+                            int64_t *entries) {
+#ifdef __AVX512BF16__
+    const __m512i lane = _mm512_set_epi64(7, 6, 5, 4, 3, 2, 1, 0), none = _mm512_set1_epi64(absent);
+    const __m512i stride = _mm512_set_epi64(7 * taps, 6 * taps, 5 * taps, 4 * taps, 3 * taps, 2 * taps, taps, 0);
+    int64_t count = 0;
+#ifdef __AMX_BF16__
+    if (tiles_granted()) { /* the tiles run every product: empty lists */
+        memset(offsets, 0, sizeof *offsets * (size_t)((n + CONV_BLOCK - 1) / CONV_BLOCK * taps + 1));
+        return 0;
+    }
+#endif
+    for (int64_t b0 = 0; b0 < n; b0 += CONV_BLOCK) {
+        const int m = n - b0 < CONV_BLOCK ? (int)(n - b0) : CONV_BLOCK;
+        for (int t = 0; t < taps; t++) {
+            *offsets++ = count;
+            for (int r0 = 0; r0 < m; r0 += 8) { /* a gather of eight rows' neighbour t: no branch per row */
+                const __mmask8 real = m - r0 >= 8 ? 0xff : (__mmask8)((1u << (m - r0)) - 1);
+                const __m512i from = _mm512_mask_i64gather_epi64(none, real, stride, index + (b0 + r0) * taps + t, 8);
+                const __mmask8 kept = _mm512_cmpneq_epi64_mask(from, none);
+                const __m512i entry = _mm512_or_si512(_mm512_slli_epi64(from, 8),
+                                                      _mm512_add_epi64(lane, _mm512_set1_epi64(r0)));
+                _mm512_storeu_si512(entries + count, _mm512_maskz_compress_epi64(kept, entry));
+                count += __builtin_popcount(kept);
+            }
+            for (; count % 8; count++) entries[count] = absent << 8 | CONV_BLOCK;
+        }
+    }
+    *offsets = count;
+    return count;
+#else
+    (void)n, (void)index, (void)taps, (void)absent, (void)offsets, (void)entries;
+    return -2;
+#endif
+}
+
 /* A convolution over gathered rows, as o3dvis/nn/conv.py's gather_matmul and ConvBnRelu compute it
  * in inference: out[r] = relu?(residual[r] + (bf16(sum_t bf16(x[index[r][t]]) W_t) + shift)), the
  * products in bfloat16 with float32 sums (on the AMX tiles where the build and the operating system
  * have them, else in AVX-512 vectors), rounded to bfloat16 as torch rounds a bfloat16 product.
  * x: (rows, channels) float32, channels even; index: (n, taps), rows meaning a row of zeros; packed:
  * the weight as o3dvis/nn/native.py's pack_conv lays it out; outputs a multiple of 16; shift:
- * (outputs,); residual: (n, outputs) or NULL; out: (n, outputs). Returns 0, or with nothing written
- * -1 when out of memory, -2 in a build without AVX-512 bfloat16, -3 for an index out of [0, rows]. */
+ * (outputs,); residual: (n, outputs) or NULL; out: (n, outputs); offsets, entries: the index's
+ * o3dvis_conv_entries, listed of them. Returns 0, or with nothing written -1 when out of memory, -2 in
+ * a build without AVX-512 bfloat16, -3 for an index out of [0, rows], -4 for entries that are not
+ * lists of rows of blocks and of neighbours in [0, rows], or lists that are not whole groups of 8. */
 int o3dvis_gather_conv(int64_t n, const float *x, int64_t rows, int32_t channels, const int64_t *index,
-                       int32_t taps, const uint32_t *packed, int32_t outputs, const float *shift,
-                       const float *residual, int32_t relu, float *out) {
+                       int32_t taps, const int64_t *offsets, const int64_t *entries, int64_t listed,
+                       const uint32_t *packed, int32_t outputs, const float *shift, const float *residual,
+                       int32_t relu, float *out) {
 #ifdef __AVX512BF16__
     int outside = 0;
     for (int64_t i = 0; i < n * taps; i++) outside |= (index[i] < 0) | (index[i] > rows);
     if (outside) return -3;
-    const int kp = (taps * channels + 31) / 32 * 32, pairs = channels / 2;
-    uint16_t *a = calloc((size_t)64 * kp, sizeof *a);
+    const int64_t lists = (n + CONV_BLOCK - 1) / CONV_BLOCK * taps;
+    for (int64_t i = 0; i < lists; i++)
+        outside |= (offsets[i] < 0) | (offsets[i + 1] < offsets[i]) | ((offsets[i + 1] - offsets[i]) % 8 != 0);
+    outside |= offsets[lists] > listed;
+    for (int64_t i = 0; i < listed; i++)
+        outside |= (entries[i] >> 8 < 0) | (entries[i] >> 8 > rows) | ((entries[i] & 255) > CONV_BLOCK);
+    if (outside) return -4;
+    const int pairs = channels / 2;
     uint32_t *xb = malloc(sizeof *xb * (size_t)(rows + 1) * pairs); /* x in bfloat16, then a row of zeros */
-    float *sums = malloc(sizeof *sums * 4 * 256);
-    if (a == NULL || xb == NULL || sums == NULL) return free(a), free(xb), free(sums), -1;
+    /* the tiles' four 16 x 16 sums, or the vectors' sums of a block and a row */
+    const size_t size = 4 * 256 > (CONV_BLOCK + 1) * outputs ? 4 * 256 : (size_t)(CONV_BLOCK + 1) * outputs;
+    float *sums = malloc(sizeof *sums * size);
+    uint16_t *a = NULL; /* the tiles' gathered rows */
+#ifdef __AMX_BF16__
+    const int tiles = tiles_granted(), kp = (taps * channels + 31) / 32 * 32;
+    if (tiles) a = calloc((size_t)CONV_BLOCK * kp, sizeof *a);
+    if (tiles && a == NULL) return free(xb), free(sums), -1;
+#endif
+    if (xb == NULL || sums == NULL) return free(a), free(xb), free(sums), -1;
     for (int64_t i = 0; i < rows * pairs; i++)
         xb[i] = bf16_of(x[2 * i]) | (uint32_t)bf16_of(x[2 * i + 1]) << 16;
     memset(xb + rows * pairs, 0, sizeof *xb * pairs);
 #ifdef __AMX_BF16__
-    const int tiles = tiles_granted();
     if (tiles) configure_tiles();
 #endif
-    for (int64_t r0 = 0; r0 < n; r0 += 64) {
-        const int m = n - r0 < 64 ? (int)(n - r0) : 64;
-        for (int r = 0; r < m; r++)
-            gather_row((uint32_t *)(a + (int64_t)r * kp), xb, index + (r0 + r) * taps, taps, pairs);
-        for (int r = m; r < (m + 15) / 16 * 16; r++) /* rows past n: zeros */
-            memset(a + (int64_t)r * kp, 0, sizeof *a * 2 * (size_t)taps * pairs);
+    for (int64_t r0 = 0; r0 < n; r0 += CONV_BLOCK) {
+        const int m = n - r0 < CONV_BLOCK ? (int)(n - r0) : CONV_BLOCK;
         const float *res = residual ? residual + r0 * outputs : NULL;
 #ifdef __AMX_BF16__
         if (tiles) {
+            for (int r = 0; r < m; r++)
+                gather_row((uint32_t *)(a + (int64_t)r * kp), xb, index + (r0 + r) * taps, taps, pairs);
+            for (int r = m; r < (m + 15) / 16 * 16; r++) /* rows past n: zeros */
+                memset(a + (int64_t)r * kp, 0, sizeof *a * 2 * (size_t)taps * pairs);
             conv_block(a, kp, m, packed, outputs, shift, res, relu, sums, out + r0 * outputs);
             continue;
         }
 #endif
-        conv_block_vectors(a, kp, m, packed, outputs, shift, res, relu, out + r0 * outputs);
+        conv_block_vectors(xb, pairs, offsets + r0 / CONV_BLOCK * taps, entries, taps, m, packed, outputs, shift, res,
+                           relu, sums, out + r0 * outputs);
     }
 #ifdef __AMX_BF16__
     if (tiles) release_tiles();

@@ -27,7 +27,7 @@ from .features import LeafFeatures
 
 __all__ = ["MAX_POINTS", "available", "variant", "usable", "has_view_margin", "bounds", "normalize", "morton_keys",
            "sort_keys", "leaf_means",
-           "upsample", "has_gather_conv", "pack_conv", "gather_conv", "cell_thickness",
+           "upsample", "has_gather_conv", "pack_conv", "conv_entries", "gather_conv", "cell_thickness",
            "run_flatness", "project",
            "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin",
            "fit_planes", "visibility_affinity", "affinity_table", "votes", "brute_knn", "key_table",
@@ -57,7 +57,9 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_leaf_means": ([_I64, _PTR, _PTR, _PTR, _I32, _I64, _PTR, _PTR], ctypes.c_int),
     "o3dvis_upsample": ([_I64, _PTR, _I64, _I32, _PTR, _PTR, _I32, _PTR, _I32, _PTR], ctypes.c_int),
     "o3dvis_has_gather_conv": ([], ctypes.c_int),
-    "o3dvis_gather_conv": ([_I64, _PTR, _I64, _I32, _PTR, _I32, _PTR, _I32, _PTR, _PTR, _I32, _PTR], ctypes.c_int),
+    "o3dvis_conv_entries": ([_I64, _PTR, _I32, _I64, _PTR, _PTR], ctypes.c_int64),
+    "o3dvis_gather_conv": ([_I64, _PTR, _I64, _I32, _PTR, _I32, _PTR, _PTR, _I64, _PTR, _I32, _PTR, _PTR, _I32, _PTR],
+                           ctypes.c_int),
     "o3dvis_project": ([_I64, _PTR, _PTR, _PTR, _I32, _PTR] + [_PTR] * 6, ctypes.c_int),
     "o3dvis_plane_splat": ([_I64, _PTR, _PTR, _PTR, _PTR, _I32, _PTR, _PTR, _PTR, _PTR, _PTR, ctypes.c_float,
                             ctypes.c_float, _PTR], ctypes.c_int),
@@ -243,13 +245,46 @@ def pack_conv(weight: Tensor, taps: int) -> Tensor:
     return tiles.view(torch.int16).view(torch.int32).flatten().cpu()
 
 
+_CONV_BLOCK = 64
+"""Output rows of a block of :func:`gather_conv` (``CONV_BLOCK`` of ``kernels.c``)."""
+
+
+def conv_entries(index: Tensor, rows: int) -> Tensor:
+    """The lists by which :func:`gather_conv` (without the AMX tiles) takes an ``index``: for each block
+    of 64 output rows and each tap, the rows that have that neighbour (an index below ``rows``), so
+    that the products with a missing one, which add nothing, are skipped. Made once for the
+    convolutions over the same index (a level's 3x3x3 neighbours serve four).
+
+    Args:
+        index: (n, taps) int64 in [0, rows].
+        rows: the gathered input's rows (an index of ``rows``: a row of zeros).
+
+    Returns:
+        (L,) int64: the offsets of the lists, then their entries (see ``o3dvis_conv_entries``).
+
+    Raises:
+        ValueError: an index of the wrong shape or type.
+        RuntimeError: no AVX-512 bfloat16 kernels here (see :func:`has_gather_conv`).
+    """
+    n, taps = index.shape
+    _check("index", index, (n, taps), torch.long)
+    lists = -(-n // _CONV_BLOCK) * taps
+    out = index.new_empty(lists + 1 + n * taps + 8 * (lists + 1))
+    listed = _LIBRARY.o3dvis_conv_entries(n, index.data_ptr(), taps, rows, out.data_ptr(),
+                                          out[lists + 1:].data_ptr())
+    if listed < 0:
+        raise RuntimeError("conv_entries needs the AVX-512 bfloat16 kernels (see has_gather_conv)")
+    return out[:lists + 1 + listed]
+
+
 def gather_conv(x: Tensor, index: Tensor, packed: Tensor, taps: int, outputs: int, shift: Tensor,
-                residual: Tensor | None = None, relu: bool = False) -> Tensor:
+                residual: Tensor | None = None, relu: bool = False, entries: Tensor | None = None) -> Tensor:
     """(n, outputs) float32: each row's ``taps`` rows of ``x`` gathered (an index of ``len(x)``: a
     row of zeros) times the weight :func:`pack_conv` packed, in bfloat16 with float32 sums (on
-    the AMX tiles where there are some, else AVX-512 dot products in the same order) and the
-    result rounded to bfloat16, then plus ``shift``, plus ``residual``, and
-    through a ReLU where ``relu``: a :class:`~o3dvis.nn.conv.ConvBnRelu` in inference in one pass.
+    the AMX tiles where there are some, else AVX-512 dot products in the same order, the products
+    with a row of zeros skipped) and the result rounded to bfloat16, then plus ``shift``, plus
+    ``residual``, and through a ReLU where ``relu``: a :class:`~o3dvis.nn.conv.ConvBnRelu` in
+    inference in one pass.
 
     Args:
         x: (rows, C) float32.
@@ -257,9 +292,12 @@ def gather_conv(x: Tensor, index: Tensor, packed: Tensor, taps: int, outputs: in
         packed: :func:`pack_conv` of the (taps x C, outputs) weight.
         shift: (outputs,) float32.
         residual: (n, outputs) float32 or None.
+        entries: :func:`conv_entries` of ``index``, where the caller keeps them for several
+            convolutions (None: made here).
 
     Raises:
-        ValueError: tensors of the wrong shape or type, or an index out of range.
+        ValueError: tensors of the wrong shape or type, an index out of range, or entries that are
+            not lists of rows and neighbours in range.
         RuntimeError: no AVX-512 bfloat16 kernels here (see :func:`has_gather_conv`).
     """
     rows, channels = x.shape
@@ -272,12 +310,19 @@ def gather_conv(x: Tensor, index: Tensor, packed: Tensor, taps: int, outputs: in
         _check("residual", residual, (n, outputs))
     if channels % 2 or outputs % 16:
         raise ValueError(f"need an even number of channels and a multiple of 16 outputs, got {channels} and {outputs}")
+    if entries is None:
+        entries = conv_entries(index, rows)
+    lists = -(-n // _CONV_BLOCK) * taps
+    _check("entries", entries, (max(entries.shape[0], lists + 1),), torch.long)
     out = x.new_empty(n, outputs)
-    code = _LIBRARY.o3dvis_gather_conv(n, x.data_ptr(), rows, channels, index.data_ptr(), taps, packed.data_ptr(),
-                                       outputs, shift.data_ptr(), None if residual is None else residual.data_ptr(),
-                                       int(relu), out.data_ptr())
+    code = _LIBRARY.o3dvis_gather_conv(n, x.data_ptr(), rows, channels, index.data_ptr(), taps, entries.data_ptr(),
+                                       entries[lists + 1:].data_ptr(), entries.shape[0] - lists - 1,
+                                       packed.data_ptr(), outputs, shift.data_ptr(),
+                                       None if residual is None else residual.data_ptr(), int(relu), out.data_ptr())
     if code == -3:
         raise ValueError(f"index must lie in [0, {rows}]")
+    if code == -4:
+        raise ValueError("entries must be conv_entries of the index")
     if code == -2:
         raise RuntimeError("gather_conv needs the AVX-512 bfloat16 kernels (see has_gather_conv)")
     if code:

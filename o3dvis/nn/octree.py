@@ -9,6 +9,8 @@ pass of C where the package's kernels are built (:mod:`o3dvis.nn.native`).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Hashable
+
 import torch
 from torch import Tensor
 
@@ -244,6 +246,14 @@ class Octree:
         self._tables: dict[int, Tensor] = {}
         self._child_rows: dict[int, Tensor] = {}
         self._octant_rows: dict[int, Tensor] = {}
+        self._derived: dict[Hashable, Tensor] = {}
+
+    def derived(self, key: Hashable, make: Callable[[], Tensor]) -> Tensor:
+        """A table that ``make`` derives from this octree's (e.g. the lists by which a convolution
+        kernel takes a level's neighbours), made on first use and kept with the octree under ``key``."""
+        if key not in self._derived:
+            self._derived[key] = make()
+        return self._derived[key]
 
     def num_nodes(self, level: int) -> int:
         return self.keys[level].shape[0]

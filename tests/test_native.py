@@ -135,6 +135,39 @@ def test_child_neighbours_check_their_inputs():
         native.child_neighbours(args[0], args[1] + 8, *args[2:])
 
 
+@needs_kernels
+@pytest.mark.parametrize("depth, full_depth, n", [(7, 2, 5000), (4, 1, 300), (3, 2, 40), (6, 3, 1), (5, 2, 3)])
+def test_the_octree_of_c_equals_the_torch_one(depth, full_depth, n, variant):
+    """One cloud's octree in two passes of C: the keys, parents, children, child and octant rows and
+    each point's leaf of the torch ops, points along the Morton curve or (torch ops) in any order;
+    keys out of order or range are refused, for the torch ops to take."""
+    from o3dvis.nn.octree import Octree, cell_keys, morton_order
+
+    g = torch.Generator().manual_seed(depth * 100 + n)
+    points = torch.cat([_points(n, seed=depth)[: n // 2], torch.rand(n - n // 2, 3, generator=g) * 2 - 1])
+    points = points[morton_order(points)] if n else points
+    fast = Octree(points, depth=depth, full_depth=full_depth)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(native, "available", lambda: False)
+        slow = Octree(points, depth=depth, full_depth=full_depth)
+    assert torch.equal(fast.point_leaf, slow.point_leaf)
+    for level in range(depth + 1):
+        assert torch.equal(fast.keys[level], slow.keys[level])
+        assert torch.equal(fast.parent[level], slow.parent[level])
+        assert torch.equal(fast.octant_rows(level), slow.octant_rows(level))
+    for level in range(depth):
+        assert torch.equal(fast.children[level], slow.children[level])
+        assert torch.equal(fast.child_rows(level), slow.child_rows(level))
+    for level in range(full_depth, depth + 1):
+        assert torch.equal(fast.neighbours(level), slow.neighbours(level))
+    if n > 2:
+        keys = cell_keys(points, depth)
+        assert native.octree_levels(keys.flip(0), depth, full_depth) is None
+        assert native.octree_levels(keys + (8 ** depth - int(keys.min())), depth, full_depth) is None
+        shuffled = Octree(points.flip(0), depth=depth, full_depth=full_depth)  # the torch ops sort
+        assert torch.equal(shuffled.keys[depth], slow.keys[depth])
+
+
 def test_morton_keys_equal_the_torch_ones():
     """One pass of C for the octree's keys: the same cells (outside the cube clamped to it, the
     float32 rounding of the cell's coordinate the same) and the same interleaving."""

@@ -19,7 +19,9 @@
  * keys (o3dvis/nn/octree.py, cell_keys) in one pass instead of some twenty,
  * o3dvis_sort_keys sorts them (a radix sort, faster than torch.sort), o3dvis_bounds and
  * o3dvis_normalize put a cloud in the unit cube, with its keys, in two passes instead of some ten,
- * o3dvis_child_neighbours a level's 3x3x3 neighbours from its parents' (Octree.neighbours)
+ * o3dvis_octree_counts and o3dvis_octree_fill an octree's levels from its sorted keys (Octree), in
+ * two passes instead of some forty ops, o3dvis_child_neighbours a level's 3x3x3 neighbours from its
+ * parents' (Octree.neighbours)
  * in one instead of some ten, o3dvis_cell_thickness and o3dvis_run_flatness the noise cues' patch
  * terms (o3dvis/nn/noise.py: sums and eigenvalues), o3dvis_upsample the
  * U-Net's up-samplings for the nodes that exist,
@@ -2060,6 +2062,67 @@ void o3dvis_grid_knn(const double *points, const int64_t *cells, const int64_t *
                 exact[i] = (uint8_t)(found == k && best[k - 1] < margin * margin * (1.0 - 1e-9));
             }
         }
+    }
+}
+
+/* The number of nodes of each level 0 .. depth of the octree of one cloud (o3dvis.nn.octree.Octree)
+ * from its points' cell keys at depth, sorted: 8^level for the levels up to full_depth, the distinct
+ * leading bits of the keys below. Returns 0, or -1 (nothing written) for keys out of [0, 8^depth) or
+ * out of order. */
+int o3dvis_octree_counts(int64_t n, const int64_t *keys, int32_t depth, int32_t full_depth, int64_t *counts) {
+    int64_t first[22] = {0}; /* first[l]: the points whose keys first differ from the previous one's at level l */
+    int bad = n > 0 && (keys[0] < 0 || keys[n - 1] >> 3 * depth != 0);
+    for (int64_t i = 1; i < n; i++) {
+        const uint64_t diff = (uint64_t)(keys[i] ^ keys[i - 1]);
+        const int at = diff ? depth - (63 - __builtin_clzll(diff)) / 3 : 0;
+        bad |= keys[i] < keys[i - 1] || at < 0;
+        first[at < 0 ? 0 : at] += diff != 0;
+    }
+    if (bad) return -1;
+    int64_t nodes = n > 0;
+    for (int l = 0; l <= depth; l++) {
+        nodes += first[l];
+        counts[l] = l <= full_depth ? (int64_t)1 << 3 * l : nodes;
+    }
+    return 0;
+}
+
+/* Fills the levels of the octree of o3dvis_octree_counts (counts from it) and the leaf of each point.
+ * out holds, level after level (0 .. depth), its counts[l] keys, parents (-1 at the root), octant rows
+ * (8 parent + octant) and, but at depth, its (counts[l], 8) children (-1 where empty) and child rows
+ * (counts[l + 1] where empty); point_leaf: (n,). */
+void o3dvis_octree_fill(int64_t n, const int64_t *keys, int32_t depth, int32_t full_depth, const int64_t *counts,
+                        int64_t *point_leaf, int64_t *out) {
+    int64_t *key[22], *parent[22], *octant[22], *children[22], *rows[22];
+    for (int l = 0; l <= depth; l++) {
+        key[l] = out, parent[l] = out + counts[l], octant[l] = out + 2 * counts[l];
+        out += 3 * counts[l];
+        if (l < depth) children[l] = out, rows[l] = out + 8 * counts[l], out += 16 * counts[l];
+    }
+    int64_t leaves = 0;
+    for (int64_t i = 0; i < n; i++) {
+        leaves += i > 0 && keys[i] != keys[i - 1];
+        key[depth][leaves] = keys[i];
+        point_leaf[i] = leaves;
+    }
+    for (int l = depth - 1; l > full_depth; l--) { /* a sparse level: the distinct parents of the one below */
+        int64_t j = -1;
+        for (int64_t c = 0; c < counts[l + 1]; c++) {
+            if (c == 0 || key[l + 1][c] >> 3 != key[l + 1][c - 1] >> 3) key[l][++j] = key[l + 1][c] >> 3;
+            parent[l + 1][c] = j;
+        }
+    }
+    for (int l = 0; l <= full_depth; l++)
+        for (int64_t c = 0; c < counts[l]; c++) key[l][c] = c;
+    for (int64_t c = 0; c < counts[full_depth + 1]; c++) parent[full_depth + 1][c] = key[full_depth + 1][c] >> 3;
+    for (int l = 1; l <= full_depth; l++)
+        for (int64_t c = 0; c < counts[l]; c++) parent[l][c] = c >> 3;
+    parent[0][0] = -1;
+    for (int l = 0; l <= depth; l++)
+        for (int64_t c = 0; c < counts[l]; c++) octant[l][c] = 8 * parent[l][c] + (key[l][c] & 7);
+    for (int l = 0; l < depth; l++) {
+        for (int64_t c = 0; c < 8 * counts[l]; c++) children[l][c] = -1, rows[l][c] = counts[l + 1];
+        for (int64_t c = 0; c < counts[l + 1]; c++) children[l][octant[l + 1][c]] = rows[l][octant[l + 1][c]] = c;
     }
 }
 

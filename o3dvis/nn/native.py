@@ -31,7 +31,7 @@ __all__ = ["MAX_POINTS", "available", "variant", "usable", "has_view_margin", "b
            "run_flatness", "project",
            "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin",
            "fit_planes", "visibility_affinity", "affinity_table", "votes", "brute_knn", "key_table",
-           "grid_knn", "child_neighbours"]
+           "grid_knn", "OctreeLevels", "octree_levels", "child_neighbours"]
 
 _I64, _I32, _PTR = ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
 
@@ -57,6 +57,8 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_leaf_means": ([_I64, _PTR, _PTR, _PTR, _I32, _I64, _PTR, _PTR], ctypes.c_int),
     "o3dvis_upsample": ([_I64, _PTR, _I64, _I32, _PTR, _PTR, _I32, _PTR, _I32, _PTR], ctypes.c_int),
     "o3dvis_has_gather_conv": ([], ctypes.c_int),
+    "o3dvis_octree_counts": ([_I64, _PTR, _I32, _I32, _PTR], ctypes.c_int),
+    "o3dvis_octree_fill": ([_I64, _PTR, _I32, _I32, _PTR, _PTR, _PTR], None),
     "o3dvis_conv_entries": ([_I64, _PTR, _I32, _I64, _PTR, _PTR], ctypes.c_int64),
     "o3dvis_gather_conv": ([_I64, _PTR, _I64, _I32, _PTR, _I32, _PTR, _PTR, _I64, _PTR, _I32, _PTR, _PTR, _I32, _PTR],
                            ctypes.c_int),
@@ -781,6 +783,56 @@ def key_table(keys: Tensor) -> Tensor:
     table = torch.full((1 << max(1, 2 * keys.shape[0] - 1).bit_length(),), -1, dtype=torch.long)
     _LIBRARY.o3dvis_key_table(keys.shape[0], keys.data_ptr(), table.shape[0], table.data_ptr())
     return table
+
+
+@dataclass
+class OctreeLevels:
+    """What :func:`octree_levels` gives, per level ``0 .. depth`` (lists of tensors)."""
+
+    point_leaf: Tensor  # (N,) each point's leaf
+    keys: list[Tensor]  # (n_l,) sorted cell keys
+    parent: list[Tensor]  # (n_l,) each node's parent, -1 at the root
+    octant_rows: list[Tensor]  # (n_l,) 8 * parent + octant
+    children: list[Tensor]  # (n_l, 8) but at depth, -1 where empty
+    child_rows: list[Tensor]  # (n_l, 8) but at depth, n_{l+1} where empty
+
+
+def octree_levels(keys: Tensor, depth: int, full_depth: int) -> OctreeLevels | None:
+    """The levels of the octree of one cloud (what :class:`~o3dvis.nn.octree.Octree` builds with some
+    forty torch ops) from its points' cell keys at ``depth``, in two passes: every node up to
+    ``full_depth``, the cells that hold points below.
+
+    Args:
+        keys: (N,) int64 cell keys at ``depth`` (1 <= depth <= 16), sorted.
+
+    Returns:
+        The levels, or None where ``keys`` are out of order or out of [0, 8^depth).
+
+    Raises:
+        ValueError: keys of the wrong shape or type, or depths out of range.
+    """
+    n = keys.shape[0]
+    _check("keys", keys, (n,), torch.long)
+    if not 1 <= full_depth < depth <= 16:
+        raise ValueError(f"need 1 <= full_depth < depth <= 16, got {full_depth}, {depth}")
+    counts = keys.new_empty(depth + 1)
+    if _LIBRARY.o3dvis_octree_counts(n, keys.data_ptr(), depth, full_depth, counts.data_ptr()):
+        return None
+    nodes = counts.tolist()
+    flat = keys.new_empty(sum(3 * c for c in nodes) + sum(16 * c for c in nodes[:-1]))
+    point_leaf = keys.new_empty(n)
+    _LIBRARY.o3dvis_octree_fill(n, keys.data_ptr(), depth, full_depth, counts.data_ptr(), point_leaf.data_ptr(),
+                                flat.data_ptr())
+    levels, at = OctreeLevels(point_leaf, [], [], [], [], []), 0
+    for level, count in enumerate(nodes):
+        for table in (levels.keys, levels.parent, levels.octant_rows):
+            table.append(flat[at:at + count])
+            at += count
+        if level < depth:
+            for table in (levels.children, levels.child_rows):
+                table.append(flat[at:at + 8 * count].view(count, 8))
+                at += 8 * count
+    return levels
 
 
 def child_neighbours(keys: Tensor, parent: Tensor, above: Tensor, children: Tensor, parent_offset: Tensor,

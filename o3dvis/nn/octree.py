@@ -218,8 +218,25 @@ class Octree:
         self.depth, self.full_depth = depth, full_depth
         self.batch_size = int(batch.max().item()) + 1 if batch_size is None else batch_size
         self.device = device
+        self._neighbours: dict[int, Tensor] = {}
+        self._tables: dict[int, Tensor] = {}
+        self._child_rows: dict[int, Tensor] = {}
+        self._octant_rows: dict[int, Tensor] = {}
+        self._derived: dict[Hashable, Tensor] = {}
+        if keys is None:
+            keys = cell_keys(points, depth)
+        # one cloud on the CPU, its points along the Morton curve (as an encoding orders them): two passes of C
+        levels = (native.octree_levels(keys.contiguous(), depth, full_depth)
+                  if self.batch_size == 1 and device.type == "cpu" and keys.dtype == torch.long and native.available()
+                  else None)
+        if levels is not None:
+            self.keys, self.parent, self.children = levels.keys, levels.parent, levels.children
+            self.point_leaf = levels.point_leaf
+            self._child_rows = dict(enumerate(levels.child_rows))
+            self._octant_rows = dict(enumerate(levels.octant_rows))
+            return
 
-        leaf_keys = (batch.long() << (3 * depth)) | (cell_keys(points, depth) if keys is None else keys)
+        leaf_keys = (batch.long() << (3 * depth)) | keys
         keys: list[Tensor] = [torch.empty(0)] * (depth + 1)
         if bool((leaf_keys[1:] >= leaf_keys[:-1]).all()):  # points in Morton order: no sort needed
             keys[depth], self.point_leaf = torch.unique_consecutive(leaf_keys, return_inverse=True)
@@ -242,11 +259,6 @@ class Octree:
             children = torch.full((keys[level].shape[0], 8), -1, dtype=torch.long, device=device)
             children[parent, child_keys & 7] = torch.arange(child_keys.shape[0], device=device)
             self.children.append(children)
-        self._neighbours: dict[int, Tensor] = {}
-        self._tables: dict[int, Tensor] = {}
-        self._child_rows: dict[int, Tensor] = {}
-        self._octant_rows: dict[int, Tensor] = {}
-        self._derived: dict[Hashable, Tensor] = {}
 
     def derived(self, key: Hashable, make: Callable[[], Tensor]) -> Tensor:
         """A table that ``make`` derives from this octree's (e.g. the lists by which a convolution

@@ -103,7 +103,13 @@ def _quota() -> int | None:
 
 
 def usable_cores() -> int:
-    """The CPU cores this process may run on: its affinity, capped by its cgroup CPU quota."""
+    """The CPU cores this process may run on: its affinity, capped by its cgroup CPU quota. Read at
+    most :data:`_READING_AGE` seconds ago."""
+    return _recent("usable_cores", _usable_cores)
+
+
+def _usable_cores() -> int:
+    """:func:`usable_cores`, read now."""
     try:
         cores = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
@@ -130,9 +136,9 @@ def _own_running() -> int:
 
 
 _READING_AGE = 0.05
-"""Seconds a reading of the load (:func:`busy_cores`, :func:`cpu_pressure`) is used again: the
-two read some ten files of ``/proc`` in about 80 µs, a small cloud's call plans twice, and a
-load that matters lasts longer than this."""
+"""Seconds a reading of the load (:func:`busy_cores`, :func:`cpu_pressure`) or of the usable cores
+is used again: they read some ten files of ``/proc`` and ``/sys`` in about 100 µs, a small cloud's
+call plans twice, and a load that matters lasts longer than this."""
 
 _readings: dict[str, tuple[float, object]] = {}
 

@@ -77,16 +77,19 @@ def test_automatic_count_takes_small_work_torch_count_cores_and_load(monkeypatch
 
 
 def test_load_readings_are_used_again_for_a_short_while(monkeypatch):
-    """busy_cores and cpu_pressure read /proc once per _READING_AGE seconds, each on its own."""
+    """busy_cores, cpu_pressure and usable_cores read /proc and /sys once per _READING_AGE seconds,
+    each on its own."""
     reads = []
     monkeypatch.setattr(threads, "_busy_cores", lambda: reads.append("busy") or len(reads))
     monkeypatch.setattr(threads, "_cpu_pressure", lambda: reads.append("pressure") or 0.5)
+    monkeypatch.setattr(threads, "_usable_cores", lambda: reads.append("cores") or 2)
     monkeypatch.setattr(threads, "_readings", {})
     monkeypatch.setattr(threads, "_READING_AGE", 60.0)
     assert [threads.busy_cores() for _ in range(3)] == [1, 1, 1] and threads.cpu_pressure() == 0.5
-    assert reads == ["busy", "pressure"]
+    assert [threads.usable_cores() for _ in range(3)] == [2, 2, 2]
+    assert reads == ["busy", "pressure", "cores"]
     monkeypatch.setattr(threads, "_READING_AGE", 0.0)  # every call reads anew
-    assert threads.busy_cores() == 3 and threads.busy_cores() == 4 and reads[2:] == ["busy", "busy"]
+    assert threads.busy_cores() == 4 and threads.busy_cores() == 5 and reads[3:] == ["busy", "busy"]
 
 
 def test_workers_only_gives_torch_one_thread_and_plans_as_before(monkeypatch):

@@ -330,7 +330,10 @@ class Octree:
         Pointing missing neighbours at row ``n`` lets a convolution gather from
         features padded with one row of zeros.
         """
-        if level not in self._neighbours and level > self.full_depth:
+        kept = self._neighbours.get(level)
+        if kept is not None:  # asked by every convolution of the level
+            return kept
+        if level > self.full_depth:
             self._neighbours[level] = self._neighbours_from_parents(level)
         # a level that holds every cell of each cloud has the neighbours of any other such level
         full = self.num_nodes(level) == self.batch_size << (3 * level)

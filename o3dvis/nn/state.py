@@ -7,6 +7,7 @@ load), by a tensor put in anew, or by a module put in or taken out.
 
 from __future__ import annotations
 
+import operator
 import weakref
 
 from torch import Tensor, nn
@@ -30,17 +31,16 @@ def module_tensors(module: nn.Module) -> list[Tensor]:
 
 
 class WeightsState:
-    """The tensors of some modules as they are now: each one's identity, version (bumped by every
-    in-place change) and storage address. It holds the tensors, so that no other takes their ids."""
+    """The tensors of some modules as they are now: which they are, each one's version (bumped by
+    every in-place change) and storage address."""
 
     def __init__(self, modules: list[nn.Module]):
         self.tensors = [t for m in modules for t in module_tensors(m)]
-        self.key = _key(self.tensors)
+        self.versions = [t._version for t in self.tensors]
+        self.addresses = [t.data_ptr() for t in self.tensors]
 
     def holds(self, modules: list[nn.Module]) -> bool:
         """Whether ``modules`` hold these tensors still, unchanged since."""
-        return _key([t for m in modules for t in module_tensors(m)]) == self.key
-
-
-def _key(tensors: list[Tensor]) -> list[tuple[int, int, int]]:
-    return [(id(t), t._version, t.data_ptr()) for t in tensors]
+        now = [t for m in modules for t in module_tensors(m)]
+        return (len(now) == len(self.tensors) and all(map(operator.is_, now, self.tensors))
+                and [t._version for t in now] == self.versions and [t.data_ptr() for t in now] == self.addresses)

@@ -17,9 +17,9 @@ from torch import Tensor, nn
 from ..threads import torch_threads
 from . import native
 from .octree import Octree
-from .state import WeightsState
+from .state import Derived
 
-__all__ = ["OctreeConv", "OctreeDownsample", "OctreeUpsample", "ConvBnRelu", "ResBlock", "LayerStep",
+__all__ = ["OctreeConv", "OctreeDownsample", "OctreeUpsample", "ConvBnRelu", "ResBlock", "LayerStep", "STEPS",
            "gather_rows", "products_in", "step_conditions"]
 
 _PRODUCTS = threading.local()
@@ -162,6 +162,9 @@ LayerStep = Callable[..., Tensor]
 """A layer in inference, ``step(x, octree, level)``; a :class:`ConvBnRelu`'s also takes a
 ``residual``: see :meth:`ConvBnRelu.step`."""
 
+STEPS = Derived()
+"""The layers' kept steps (and the U-Net's lists of them)."""
+
 
 class ConvBnRelu(nn.Module):
     """A convolution, batch norm and ReLU; in inference (eval mode, no gradient) the batch norm is
@@ -182,11 +185,7 @@ class ConvBnRelu(nn.Module):
 
     def inference_step(self, x: Tensor) -> LayerStep:
         """:meth:`step` for inputs like ``x``, kept until the weights change."""
-        conditions = step_conditions(self.conv, x)
-        cached = self.__dict__.get("_step")
-        if cached is None or cached[0] != conditions or not cached[1].holds([self]):
-            cached = self.__dict__["_step"] = (conditions, WeightsState([self]), self.step(x))
-        return cached[2]
+        return STEPS.get(self, step_conditions(self.conv, x), lambda: self.step(x))
 
     def step(self, x: Tensor) -> LayerStep:
         """This layer in inference for inputs like ``x``, with its weights as they are now:

@@ -9,10 +9,14 @@ from __future__ import annotations
 
 import operator
 import weakref
+from collections.abc import Callable
+from typing import TypeVar
 
 from torch import Tensor, nn
 
-__all__ = ["WeightsState", "module_tensors"]
+T = TypeVar("T")
+
+__all__ = ["WeightsState", "Derived", "module_tensors"]
 
 _TREES: "weakref.WeakKeyDictionary[nn.Module, tuple[list, list]]" = weakref.WeakKeyDictionary()
 
@@ -44,3 +48,20 @@ class WeightsState:
         now = [t for m in modules for t in module_tensors(m)]
         return (len(now) == len(self.tensors) and all(map(operator.is_, now, self.tensors))
                 and [t._version for t in now] == self.versions and [t.data_ptr() for t in now] == self.addresses)
+
+
+class Derived:
+    """What inference derives from each module's weights (e.g. its layers folded and packed), kept
+    per module until the conditions it was made for or the module's weights change. Kept beside the
+    modules, not in them: a module pickles and copies without it."""
+
+    def __init__(self):
+        self._kept: "weakref.WeakKeyDictionary[nn.Module, tuple]" = weakref.WeakKeyDictionary()
+
+    def get(self, module: nn.Module, conditions: tuple, make: Callable[[], T]) -> T:
+        """What ``make()`` made for ``module`` under ``conditions``, made anew where those or the
+        module's weights changed since."""
+        kept = self._kept.get(module)
+        if kept is None or kept[0] != conditions or not kept[1].holds([module]):
+            kept = self._kept[module] = (conditions, WeightsState([module]), make())
+        return kept[2]

@@ -7,9 +7,8 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from .conv import ConvBnRelu, OctreeDownsample, OctreeUpsample, ResBlock, step_conditions
+from .conv import STEPS, ConvBnRelu, OctreeDownsample, OctreeUpsample, ResBlock, step_conditions
 from .octree import Octree
-from .state import WeightsState
 
 __all__ = ["OctreeUNet"]
 
@@ -69,13 +68,8 @@ class OctreeUNet(nn.Module):
     def _steps(self, signal: Tensor) -> tuple:
         """The layers in inference (their :meth:`~o3dvis.nn.conv.ConvBnRelu.step`) for the input
         ``signal``, as :meth:`forward` walks them; kept until a weight changes (one check for the
-        whole network: per layer, the checks and calls took a third of a small cloud's U-Net)."""
-        conditions = step_conditions(self.down[0].conv, signal)
-        cached = self.__dict__.get("_plan")
-        if cached is None or cached[0] != conditions or not cached[1].holds([self]):
-            steps = ([down.step(signal) for down in self.down], [[block.step(signal) for block in stage]
-                                                                 for stage in self.enc],
-                     [up.step(signal) for up in self.up], [block.step(signal) for block in self.dec],
-                     self.up_leaf.step(signal))
-            cached = self.__dict__["_plan"] = (conditions, WeightsState([self]), steps)
-        return cached[2]
+        whole network, not one per layer)."""
+        return STEPS.get(self, step_conditions(self.down[0].conv, signal), lambda: (
+            [down.step(signal) for down in self.down], [[block.step(signal) for block in stage] for stage in self.enc],
+            [up.step(signal) for up in self.up], [block.step(signal) for block in self.dec],
+            self.up_leaf.step(signal)))

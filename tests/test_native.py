@@ -133,6 +133,8 @@ def test_child_neighbours_check_their_inputs():
         native.child_neighbours(*args[:2], args[2].int(), *args[3:])
     with pytest.raises(ValueError, match=r"parent indices must lie in \[0, 8\)"):
         native.child_neighbours(args[0], args[1] + 8, *args[2:])
+    with pytest.raises(ValueError, match=r"parent_offset in \[0, 27\)"):
+        native.child_neighbours(*args[:4], args[4] + 27, args[5])
 
 
 @needs_kernels

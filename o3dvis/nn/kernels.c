@@ -2130,10 +2130,16 @@ void o3dvis_octree_fill(int64_t n, const int64_t *keys, int32_t depth, int32_t f
  * parents (o3dvis.nn.octree.Octree._neighbours_from_parents): node i, of octant keys[i] & 7 and parent
  * parent[i], has at offset t the child offset_octant[o][t] of the parent level's node
  * above[27 parent[i] + parent_offset[o][t]] (m where missing), children (m, 8) the parent level's
- * children (-1 where empty). Writes (n, 27) indices into out, n where missing. */
-void o3dvis_child_neighbours(int64_t n, const int64_t *keys, const int64_t *parent, const int64_t *above,
-                             int64_t m, const int64_t *children, const int64_t *parent_offset,
-                             const int64_t *offset_octant, int64_t *out) {
+ * children (-1 where empty). Writes (n, 27) indices into out, n where missing, and returns 0; or -1
+ * (nothing written) for a parent out of [0, m) or offsets out of range. */
+int o3dvis_child_neighbours(int64_t n, const int64_t *keys, const int64_t *parent, const int64_t *above,
+                            int64_t m, const int64_t *children, const int64_t *parent_offset,
+                            const int64_t *offset_octant, int64_t *out) {
+    int outside = 0;
+    for (int64_t i = 0; i < n; i++) outside |= (parent[i] < 0) | (parent[i] >= m);
+    for (int t = 0; t < 8 * 27; t++)
+        outside |= (parent_offset[t] < 0) | (parent_offset[t] >= 27) | (offset_octant[t] < 0) | (offset_octant[t] >= 8);
+    if (outside) return -1;
     for (int64_t i = 0; i < n; i++) {
         const int o = (int)(keys[i] & 7);
         const int64_t *holders = above + 27 * parent[i];
@@ -2143,4 +2149,5 @@ void o3dvis_child_neighbours(int64_t n, const int64_t *keys, const int64_t *pare
             out[27 * i + t] = c < 0 ? n : c;
         }
     }
+    return 0;
 }

@@ -77,7 +77,7 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_votes": ([_I64, _I64, _I64, _I32, _PTR, _PTR, _PTR, _PTR, _PTR, _PTR], None),
     "o3dvis_key_table": ([_I64, _PTR, _I64, _PTR], None),
     "o3dvis_brute_knn": ([_I64, _PTR, _I64, _PTR, _I32, _PTR], None),
-    "o3dvis_child_neighbours": ([_I64, _PTR, _PTR, _PTR, _I64, _PTR, _PTR, _PTR, _PTR], None),
+    "o3dvis_child_neighbours": ([_I64, _PTR, _PTR, _PTR, _I64, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_grid_knn": ([_PTR, _PTR, _PTR, _PTR, _I64, _PTR, _I32, _PTR, ctypes.c_double, ctypes.c_double, _I32,
                          _I64, _I64, _PTR, _PTR, _PTR, _PTR], None),
 }
@@ -861,12 +861,11 @@ def child_neighbours(keys: Tensor, parent: Tensor, above: Tensor, children: Tens
     _check("children", children, (m, 8), torch.long)
     _check("parent_offset", parent_offset, (8, 27), torch.long)
     _check("offset_octant", offset_octant, (8, 27), torch.long)
-    if n and not (0 <= int(parent.min()) and int(parent.max()) < m):
-        raise ValueError(f"parent indices must lie in [0, {m})")
     out = torch.empty((n, 27), dtype=torch.long)
-    _LIBRARY.o3dvis_child_neighbours(n, keys.data_ptr(), parent.data_ptr(), above.data_ptr(), m,
-                                     children.data_ptr(), parent_offset.data_ptr(), offset_octant.data_ptr(),
-                                     out.data_ptr())
+    if _LIBRARY.o3dvis_child_neighbours(n, keys.data_ptr(), parent.data_ptr(), above.data_ptr(), m,
+                                        children.data_ptr(), parent_offset.data_ptr(), offset_octant.data_ptr(),
+                                        out.data_ptr()):
+        raise ValueError(f"parent indices must lie in [0, {m}), parent_offset in [0, 27) and offset_octant in [0, 8)")
     return out
 
 

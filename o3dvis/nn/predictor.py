@@ -10,10 +10,14 @@ from torch import Tensor, nn
 
 from . import native
 from .features import LeafFeatures
+from .state import Derived
 
 __all__ = ["ViewEmbedding", "VisibilityPredictor", "PRECISIONS", "resolve_precision"]
 
 PRECISIONS = ("auto", "float32", "bfloat16")
+
+_PACKED = Derived()
+"""Each MLP as the per-view kernels read it (see :meth:`VisibilityPredictor.packed_mlp`)."""
 
 
 def resolve_precision(precision: str, device: torch.device) -> torch.dtype:
@@ -102,7 +106,6 @@ class VisibilityPredictor(nn.Module):
             width = h
         layers.append(nn.Linear(width, 2))
         self.mlp = nn.Sequential(*layers)
-        self._packed: dict[torch.dtype, tuple[tuple, native.PackedMLP]] = {}  # dtype: (weights' identity, packed)
 
     def project(self, features: Tensor, points: Tensor, leaf: Tensor) -> LeafFeatures:
         """Projects ``[feature, point]`` to the embedding's width, stored per leaf.
@@ -175,12 +178,9 @@ class VisibilityPredictor(nn.Module):
 
     def packed_mlp(self, dtype: torch.dtype) -> native.PackedMLP:
         """The MLP of :meth:`margin` as :func:`o3dvis.nn.native.view_margin` reads it for products
-        in ``dtype``, packed again only when a weight has changed."""
-        weights = tuple((p.data_ptr(), p._version) for p in self.mlp.parameters())
-        if dtype not in self._packed or self._packed[dtype][0] != weights:
-            hidden = [(layer.weight, layer.bias) for layer in self.mlp[:-1:2]]
-            self._packed[dtype] = weights, native.pack_mlp(hidden + [self._margin_layer()], dtype)
-        return self._packed[dtype][1]
+        in ``dtype``, packed again only when a weight has changed or another dtype was asked last."""
+        hidden = [(layer.weight, layer.bias) for layer in self.mlp[:-1:2]]
+        return _PACKED.get(self.mlp, (dtype,), lambda: native.pack_mlp(hidden + [self._margin_layer()], dtype))
 
     def _margin_layer(self) -> tuple[Tensor, Tensor]:
         """The last layer's (1, H) weight and (1,) bias of "visible" minus "hidden"."""

@@ -1143,6 +1143,15 @@ static inline void gather_row(uint32_t *restrict dst, const uint32_t *restrict x
 
 #define CONV_BLOCK 64 /* output rows of a block of o3dvis_gather_conv */
 
+/* acc plus the bfloat16 dot products of the pairs w with the pair *x in every lane: the pair read
+ * and broadcast by the load (an embedded broadcast), not by a shuffle before each product as a
+ * compiler keeps a broadcast register for several products, so that the products alone take the
+ * vector units. The products and sums are those of _mm512_dpbf16_ps(acc, set1(*x), w). */
+static inline __m512 dot_broadcast(__m512 acc, __m512bh w, const uint32_t *x) {
+    __asm__("vdpbf16ps %2%{1to16%}, %1, %0" : "+v"(acc) : "v"(w), "m"(*x));
+    return acc;
+}
+
 /* One tap of a block of o3dvis_gather_conv in AVX-512 vectors, rows x tiles of 16 outputs at a time:
  * the float32 sums of rows of the block (in sums, outputs a row) plus the pairs of their neighbours
  * (rows of xb, pairs a row) times the tap's weights, pair after pair, with bfloat16 dot products.
@@ -1159,14 +1168,12 @@ static inline __attribute__((always_inline)) void tap_rows(const uint32_t *xb, i
             acc[r][o] = _mm512_loadu_ps(sums + (entry[r] & 255) * outputs + 16 * (o0 + o));
     }
     for (int p = 0; p < pairs; p++) {
-        const int k = k0 + p;
+        const unsigned k = (unsigned)(k0 + p);
         __m512bh w[4];
         for (int o = 0; o < tiles; o++)
             w[o] = (__m512bh)_mm512_loadu_si512(packed + ((int64_t)(k / 16) * otiles + o0 + o) * 256 + 16 * (k % 16));
-        for (int r = 0; r < rows; r++) {
-            const __m512bh x = (__m512bh)_mm512_set1_epi32((int)from[r][p]);
-            for (int o = 0; o < tiles; o++) acc[r][o] = _mm512_dpbf16_ps(acc[r][o], x, w[o]);
-        }
+        for (int r = 0; r < rows; r++)
+            for (int o = 0; o < tiles; o++) acc[r][o] = dot_broadcast(acc[r][o], w[o], from[r] + p);
     }
     for (int r = 0; r < rows; r++)
         for (int o = 0; o < tiles; o++) _mm512_storeu_ps(sums + (entry[r] & 255) * outputs + 16 * (o0 + o), acc[r][o]);

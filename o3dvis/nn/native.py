@@ -315,7 +315,10 @@ def gather_conv(x: Tensor, index: Tensor, packed: Tensor, taps: int, outputs: in
     if entries is None:
         entries = conv_entries(index, rows)
     lists = -(-n // _CONV_BLOCK) * taps
-    _check("entries", entries, (max(entries.shape[0], lists + 1),), torch.long)
+    if entries.ndim != 1 or len(entries) <= lists:
+        raise ValueError(f"entries must be conv_entries of the index: at least {lists + 1} values, got "
+                         f"{tuple(entries.shape)}")
+    _check("entries", entries, (len(entries),), torch.long)
     out = x.new_empty(n, outputs)
     code = _LIBRARY.o3dvis_gather_conv(n, x.data_ptr(), rows, channels, index.data_ptr(), taps, entries.data_ptr(),
                                        entries[lists + 1:].data_ptr(), entries.shape[0] - lists - 1,

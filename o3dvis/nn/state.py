@@ -8,6 +8,7 @@ load), by a tensor put in anew, or by a module put in or taken out.
 from __future__ import annotations
 
 import operator
+import threading
 import weakref
 from collections.abc import Callable
 from typing import TypeVar
@@ -23,8 +24,8 @@ _TREES: "weakref.WeakKeyDictionary[nn.Module, tuple[list, list]]" = weakref.Weak
 
 def module_tensors(module: nn.Module) -> list[Tensor]:
     """Each parameter and buffer of every module of ``module``. The tree of modules is kept per
-    module and walked anew when a module has been put in or taken out (walking it on every call
-    took a fifth of a small cloud's drop-in call)."""
+    module and walked anew only when a module has been put in or taken out: a check runs on every
+    call of a small cloud, where walking a network's modules costs as much as some of its kernels."""
     kept = _TREES.get(module)
     if kept is None or any(tuple(children.values()) != before for children, before in kept[0]):
         modules = list(module.modules())
@@ -57,11 +58,13 @@ class Derived:
 
     def __init__(self):
         self._kept: "weakref.WeakKeyDictionary[nn.Module, tuple]" = weakref.WeakKeyDictionary()
+        self._lock = threading.RLock()  # a field's views ask from several threads at once
 
     def get(self, module: nn.Module, conditions: tuple, make: Callable[[], T]) -> T:
         """What ``make()`` made for ``module`` under ``conditions``, made anew where those or the
         module's weights changed since."""
-        kept = self._kept.get(module)
-        if kept is None or kept[0] != conditions or not kept[1].holds([module]):
-            kept = self._kept[module] = (conditions, WeightsState([module]), make())
-        return kept[2]
+        with self._lock:
+            kept = self._kept.get(module)
+            if kept is None or kept[0] != conditions or not kept[1].holds([module]):
+                kept = self._kept[module] = (conditions, WeightsState([module]), make())
+            return kept[2]

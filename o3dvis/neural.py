@@ -88,9 +88,9 @@ def _flat_hull(points: Tensor, diagonal: Tensor) -> tuple[Tensor, Tensor] | None
 def _solid(scatter: Tensor, count: int, diagonal: Tensor) -> bool:
     """Whether the (3, 3) float64 scatter matrix of ``count`` points about their mean (or a point
     a few ulps from it) tells that they extend along every direction (see :func:`_flat_hull`)."""
-    least, largest = torch.linalg.eigvalsh(scatter)[[0, 2]]
-    bound = _FLAT_TOL * diagonal
-    return bool(least - 1e3 * torch.finfo(scatter.dtype).eps * largest > bound * bound * count)
+    least, _, largest = torch.linalg.eigvalsh(scatter).tolist()
+    bound = _FLAT_TOL * float(diagonal)
+    return least - 1e3 * torch.finfo(scatter.dtype).eps * largest > bound * bound * count
 
 
 def _unit_frame(points: Tensor) -> tuple[Tensor, Tensor | None, Tensor, Tensor, tuple[Tensor, Tensor],

@@ -120,6 +120,10 @@ def bounds(points: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return out[:3], out[3:6], out[6:]
 
 
+_SCATTER_ENTRIES = torch.tensor([0, 1, 2, 1, 3, 4, 2, 4, 5])
+"""The (3, 3) scatter matrix's entries among the six sums of ``o3dvis_normalize``."""
+
+
 def normalize(points: Tensor, center: Tensor, scale: float, mean: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """``(normalised, keys, scatter)`` of ``points`` (N, 3) float64 in one pass: ``((points - center)
     / scale).float()``, the (N,) Morton keys of those float32 points on the finest grid
@@ -132,8 +136,7 @@ def normalize(points: Tensor, center: Tensor, scale: float, mean: Tensor) -> tup
     out, keys, sums = torch.empty(n, 3), torch.empty(n, dtype=torch.long), points.new_empty(6)
     _LIBRARY.o3dvis_normalize(n, points.data_ptr(), center.data_ptr(), float(scale), mean.data_ptr(),
                               out.data_ptr(), keys.data_ptr(), sums.data_ptr())
-    scatter = sums[[0, 1, 2, 1, 3, 4, 2, 4, 5]].view(3, 3)
-    return out, keys, scatter
+    return out, keys, sums.index_select(0, _SCATTER_ENTRIES).view(3, 3)
 
 
 def morton_keys(points: Tensor, depth: int) -> Tensor:

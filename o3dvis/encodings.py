@@ -25,11 +25,11 @@ from torch import Tensor
 from .clouds import cloud_arrays
 from .field import inside_box
 from .nn.octree import bounding_box
-from .nn.state import WeightsState
 
 if TYPE_CHECKING:  # type hints only: o3dvis.neural and o3dvis.field stay unloaded until used
     from .field import VisibilityField
     from .neural import NeuralVisibility
+    from .nn.network import VisibilityNetwork
 
 __all__ = ["MAX_POINTS", "encode", "clear"]
 
@@ -41,8 +41,8 @@ class _Entry(NamedTuple):
     cloud: int  # id() of the cloud object
     model: "NeuralVisibility"  # held, so that no other model takes its id
     settings: tuple
-    networks: list[torch.nn.Module]  # those of the model that the encoding depends on
-    state: WeightsState  # their weights then
+    networks: list["VisibilityNetwork"]  # those of the model that the encoding depends on
+    weights: list[list]  # their weights then (VisibilityNetwork.weights_state)
     points: Tensor  # copies of what was encoded
     normals: Tensor | None
     field: "VisibilityField"
@@ -60,7 +60,7 @@ def _settings(model: "NeuralVisibility", normals, points: Tensor, camera: Tensor
     return normals, str(model.device), model.precision, model.chunk_size, len(model.rotations), inside
 
 
-def _networks(model: "NeuralVisibility", field: "VisibilityField", normals, count: int) -> list[torch.nn.Module]:
+def _networks(model: "NeuralVisibility", field: "VisibilityField", normals, count: int) -> list["VisibilityNetwork"]:
     """The networks of ``model`` that an encoding of ``count`` points depends on: the one that
     encoded it, and with estimated normals the first pass's. Not the scene network where another
     encoded it: the encoding is reused for cameras on the same side of the box only (see
@@ -77,7 +77,7 @@ def _holds(entry: _Entry | None, model: "NeuralVisibility", pcd, settings: tuple
            normals: Tensor | None) -> bool:
     """Whether ``entry`` is the encoding of this cloud, as it is now, by ``model`` as it is now."""
     return (entry is not None and entry.cloud == id(pcd) and entry.model is model and entry.settings == settings
-            and entry.state.holds(entry.networks)
+            and all(net.weights_unchanged(weights) for net, weights in zip(entry.networks, entry.weights))
             and _same(entry.points, points) and _same(entry.normals, normals))
 
 
@@ -111,7 +111,7 @@ def encode(model: "NeuralVisibility", pcd, normals=None, camera: Tensor | None =
     field = model._encode(pcd, normals, camera, (points, cloud_normals))
     if len(points) <= MAX_POINTS:
         networks = _networks(model, field, normals, len(points))
-        entry = _Entry(id(pcd), model, settings, networks, WeightsState(networks), points.clone(),
+        entry = _Entry(id(pcd), model, settings, networks, [net.weights_state() for net in networks], points.clone(),
                        None if cloud_normals is None else cloud_normals.clone(), field)
         with _lock:
             _last = entry

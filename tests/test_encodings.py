@@ -116,6 +116,12 @@ def test_another_model_or_changed_weights_are_encoded_anew(scene, counted):
     o3dvis.hidden_point_removal_neural(pcd, cameras[1], model=mine)
     o3dvis.hidden_point_removal_neural(pcd, cameras[2], model=mine)
     assert len(counted) == 7
+    with torch.no_grad():
+        network.predictor.project_feature.weight.mul_(1.5)  # beside the U-Net: the features' projection
+    o3dvis.hidden_point_removal_neural(pcd, cameras[2], model=mine)
+    network.predictor = type(network.predictor)(32 + 3, 4, network.predictor.mlp[0].in_features - 27, (32, 32))
+    o3dvis.hidden_point_removal_neural(pcd, cameras[2], model=mine)
+    assert len(counted) == 9
 
 
 def test_large_clouds_are_not_kept(scene, counted, monkeypatch):

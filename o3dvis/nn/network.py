@@ -11,6 +11,7 @@ import torch
 from torch import Tensor, nn
 
 from .calibration import CloudCalibration
+from .conv import STEPS
 from .fusion import ZBufferFusion
 from . import native
 from .cues import DEFAULT_SCALES, ViewProjection, num_cues, point_surfels
@@ -18,6 +19,7 @@ from .features import LeafFeatures
 from .noise import NUM_NOISE_CUES, noise_cues
 from .octree import Octree
 from .predictor import VisibilityPredictor
+from .state import WeightsState
 from .unet import OctreeUNet
 
 __all__ = ["NetworkConfig", "VisibilityNetwork"]
@@ -297,6 +299,24 @@ class VisibilityNetwork(nn.Module):
         plain = VisibilityNetwork(NetworkConfig.from_dict({**asdict(self.config), option: False}))
         plain.load_state_dict({k: v for k, v in self.state_dict().items() if not k.startswith(_FITTED[option])})
         return plain
+
+    def weights_state(self) -> list[tuple[nn.Module, WeightsState]]:
+        """Each child of this network with the state of its weights (see :class:`~o3dvis.nn.state.WeightsState`),
+        the U-Net's as its kept layers checked them in the last encode (not walked again: in a small
+        cloud's call a walk over its tensors costs as much as some of its kernels); for
+        :meth:`weights_unchanged`."""
+        if self._parameters or self._buffers:  # tensors of its own: the whole network at once
+            return [(self, WeightsState([self]))]
+        return [(child, (STEPS.state(child) if child is self.unet else None) or WeightsState([child]))
+                for child in self.children()]
+
+    def weights_unchanged(self, state: list[tuple[nn.Module, WeightsState]]) -> bool:
+        """Whether this network holds the children and weights of ``state`` (:meth:`weights_state`) still."""
+        if len(state) == 1 and state[0][0] is self:
+            return state[0][1].holds([self])
+        children = list(self.children())
+        return (len(children) == len(state) and all(child is kept for child, (kept, _) in zip(children, state))
+                and all(weights.holds([child]) for child, weights in state))
 
     def num_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())

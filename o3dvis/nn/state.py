@@ -60,6 +60,13 @@ class Derived:
         self._kept: "weakref.WeakKeyDictionary[nn.Module, tuple]" = weakref.WeakKeyDictionary()
         self._lock = threading.RLock()  # a field's views ask from several threads at once
 
+    def state(self, module: nn.Module) -> WeightsState | None:
+        """The weights ``module`` had when what is kept for it was made (checked unchanged by every
+        :meth:`get` since); None where nothing is kept."""
+        with self._lock:
+            kept = self._kept.get(module)
+        return None if kept is None else kept[1]
+
     def get(self, module: nn.Module, conditions: tuple, make: Callable[[], T]) -> T:
         """What ``make()`` made for ``module`` under ``conditions``, made anew where those or the
         module's weights changed since."""

@@ -2,7 +2,9 @@
 
 What inference derives from weights (batch norms folded into convolutions, weights packed for the
 C kernels, a cloud's encoding) is kept until a weight changes: in place (an optimiser's step, a
-load), by a tensor put in anew, or by a module put in or taken out.
+load), by a tensor put in anew, or by a module put in or taken out. In-place changes made through
+``.data`` (``p.data.mul_(2)``) are not seen: they bypass the version counter, as autograd's own
+checks; change weights under ``torch.no_grad()`` instead.
 """
 
 from __future__ import annotations

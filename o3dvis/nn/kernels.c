@@ -1479,13 +1479,15 @@ static void conv_block(const uint16_t *a, int kp, int m, const uint32_t *packed,
  * nothing); offsets: room for lists = ceil(n / CONV_BLOCK) * taps, and one; entries for
  * n * taps + 8 * (lists + 1) (the made-up ones, and what a vector store writes past the last).
  * None where gather_conv runs on the AMX tiles: they run every product. Returns the number of
- * entries, or -2 in a build without AVX-512 bfloat16. */
+ * entries, -2 in a build without AVX-512 bfloat16, or -3 (the lists meaningless) for an index out of
+ * [0, absent]. */
 int64_t o3dvis_conv_entries(int64_t n, const int64_t *index, int32_t taps, int64_t absent, int64_t *offsets,
                             int64_t *entries) {
 #ifdef __AVX512BF16__
     const __m512i lane = _mm512_set_epi64(7, 6, 5, 4, 3, 2, 1, 0), none = _mm512_set1_epi64(absent);
     const __m512i stride = _mm512_set_epi64(7 * taps, 6 * taps, 5 * taps, 4 * taps, 3 * taps, 2 * taps, taps, 0);
     int64_t count = 0;
+    __mmask8 outside = 0;
 #ifdef __AMX_BF16__
     if (tiles_granted()) { /* the tiles run every product: empty lists */
         memset(offsets, 0, sizeof *offsets * (size_t)((n + CONV_BLOCK - 1) / CONV_BLOCK * taps + 1));
@@ -1500,6 +1502,8 @@ int64_t o3dvis_conv_entries(int64_t n, const int64_t *index, int32_t taps, int64
                 const __mmask8 real = m - r0 >= 8 ? 0xff : (__mmask8)((1u << (m - r0)) - 1);
                 const __m512i from = _mm512_mask_i64gather_epi64(none, real, stride, index + (b0 + r0) * taps + t, 8);
                 const __mmask8 kept = _mm512_cmpneq_epi64_mask(from, none);
+                outside |= _mm512_mask_cmplt_epi64_mask(real, from, _mm512_setzero_si512()) |
+                           _mm512_mask_cmpgt_epi64_mask(real, from, none);
                 const __m512i entry = _mm512_or_si512(_mm512_slli_epi64(from, 8),
                                                       _mm512_add_epi64(lane, _mm512_set1_epi64(r0)));
                 _mm512_storeu_si512(entries + count, _mm512_maskz_compress_epi64(kept, entry));
@@ -1509,7 +1513,7 @@ int64_t o3dvis_conv_entries(int64_t n, const int64_t *index, int32_t taps, int64
         }
     }
     *offsets = count;
-    return count;
+    return outside ? -3 : count;
 #else
     (void)n, (void)index, (void)taps, (void)absent, (void)offsets, (void)entries;
     return -2;
@@ -1525,15 +1529,20 @@ int64_t o3dvis_conv_entries(int64_t n, const int64_t *index, int32_t taps, int64
  * (outputs,); residual: (n, outputs) or NULL; out: (n, outputs); offsets, entries: the index's
  * o3dvis_conv_entries, listed of them. Returns 0, or with nothing written -1 when out of memory, -2 in
  * a build without AVX-512 bfloat16, -3 for an index out of [0, rows], -4 for entries that are not
- * lists of rows of blocks and of neighbours in [0, rows], or lists that are not whole groups of 8. */
+ * lists of rows of blocks and of neighbours in [0, rows], or lists that are not whole groups of 8
+ * (the index itself is read, and checked, where the tiles run). */
 int o3dvis_gather_conv(int64_t n, const float *x, int64_t rows, int32_t channels, const int64_t *index,
                        int32_t taps, const int64_t *offsets, const int64_t *entries, int64_t listed,
                        const uint32_t *packed, int32_t outputs, const float *shift, const float *residual,
                        int32_t relu, float *out) {
 #ifdef __AVX512BF16__
     int outside = 0;
-    for (int64_t i = 0; i < n * taps; i++) outside |= (index[i] < 0) | (index[i] > rows);
+#ifdef __AMX_BF16__
+    const int tiles = tiles_granted(), kp = (taps * channels + 31) / 32 * 32;
+    if (tiles) /* the tiles read the index; the vectors only the lists, checked below */
+        for (int64_t i = 0; i < n * taps; i++) outside |= (index[i] < 0) | (index[i] > rows);
     if (outside) return -3;
+#endif
     const int64_t lists = (n + CONV_BLOCK - 1) / CONV_BLOCK * taps;
     for (int64_t i = 0; i < lists; i++)
         outside |= (offsets[i] < 0) | (offsets[i + 1] < offsets[i]) | ((offsets[i + 1] - offsets[i]) % 8 != 0);
@@ -1548,7 +1557,6 @@ int o3dvis_gather_conv(int64_t n, const float *x, int64_t rows, int32_t channels
     float *sums = malloc(sizeof *sums * size);
     uint16_t *a = NULL; /* the tiles' gathered rows */
 #ifdef __AMX_BF16__
-    const int tiles = tiles_granted(), kp = (taps * channels + 31) / 32 * 32;
     if (tiles) a = calloc((size_t)CONV_BLOCK * kp, sizeof *a);
     if (tiles && a == NULL) return free(xb), free(sums), -1;
 #endif

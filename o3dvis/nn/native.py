@@ -268,7 +268,7 @@ def conv_entries(index: Tensor, rows: int) -> Tensor:
         (L,) int64: the offsets of the lists, then their entries (see ``o3dvis_conv_entries``).
 
     Raises:
-        ValueError: an index of the wrong shape or type.
+        ValueError: an index of the wrong shape or type, or out of [0, rows].
         RuntimeError: no AVX-512 bfloat16 kernels here (see :func:`has_gather_conv`).
     """
     n, taps = index.shape
@@ -277,6 +277,8 @@ def conv_entries(index: Tensor, rows: int) -> Tensor:
     out = index.new_empty(lists + 1 + n * taps + 8 * (lists + 1))
     listed = _LIBRARY.o3dvis_conv_entries(n, index.data_ptr(), taps, rows, out.data_ptr(),
                                           out[lists + 1:].data_ptr())
+    if listed == -3:
+        raise ValueError(f"index must lie in [0, {rows}]")
     if listed < 0:
         raise RuntimeError("conv_entries needs the AVX-512 bfloat16 kernels (see has_gather_conv)")
     return out[:lists + 1 + listed]

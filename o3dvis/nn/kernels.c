@@ -920,11 +920,39 @@ static void gather_patches(const struct view *v, const int64_t *idx, int m, floa
     for (int s = 0; s < v->scales; s++) {
         const int64_t w = v->widths[s];
         float *c = cue + 9 * s * BLOCK;
+#ifdef __AVX512F__
+        /* 16 points a step: each row of a point's 3x3 in one masked load of three floats into
+           a 128-bit lane (masked: the buffers' last pixel ends the tensor), four points a
+           vector, then each lane transposed so that a vector holds one pixel of the 16 points */
+        int32_t corner[BLOCK];
+        int b = 0;
+        for (; b < m; b++) corner[b] = v->corners[idx[b] * v->scales + s];
+        for (; b % 16; b++) corner[b] = corner[0];
+        for (b = 0; b < m; b += 16)
+            for (int r = 0; r < 3; r++) {
+                const float *z = v->zbufs + r * w;
+                __m512 q[4];
+                for (int k = 0; k < 4; k++) {
+                    q[k] = _mm512_maskz_loadu_ps(0x7, z + corner[b + k]);
+                    for (int l = 1; l < 4; l++)
+                        q[k] = _mm512_mask_loadu_ps(q[k], (__mmask16)(0x7 << 4 * l), z + corner[b + 4 * l + k] - 4 * l);
+                }
+                const __m512d t0 = _mm512_castps_pd(_mm512_unpacklo_ps(q[0], q[1]));
+                const __m512d t1 = _mm512_castps_pd(_mm512_unpacklo_ps(q[2], q[3]));
+                const __m512d t2 = _mm512_castps_pd(_mm512_unpackhi_ps(q[0], q[1]));
+                const __m512d t3 = _mm512_castps_pd(_mm512_unpackhi_ps(q[2], q[3]));
+                float *row = c + 3 * r * BLOCK + b;
+                _mm512_storeu_ps(row, _mm512_castpd_ps(_mm512_unpacklo_pd(t0, t1)));
+                _mm512_storeu_ps(row + BLOCK, _mm512_castpd_ps(_mm512_unpackhi_pd(t0, t1)));
+                _mm512_storeu_ps(row + 2 * BLOCK, _mm512_castpd_ps(_mm512_unpacklo_pd(t2, t3)));
+            }
+#else
         for (int b = 0; b < m; b++) {
             const float *z = v->zbufs + v->corners[idx[b] * v->scales + s];
             for (int r = 0; r < 3; r++)
                 for (int j = 0; j < 3; j++) c[(3 * r + j) * BLOCK + b] = z[r * w + j];
         }
+#endif
     }
 }
 

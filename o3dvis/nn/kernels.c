@@ -921,8 +921,8 @@ static void gather_patches(const struct view *v, const int64_t *idx, int m, floa
         const int64_t w = v->widths[s];
         float *c = cue + 9 * s * BLOCK;
 #ifdef __AVX512F__
-        /* 16 points a step: each row of a point's 3x3 in one masked load of three floats into
-           a 128-bit lane (masked: the buffers' last pixel ends the tensor), four points a
+        /* 16 points a step: each row of a point's 3x3 in one load of three floats, expanded into
+           a 128-bit lane (three only: the buffers' last pixel ends the tensor), four points a
            vector, then each lane transposed so that a vector holds one pixel of the 16 points */
         int32_t corner[BLOCK];
         int b = 0;
@@ -935,7 +935,7 @@ static void gather_patches(const struct view *v, const int64_t *idx, int m, floa
                 for (int k = 0; k < 4; k++) {
                     q[k] = _mm512_maskz_loadu_ps(0x7, z + corner[b + k]);
                     for (int l = 1; l < 4; l++)
-                        q[k] = _mm512_mask_loadu_ps(q[k], (__mmask16)(0x7 << 4 * l), z + corner[b + 4 * l + k] - 4 * l);
+                        q[k] = _mm512_mask_expandloadu_ps(q[k], (__mmask16)(0x7 << 4 * l), z + corner[b + 4 * l + k]);
                 }
                 const __m512d t0 = _mm512_castps_pd(_mm512_unpacklo_ps(q[0], q[1]));
                 const __m512d t1 = _mm512_castps_pd(_mm512_unpacklo_ps(q[2], q[3]));

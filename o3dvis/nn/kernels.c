@@ -636,8 +636,14 @@ int o3dvis_project(int64_t n, const float *points, const float *camera, const fl
             depth[i] = p[0] * ff[0] + p[1] * ff[1] + p[2] * ff[2];
         }
     }
-    float lanes[16] = {0}, half = 0.0f; /* the largest |u|, |v|, in 16 lanes that vectorise */
-    for (int64_t i = 0; i < 2 * n; i++) {
+    float lanes[16] = {0}, half = 0.0f; /* the largest |u|, |v|, in 16 lanes */
+    int64_t i = 0;
+#ifdef __AVX512F__
+    __m512 largest = _mm512_setzero_ps(); /* max_ps keeps its second operand where one is NaN */
+    for (; i + 16 <= 2 * n; i += 16) largest = _mm512_max_ps(_mm512_abs_ps(_mm512_loadu_ps(uv + i)), largest);
+    _mm512_storeu_ps(lanes, largest);
+#endif
+    for (; i < 2 * n; i++) {
         const float m = fabsf(uv[i]);
         lanes[i % 16] = m > lanes[i % 16] ? m : lanes[i % 16];
     }

@@ -107,7 +107,9 @@ class VisibilityField:
     Made by :meth:`NeuralVisibility.encode`. On the CPU, queries run on the
     threads that :mod:`o3dvis.threads` plans. The features are computed once
     (without autograd); each query runs the per-view predictor only, in
-    batches of views and chunks of points of at most ``chunk_size`` rows.
+    batches of views of at most ``chunk_size`` rows (views x points), the
+    points of a view cut into such chunks too where the torch ops answer it
+    or its chunks run side by side on several threads.
     For a flat cloud (``hull``: centre and basis of its plane or line, in the
     normalised frame), views from off that plane or line see every point.
     With ``rotated`` encodings (see ``NeuralVisibility(num_rotations=...)``),
@@ -355,8 +357,12 @@ class VisibilityField:
         prepared = list(threaded_map(prepare, tasks, workers) if workers > 1 and fusion is not None else
                         map(prepare, tasks))
         projections, zbuffers = prepared[:len(views)], prepared[len(views):]
-        step = min(n, self.chunk_size)
         fuse = fusion.bind(self.noise) if any(z is not None for z in zbuffers) else None
+        # chunks bound the memory of the torch ops and split a view over the workers; one pass of C
+        # streams all the points through the cache itself, and each chunk would pay its setup again
+        whole = (workers == 1 and fuse is None
+                 and self.network.native_margin(projections, features, self.matmul_dtype))
+        step = n if whole else min(n, self.chunk_size)
 
         def chunk_margin(a: int) -> Tensor:
             chunk = slice(a, a + step) if rows is None else rows[a:a + step]

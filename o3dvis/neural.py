@@ -185,7 +185,9 @@ class NeuralVisibility:
             clouds of fewer than 5 500 points in ``network``'s stead (the
             shipped one, on a coarser octree, is faster there and as accurate).
         device: torch device to run on (default: the network's device).
-        chunk_size: rows (views x points) per MLP call; bounds the memory of queries.
+        chunk_size: rows (views x points) per MLP call; bounds the memory of queries. A view
+            that the C kernels answer goes in one call (they stream its points through the
+            cache), unless its chunks are answered side by side on several threads.
         num_rotations: answer with the mean of the network's answers for this many
             copies of the cloud (and its cameras), turned by fixed rotations, the
             first unturned: the pixels of the depth buffers fall differently in each

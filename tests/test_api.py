@@ -18,7 +18,7 @@ from o3dvis.cli._common import split_vectors
 from o3dvis.models import file_sha256
 from o3dvis.geometry import bounds, fixed_rotations
 from o3dvis.neural import first_pass_normals
-from o3dvis.nn import NetworkConfig, VisibilityNetwork
+from o3dvis.nn import NetworkConfig, VisibilityNetwork, native
 from o3dvis.orientation import voted_normals
 from o3dvis.pretrained import shared_pretrained
 from o3dvis.training.data import random_shape
@@ -134,7 +134,8 @@ def test_batched_query_equals_one_call_per_camera(network, points, monkeypatch):
     singles = [field.query(c, threshold=threshold) for c in cameras]
     np.testing.assert_array_equal(mask, np.concatenate(singles))
     np.testing.assert_array_equal(mask, batched.numpy() > threshold)
-    # Small chunks: several point chunks per view, and several views per MLP call.
+    # Small chunks: several views per MLP call where a chunk holds several views' points; the torch
+    # ops (here under autograd) also cut each view's points into chunks, one pass of C per view does not
     rows, margin = [], network.view_margin
 
     def counted(*args):
@@ -143,11 +144,19 @@ def test_batched_query_equals_one_call_per_camera(network, points, monkeypatch):
         return out
 
     monkeypatch.setattr(network, "view_margin", counted)
+    n = len(points)
+    in_c = native.available() and native.has_view_margin(field.matmul_dtype)
+    differentiable = field.probabilities(torch.tensor(cameras, requires_grad=True)).detach()
     for chunk in (1000, 7000):
-        rows.clear()
         small = o3dvis.NeuralVisibility(network, chunk_size=chunk).encode(points)
+        rows.clear()
         torch.testing.assert_close(small.probabilities(cameras), batched, atol=1e-6, rtol=1e-5)
-        assert max(rows) <= chunk and sum(rows) == 5 * len(points)
+        if in_c:  # batches of 1 or 2 views, all their points in one call
+            assert sorted(rows) == ([n] * 5 if chunk == 1000 else [n, 2 * n, 2 * n])
+        rows.clear()
+        grad = small.probabilities(torch.tensor(cameras, requires_grad=True))
+        torch.testing.assert_close(grad.detach(), differentiable, atol=1e-6, rtol=1e-5)
+        assert max(rows) <= chunk and sum(rows) == 5 * n
         assert len(rows) == (15 if chunk == 1000 else 3)
 
 

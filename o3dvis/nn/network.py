@@ -261,8 +261,7 @@ class VisibilityNetwork(nn.Module):
         leaves = isinstance(projected, LeafFeatures)
         stored = projected.leaves if leaves else projected
         dtype = dtype or stored.dtype
-        if (all(v.native for v in views) and native.usable(stored) and native.has_view_margin(dtype)
-                and (leaves or projected.stride(0) == 1)):  # stored channels first, as encode() stores it
+        if self.native_margin(views, projected, dtype):
             if self.config.use_normals and normals is None:
                 raise ValueError("this model needs normals")
             n_points = projected.num_points if leaves else projected.shape[0]
@@ -276,6 +275,16 @@ class VisibilityNetwork(nn.Module):
         dirs, cues = ((inputs[0][0][None], inputs[0][1][None]) if len(inputs) == 1 else
                       (torch.stack([d for d, _ in inputs]), torch.stack([c for _, c in inputs])))
         return predictor.margin(projected.rows(rows) if leaves else projected[rows], dirs, cues, dtype)
+
+    @staticmethod
+    def native_margin(views: Sequence[ViewProjection], projected: Tensor | LeafFeatures,
+                      dtype: torch.dtype | None = None) -> bool:
+        """Whether :meth:`view_margin` runs one pass of C per view for these arguments (streaming
+        the points through the cache itself), not the torch ops."""
+        leaves = isinstance(projected, LeafFeatures)
+        stored = projected.leaves if leaves else projected
+        return (all(v.native for v in views) and native.usable(stored) and native.has_view_margin(dtype or stored.dtype)
+                and (leaves or projected.stride(0) == 1))  # stored channels first, as encode() stores it
 
     def predict(self, features: Tensor, points: Tensor, camera: Tensor | None = None,
                 direction: Tensor | None = None, normals: Tensor | None = None,

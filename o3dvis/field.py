@@ -43,10 +43,11 @@ the orthographic view in its direction, the limit of ever farther cameras. The p
 in float32 relative to the cloud, where a camera 10^5 diagonals away starts to lose the points'
 depth differences (accuracy falls from 10^5 on, to half at 10^7): the switch sits well below that,
 where a perspective view differs from the orthographic one by a thousandth of a radian."""
-# points a leaf from which a first one-view query reads the features from the leaves: with fewer, a
-# view's reads from the leaves cost more than carrying them to the points (drop-in calls measured
-# 4-7 % slower at 1.2-1.8 points a leaf, the same at 7, 6 % faster at 13 (a 1 M-point room) and
-# 24 % faster at 33 (a 1 M-point object))
+# points a leaf from which queries read the features from the leaves (see _query_features): with
+# fewer, a view's reads from the leaves cost more than carrying them to the points (drop-in calls
+# measured 4-7 % slower at 1.2-1.8 points a leaf, the same at 7, 6 % faster at 13 (a 1 M-point room)
+# and 24 % faster at 33 (a 1 M-point object); 26 views of 200 k points, 7.2 a leaf, 3-4 % faster
+# than carrying them once, on one thread or two)
 _LEAF_READ_POINTS = 4
 
 
@@ -172,14 +173,17 @@ class VisibilityField:
             return self._features
 
     def _query_features(self, views: int) -> Tensor | LeafFeatures:
-        """The features a query of ``views`` views reads: the first query of one view of a cloud
-        of several points a leaf reads them from the leaves (one view reads less than carrying
-        them to every point writes: that is the drop-in's call); any other query, those carried to
-        the points (:attr:`features`)."""
+        """The features a query of ``views`` views reads. Those of a cloud of several points a leaf
+        (:data:`_LEAF_READ_POINTS`) are read from the leaves by every query that the C kernels
+        answer (each point's term added as they read: no pass that carries them to every point)
+        and, where the torch ops answer, by a first query of one view (it reads less than carrying
+        them writes); any other query reads those carried to the points (:attr:`features`)."""
         first, self._queried = not self._queried, True
-        if (self._features is None and first and views == 1
-                and self.num_points >= _LEAF_READ_POINTS * self._leaves.leaves.shape[1]):
-            return self._leaves
+        if self._features is None and self.num_points >= _LEAF_READ_POINTS * self._leaves.leaves.shape[1]:
+            in_c = (self.device.type == "cpu" and not torch.is_grad_enabled()
+                    and native.has_view_margin(self.matmul_dtype))
+            if in_c or (first and views == 1):
+                return self._leaves
         return self.features
 
     @property

@@ -730,10 +730,11 @@ def test_the_runtime_never_imports_training_code():
     assert run.stdout.strip() == "[]"
 
 
-def test_a_first_view_reads_the_features_from_the_leaves_and_later_queries_carry_them(vis, points):
-    """The drop-in's one view of a dense cloud reads the features where they are stored, per
-    octree leaf; a later query carries them to every point once, and the answers do not change.
-    A cloud of few points a leaf has them carried at once."""
+def test_dense_clouds_read_the_features_from_the_leaves(vis, points):
+    """A dense cloud's queries that the C kernels answer read the features where they are
+    stored, per octree leaf, the drop-in's one view among them; where the torch ops answer, a
+    first query of one view reads them there and a later query carries them to every point once.
+    The answers do not change. A cloud of few points a leaf has them carried at once."""
     camera = _camera(points)
     sparse = vis.encode(points)
     assert sparse.num_points < 4 * sparse._leaves.leaves.shape[1]
@@ -744,14 +745,18 @@ def test_a_first_view_reads_the_features_from_the_leaves_and_later_queries_carry
     field = vis.encode(points)
     first = field.probabilities(camera)
     assert field._features is None  # nothing carried to the points for one view
+    in_c = native.has_view_margin(field.matmul_dtype)
     again = field.probabilities(camera)
-    assert field._features is not None
+    assert (field._features is None) == in_c
     torch.testing.assert_close(again, first, atol=1e-6, rtol=0)
+    two = vis.encode(points)  # several views at once
+    torch.testing.assert_close(two.probabilities(np.stack([camera, -camera]))[:1], first, atol=1e-6, rtol=0)
+    assert (two._features is None) == in_c
+    differentiable = torch.tensor(camera, requires_grad=True)  # the torch ops, after a first query
+    field.probabilities(differentiable).sum().backward()
+    assert field._features is not None and differentiable.grad is not None
     features = field.features
     assert features.shape == (len(points), vis.network.predictor.embedding.dim) and features.stride(0) == 1
-    two = vis.encode(points)  # a first query of several views carries them too
-    torch.testing.assert_close(two.probabilities(np.stack([camera, -camera]))[:1], first, atol=1e-6, rtol=0)
-    assert two._features is not None
 
 
 def test_every_module_defines_what_its_all_names():

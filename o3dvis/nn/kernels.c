@@ -650,57 +650,63 @@ int o3dvis_project(int64_t n, const float *points, const float *camera, const fl
     for (int j = 0; j < 16; j++) half = lanes[j] > half ? lanes[j] : half;
     half = half * (1.0f + 1e-6f) + 1e-12f;
     for (int64_t i = 0; i < 2 * n; i++) uv[i] += half;
-    int64_t start = 0;
+    int64_t start[MAX_SCALES], total = 0;
     for (int s = 0; s < scales; s++) {
         const int64_t res = sides[s], w = res + 2;
+        start[s] = total, total += w * w;
         /* a product with the reciprocal instead of torch's division by the pixel size: no
            division per point (they are most of the pass), the same pixel but within an ulp */
         rpix[s] = (float)res / (2.0f * half);
-        float *zbuf = zbufs + start;
+        float *zbuf = zbufs + start[s];
         for (int64_t q = 0; q < w * w; q++) zbuf[q] = NAN;
         for (int64_t r = 1; r <= res; r++)
             for (int64_t c = 1; c <= res; c++) zbuf[r * w + c] = INFINITY;
-        int64_t i = 0;
+    }
+    i = 0;
 #ifdef __AVX512F__
-        /* the pixels of 16 points at a time in vectors (as the loop below computes them: max_ps
-           gives 0 for NaN and -0), then their minima one by one */
-        const __m512i evens = _mm512_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30),
-                      odds = _mm512_add_epi32(evens, _mm512_set1_epi32(1));
-        const __m512 scale = _mm512_set1_ps(rpix[s]), edge = _mm512_set1_ps((float)(res - 1));
-        for (; i + 16 <= n; i += 16) {
-            const __m512 a = _mm512_loadu_ps(uv + 2 * i), b = _mm512_loadu_ps(uv + 2 * i + 16);
-            const __m512 fu = _mm512_max_ps(_mm512_mul_ps(_mm512_permutex2var_ps(a, evens, b), scale),
-                                            _mm512_setzero_ps());
-            const __m512 fv = _mm512_max_ps(_mm512_mul_ps(_mm512_permutex2var_ps(a, odds, b), scale),
-                                            _mm512_setzero_ps());
-            const __m512i top = _mm512_set1_epi32((int)(res - 1));
+    /* the pixels of 16 points at a time in vectors, as the loop below computes them (max_ps gives
+       0 for NaN and -0; the clamp by a mask), then their minima one by one, the scales side by
+       side: consecutive points often fall into one pixel, and each minimum then waits on the last */
+    const __m512i evens = _mm512_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30),
+                  odds = _mm512_add_epi32(evens, _mm512_set1_epi32(1));
+    for (; i + 16 <= n; i += 16) {
+        const __m512 a = _mm512_loadu_ps(uv + 2 * i), b = _mm512_loadu_ps(uv + 2 * i + 16);
+        const __m512 u = _mm512_permutex2var_ps(a, evens, b), v = _mm512_permutex2var_ps(a, odds, b);
+        int32_t corner[MAX_SCALES][16];
+        for (int s = 0; s < scales; s++) {
+            const __m512 scale = _mm512_set1_ps(rpix[s]), edge = _mm512_set1_ps((float)(sides[s] - 1));
+            const __m512 fu = _mm512_max_ps(_mm512_mul_ps(u, scale), _mm512_setzero_ps());
+            const __m512 fv = _mm512_max_ps(_mm512_mul_ps(v, scale), _mm512_setzero_ps());
+            const __m512i top = _mm512_set1_epi32((int)(sides[s] - 1));
             const __m512i iu = _mm512_mask_blend_epi32(_mm512_cmp_ps_mask(fu, edge, _CMP_LT_OQ), top,
                                                        _mm512_cvttps_epi32(fu));
             const __m512i iv = _mm512_mask_blend_epi32(_mm512_cmp_ps_mask(fv, edge, _CMP_LT_OQ), top,
                                                        _mm512_cvttps_epi32(fv));
-            int32_t corner[16];
-            const __m512i row = _mm512_mullo_epi32(iu, _mm512_set1_epi32((int)w));
-            _mm512_storeu_si512(corner, _mm512_add_epi32(_mm512_set1_epi32((int)start), _mm512_add_epi32(row, iv)));
-            for (int j = 0; j < 16; j++) {
-                float *z = zbufs + corner[j] + w + 1;
-                *z = depth[i + j] < *z ? depth[i + j] : *z;
-                corners[(i + j) * scales + s] = corner[j];
-            }
+            const __m512i row = _mm512_mullo_epi32(iu, _mm512_set1_epi32((int)(sides[s] + 2)));
+            const __m512i first = _mm512_set1_epi32((int)start[s]);
+            _mm512_storeu_si512(corner[s], _mm512_add_epi32(first, _mm512_add_epi32(row, iv)));
         }
+        for (int j = 0; j < 16; j++)
+            for (int s = 0; s < scales; s++) {
+                float *z = zbufs + corner[s][j] + sides[s] + 3;
+                *z = depth[i + j] < *z ? depth[i + j] : *z;
+                corners[(i + j) * scales + s] = corner[s][j];
+            }
+    }
 #endif
-        for (; i < n; i++) {
+    for (; i < n; i++)
+        for (int s = 0; s < scales; s++) {
+            const int64_t res = sides[s], w = res + 2;
             /* truncated and clamped to the image as torch's .long().clamp_(); NaN goes to 0 */
             float fu = uv[2 * i] * rpix[s], fv = uv[2 * i + 1] * rpix[s];
             fu = fu >= 0.0f ? fu : 0.0f, fv = fv >= 0.0f ? fv : 0.0f;
             const int64_t iu = fu < (float)(res - 1) ? (int64_t)fu : res - 1;
             const int64_t iv = fv < (float)(res - 1) ? (int64_t)fv : res - 1;
-            float *z = zbuf + (iu + 1) * w + iv + 1;
+            float *z = zbufs + start[s] + (iu + 1) * w + iv + 1;
             *z = depth[i] < *z ? depth[i] : *z;
-            corners[i * scales + s] = (int32_t)(start + iu * w + iv);
+            corners[i * scales + s] = (int32_t)(start[s] + iu * w + iv);
         }
-        for (int64_t q = 0; q < w * w; q++) zbuf[q] = zbuf[q] == INFINITY ? NAN : zbuf[q];
-        start += w * w;
-    }
+    for (int64_t q = 0; q < total; q++) zbufs[q] = zbufs[q] == INFINITY ? NAN : zbufs[q];
     return 0;
 }
 

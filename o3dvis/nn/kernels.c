@@ -716,7 +716,8 @@ int o3dvis_project(int64_t n, const float *points, const float *camera, const fl
 static double least_axis(const double *a, double *axis) {
     const double q = (a[0] + a[4] + a[8]) / 3.0;
     const double off = a[1] * a[1] + a[2] * a[2] + a[5] * a[5];
-    const double p = sqrt(((a[0] - q) * (a[0] - q) + (a[4] - q) * (a[4] - q) + (a[8] - q) * (a[8] - q) + 2.0 * off) / 6.0);
+    const double p =
+        sqrt(((a[0] - q) * (a[0] - q) + (a[4] - q) * (a[4] - q) + (a[8] - q) * (a[8] - q) + 2.0 * off) / 6.0);
     const double pp = p > 1e-300 ? p : 1e-300;
     double b[9];
     for (int k = 0; k < 9; k++) b[k] = (a[k] - (k % 4 == 0 ? q : 0.0)) / pp;

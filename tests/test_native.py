@@ -550,6 +550,10 @@ def test_view_margin_rejects_what_the_kernel_cannot_take():
             fast.margin(torch.tensor([0, 500]), projected, 4, None, mlp, torch.empty(2))
         with pytest.raises(ValueError, match="normals must be"):
             fast.margin(slice(None), projected, 4, torch.empty(499, 3), mlp, torch.empty(500))
+        view = (fast.dirs, projected, 4, fast.buffers, fast.corners, fast.sides, fast.depth, fast.rpix, True)
+        for empty in (1e4, float("nan")):  # beyond the kernels' asinh
+            with pytest.raises(ValueError, match="empty must be a residual"):
+                native.view_margin(slice(None), *view, empty, None, mlp, torch.empty(500))
         wide = native.pack_mlp([(torch.randn(144, 63), torch.randn(144)), (torch.randn(1, 144), torch.randn(1))],
                                torch.float32)
         with pytest.raises(ValueError, match="wider than 128"):

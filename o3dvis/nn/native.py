@@ -25,7 +25,7 @@ from torch import Tensor
 from .. import clib
 from .features import LeafFeatures
 
-__all__ = ["MAX_POINTS", "available", "variant", "usable", "has_view_margin", "bounds", "normalize", "morton_keys",
+__all__ = ["MAX_POINTS", "MAX_RESIDUAL", "available", "variant", "usable", "has_view_margin", "bounds", "normalize", "morton_keys",
            "sort_keys", "leaf_means",
            "upsample", "has_gather_conv", "pack_conv", "conv_entries", "gather_conv", "cell_thickness",
            "run_flatness", "project",
@@ -84,6 +84,9 @@ _SIGNATURES = {  # name: (argument types, result type)
 # the most points a view of the kernels takes: its depth buffers (about 1.4 values a point over four
 # scales) are then indexed by int32
 MAX_POINTS = 1 << 30
+# the largest magnitude of a residual the per-view kernels take before asinh (their pieces of it
+# cover up to 2^13 with AVX-512)
+MAX_RESIDUAL = 8192.0
 _LIBRARY = clib.load(f"{__package__}._kernels", _SIGNATURES)
 
 
@@ -532,6 +535,8 @@ def _view(rows: slice | Tensor, dirs: Tensor, projected: Tensor | LeafFeatures, 
     checked; the struct holds on to the tensors made here that it points into."""
     n_points, scales = corners.shape
     n, start, rows = _rows_of(rows, n_points)
+    if not abs(empty) < MAX_RESIDUAL:  # NaN fails too
+        raise ValueError(f"empty must be a residual of magnitude under {MAX_RESIDUAL}, got {empty}")
     rows_pointer = None if rows is None else rows.data_ptr()
     e = 3 + 6 * num_frequencies
     leaves = isinstance(projected, LeafFeatures)
@@ -626,14 +631,15 @@ def view_margin(rows: slice | Tensor, dirs: Tensor, projected: Tensor | LeafFeat
             channels first (strides (1, N)).
         buffers, corners, depth, rpix: the view's, as :func:`project` returns them for ``sides``.
         perspective: a view from a camera (True) or along a direction.
-        empty: the residual an empty pixel takes before ``asinh``.
+        empty: the residual an empty pixel takes before ``asinh``, of magnitude under
+            :data:`MAX_RESIDUAL` (the others are clamped to +-50).
         normals: (N, 3) unit normals for a model that takes them, else None.
         mlp: the predictor's MLP as :func:`pack_mlp` packs it.
         out: (n,) float32.
 
     Raises:
         ValueError: tensors of the wrong shape, dtype, layout or device; an MLP that does not match
-            the inputs or has a layer wider than 128.
+            the inputs or has a layer wider than 128; an ``empty`` out of range.
         IndexError: rows out of range.
         RuntimeError: no kernel for ``mlp.dtype`` in this build.
     """

@@ -25,8 +25,8 @@ from torch import Tensor
 from .. import clib
 from .features import LeafFeatures
 
-__all__ = ["MAX_POINTS", "MAX_RESIDUAL", "available", "variant", "usable", "has_view_margin", "bounds", "normalize", "morton_keys",
-           "sort_keys", "leaf_means",
+__all__ = ["MAX_POINTS", "MAX_RESIDUAL", "available", "variant", "usable", "has_view_margin", "bounds", "normalize",
+           "morton_keys", "sort_keys", "leaf_means",
            "upsample", "has_gather_conv", "pack_conv", "conv_entries", "gather_conv", "cell_thickness",
            "run_flatness", "project",
            "surfels", "surfel_zbuffer", "plane_splat", "PackedMLP", "pack_mlp", "view_margin", "fuse_margin",

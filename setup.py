@@ -26,8 +26,8 @@ def _extensions() -> list[Extension]:
     x86 = _CLIB["is_x86"]()
     variants = {name: [*(_CLIB["X86_64_ARGS"] if x86 else ()), *variant.compile_args]
                 for name, variant in _CLIB["VARIANTS"].items() if name == "base" or x86}
-    return [Extension(f"{module}_{name}", [source], extra_compile_args=flags + variants[name], libraries=["m"],
-                      optional=True)
+    return [Extension(f"{module}_{name}", [source], extra_compile_args=["-pthread", *flags, *variants[name]],
+                      extra_link_args=["-pthread"], libraries=["m"], optional=True)
             for module, (source, flags, built) in _LIBRARIES.items() for name in built if name in variants]
 
 

@@ -49,6 +49,9 @@ where a perspective view differs from the orthographic one by a thousandth of a 
 # and 24 % faster at 33 (a 1 M-point object); 26 views of 200 k points, 7.2 a leaf, 3-4 % faster
 # than carrying them once, on one thread or two)
 _LEAF_READ_POINTS = 4
+# queries of fewer rows (views x points) run on one thread where the C kernels answer: their helper
+# threads (see native.kernel_threads) take over some blocks of a view from there
+_KERNEL_SPLIT_ROWS = 4096
 
 
 def _fmt(vector: Tensor) -> str:
@@ -363,9 +366,9 @@ class VisibilityField:
         projections, zbuffers = prepared[:len(views)], prepared[len(views):]
         fuse = fusion.bind(self.noise) if any(z is not None for z in zbuffers) else None
         # chunks bound the memory of the torch ops and split a view over the workers; one pass of C
-        # streams all the points through the cache itself, and each chunk would pay its setup again
-        whole = (workers == 1 and fuse is None
-                 and self.network.native_margin(projections, features, self.matmul_dtype))
+        # streams all the points through the cache itself (each chunk would pay its setup again)
+        # and shares its blocks out among the workers' count of threads (native.kernel_threads)
+        whole = fuse is None and self.network.native_margin(projections, features, self.matmul_dtype)
         step = n if whole else min(n, self.chunk_size)
 
         def chunk_margin(a: int) -> Tensor:
@@ -375,9 +378,13 @@ class VisibilityField:
                 margin = torch.stack([m if z is None else fuse(m, z, chunk) for m, z in zip(margin, zbuffers)])
             return margin
 
-        starts = range(0, n, step)
-        margin = torch.cat(list(threaded_map(chunk_margin, starts, workers) if workers > 1 else
-                                map(chunk_margin, starts)), dim=1)
+        if whole:  # workers: the kernels' threads here (else those the caller set)
+            with torch_threads(workers) if workers > 1 else contextlib.nullcontext():
+                margin = chunk_margin(0)
+        else:
+            starts = range(0, n, step)
+            margin = torch.cat(list(threaded_map(chunk_margin, starts, workers) if workers > 1 else
+                                    map(chunk_margin, starts)), dim=1)
         del projections, zbuffers, prepared
         if self.calibration is not None:
             scale, shift = self.calibration
@@ -429,12 +436,14 @@ class VisibilityField:
             probs = probs if unsort is None else torch.gather(probs, 1, unsort.expand(len(probs), -1))
             return probs if finish is None else finish(probs)
 
-        # Views side by side on the CPU's threads, each on one: per-view ops are many and small, and
-        # the C kernels (o3dvis.nn.native) run on one thread each. Without the kernels, a view of at
-        # most one chunk of points is a few large torch ops that split well over the threads, and
-        # is left to them. A single batch of views has its chunks side by side instead.
+        # Views side by side on the CPU's threads, each on one: per-view ops are many and small. The
+        # C kernels (o3dvis.nn.native) share one view's points out among threads themselves, from
+        # smaller views on than torch ops split well. Without the kernels, a view of at most one
+        # chunk of points is a few large torch ops that split well over the threads, and is left to
+        # them. A single batch of views has its chunks side by side instead.
         cpu = self.device.type == "cpu"
-        threads = plan_threads(n * total, self.chunk_size) if cpu else 1
+        in_c = cpu and native.usable(self.points) and native.has_view_margin(self.matmul_dtype)
+        threads = plan_threads(n * total, _KERNEL_SPLIT_ROWS if in_c else self.chunk_size) if cpu else 1
         side_by_side = cpu and not torch.is_grad_enabled()
         if side_by_side and threads > 1 and len(batches) == 1 and n > self.chunk_size:
             with torch_threads(1):  # no OpenMP team of the caller's to spin beside the workers

@@ -178,26 +178,32 @@ def test_views_answered_side_by_side_on_the_threads_as_one_at_a_time(scenes, mon
 
 
 @two_cores
-def test_one_view_answered_in_chunks_side_by_side(scenes, monkeypatch):
-    """A single view of a cloud of several chunks has its chunks answered on the worker threads
-    when o3dvis runs on several: the same answers as on the caller's thread alone (there in one
-    call, one pass of C over all the points, where the kernels run), for a first query (made to
-    read the features from the leaves, whatever their points a leaf) and a later one (from the
-    points)."""
+def test_one_view_shared_out_among_threads_answers_as_on_one(scenes, monkeypatch):
+    """A single view of a cloud of several chunks, when o3dvis runs on several threads, is one pass
+    of C whose blocks the kernels' threads share where the kernels run, else its chunks answered
+    on the worker threads: the same answers as on the caller's thread alone, for a first query
+    (made to read the features from the leaves, whatever their points a leaf) and a later one
+    (from the points)."""
     import o3dvis.field
 
     monkeypatch.setattr(o3dvis.field, "_LEAF_READ_POINTS", 0)
     pcd = scenes[0][0]
     view = _camera(pcd, 7)
     vis = o3dvis.NeuralVisibility.pretrained(precision="float32", use_small=False)  # the network spied on
-    ran_on = []
-    margin = vis.network.view_margin
+    ran_on, kernel = [], []
+    margin, view_margin = vis.network.view_margin, native.view_margin
 
     def spy(*args, **kwargs):
         ran_on.append(threading.current_thread())
         return margin(*args, **kwargs)
 
+    def spy_kernel(*args, **kwargs):
+        kernel.append(native.kernel_threads(kwargs.get("threads")))
+        return view_margin(*args, **kwargs)
+
     monkeypatch.setattr(vis.network, "view_margin", spy)
+    monkeypatch.setattr(native, "view_margin", spy_kernel)
+    in_c = native.available() and native.has_view_margin(torch.float32)
     threads = torch.get_num_threads()
     try:
         for query in ("first", "later"):
@@ -206,17 +212,19 @@ def test_one_view_answered_in_chunks_side_by_side(scenes, monkeypatch):
                 field.chunk_size = 300  # four chunks of the 1 200 points
                 if query == "later":
                     field.probabilities(view)
-            ran_on.clear()
+            ran_on.clear(), kernel.clear()
             torch.set_num_threads(2)
             o3dvis.set_num_threads(2)
             side_by_side = fields[0].probabilities(view)
-            assert len(ran_on) == 4 and all(t.name.startswith("o3dvis-views") for t in ran_on)
+            if in_c:
+                assert ran_on == [threading.current_thread()] and kernel == [2]
+            else:
+                assert len(ran_on) == 4 and all(t.name.startswith("o3dvis-views") for t in ran_on)
             assert torch.get_num_threads() == 2
-            ran_on.clear()
+            ran_on.clear(), kernel.clear()
             o3dvis.set_num_threads(1)
             alone = fields[1].probabilities(view)
-            in_c = native.available() and native.has_view_margin(torch.float32)
-            assert ran_on == [threading.current_thread()] * (1 if in_c else 4)
+            assert ran_on == [threading.current_thread()] * (1 if in_c else 4) and set(kernel) <= {1}
             torch.testing.assert_close(side_by_side, alone, atol=0, rtol=0)
     finally:
         o3dvis.set_num_threads(None)

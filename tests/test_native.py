@@ -527,6 +527,56 @@ def test_view_margin_reads_features_stored_per_leaf(rows, dtype):
 
 
 @needs_kernels
+def test_kernels_share_their_blocks_among_threads_with_the_same_answers(variant, monkeypatch):
+    """The convolutions, up-samplings and view margins give each row the same sums on any number
+    of threads (the caller's and the crew's, which may be more than the cores), and refuse a count
+    out of range; a forked child, which has none of the parent's helpers, still gets its answers."""
+    from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
+    from o3dvis.threads import torch_threads
+
+    g = torch.Generator().manual_seed(8)
+    x, index = torch.randn(2000, 32, generator=g), torch.randint(0, 2001, (1500, 27), generator=g)
+    weight, shift = torch.randn(27 * 32, 48, generator=g) / 27, torch.randn(48, generator=g)
+    rows = torch.sort(torch.randperm(8 * 2000, generator=g)[:5000]).values
+    up_weight = torch.randn(32, 8 * 48, generator=g) / 32
+    packed = native.pack_conv(weight, 27) if native.has_gather_conv() else None
+
+    def answers(threads: int) -> list[np.ndarray]:  # numpy: no torch op of OpenMP's in a forked child
+        out = [native.upsample(x, rows, up_weight, shift, True, threads=threads)]
+        if packed is not None:
+            out.append(native.gather_conv(x, index, packed, 27, 48, shift, relu=True, threads=threads))
+        return [a.numpy() for a in out]
+
+    one = answers(1)
+    for threads in (2, 3, 7):
+        assert all(np.array_equal(a, b) for a, b in zip(answers(threads), one))
+    for bad in (0, native.MAX_THREADS + 1, True, 2.0):
+        with pytest.raises(ValueError, match="threads must be"):
+            native.upsample(x, rows, up_weight, shift, True, threads=bad)
+    network = VisibilityNetwork(NetworkConfig(channels=(8, 8))).eval()
+    points = _points()
+    fast, _ = _views(points, camera=_CAMERA)
+    projected = torch.randn(network.predictor.embedding.dim, len(points), generator=g).T
+    monkeypatch.setattr(native, "usable_cores", lambda: 8)  # the threads torch is given, whatever the cores
+    for dtype in (torch.float32, torch.bfloat16):
+        if native.has_view_margin(dtype):
+            margins = []
+            for threads in (1, 3):
+                with torch.inference_mode(), torch_threads(threads):
+                    margins.append(network.view_margin([fast], slice(None), projected, None, dtype))
+            assert torch.equal(*margins)
+    if hasattr(os, "fork"):
+        pid = os.fork()
+        if pid == 0:  # the child: exit 0 only if the kernels answer alike within the alarm
+            import signal
+
+            signal.alarm(20)
+            os._exit(0 if all(np.array_equal(a, b) for a, b in zip(answers(2), one)) else 1)
+        _, status = os.waitpid(pid, 0)
+        assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0
+
+
+@needs_kernels
 def test_view_margin_rejects_what_the_kernel_cannot_take():
     from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
 

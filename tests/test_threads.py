@@ -13,6 +13,7 @@ import torch
 
 import o3dvis
 from o3dvis import threads
+from o3dvis.nn import native
 from o3dvis.training.speed import bench_cloud
 
 
@@ -171,15 +172,16 @@ def test_own_busy_threads_are_counted_as_own():
 
 
 def test_encode_and_query_run_on_the_planned_threads_and_restore_torch(monkeypatch):
-    """With one usable core, nothing runs on two threads (torch's or o3dvis's); with a fixed count
-    of two, the encode's ops split over two and a query's chunks go side by side; the caller's torch
-    count is back after each, and the answers are the same."""
+    """With one usable core, nothing runs on two threads (torch's, o3dvis's or the C kernels'); with a
+    fixed count of two, the encode's ops and convolutions split over two, and a query's view is one
+    pass of C whose blocks two threads share where the kernels answer, else its chunks go side by
+    side; the caller's torch count is back after each, and the answers are the same."""
     if threads.usable_cores() < 2:
         pytest.skip("needs two usable cores")
     vis = o3dvis.NeuralVisibility.pretrained(precision="float32")
     cloud = bench_cloud(20_000, 3)
-    seen, ran_on = [], []
-    encode, margin = vis.network.encode_leaves, vis.network.view_margin
+    seen, ran_on, kernel = [], [], []
+    encode, margin, view_margin = vis.network.encode_leaves, vis.network.view_margin, native.view_margin
 
     def spy_encode(*args, **kwargs):
         seen.append(torch.get_num_threads())
@@ -189,25 +191,36 @@ def test_encode_and_query_run_on_the_planned_threads_and_restore_torch(monkeypat
         ran_on.append(threading.current_thread())
         return margin(*args, **kwargs)
 
-    monkeypatch.setattr(vis.network, "encode_leaves", spy_encode)
-    monkeypatch.setattr(vis.network, "view_margin", spy_margin)
+    def spy_kernel(*args, **kwargs):
+        kernel.append(native.kernel_threads(kwargs.get("threads")))
+        return view_margin(*args, **kwargs)
+
+    def spy():
+        monkeypatch.setattr(vis.network, "encode_leaves", spy_encode)
+        monkeypatch.setattr(vis.network, "view_margin", spy_margin)
+        monkeypatch.setattr(native, "view_margin", spy_kernel)
+
+    spy()
     torch.set_num_threads(2)
     monkeypatch.setattr(threads, "usable_cores", lambda: 1)
     field = vis.encode(cloud.points)
     field.chunk_size = 4096
     one = field.probabilities(cloud.cameras)
-    assert seen == [1] and set(ran_on) == {threading.current_thread()}
+    assert seen == [1] and set(ran_on) == {threading.current_thread()} and set(kernel) <= {1}
     assert torch.get_num_threads() == 2
     monkeypatch.undo()
-    monkeypatch.setattr(vis.network, "encode_leaves", spy_encode)
-    monkeypatch.setattr(vis.network, "view_margin", spy_margin)
-    seen.clear(), ran_on.clear()
+    spy()
+    seen.clear(), ran_on.clear(), kernel.clear()
     torch.set_num_threads(1)
     o3dvis.set_num_threads(2)
     field = vis.encode(cloud.points)
     field.chunk_size = 4096
     two = field.probabilities(cloud.cameras[0])
-    assert seen == [2] and threading.current_thread() not in ran_on and len(ran_on) == 5
+    assert seen == [2]
+    if native.available():  # one pass of C for the view, its blocks on two threads
+        assert ran_on == [threading.current_thread()] and kernel == [2]
+    else:  # the torch ops' chunks side by side
+        assert threading.current_thread() not in ran_on and len(ran_on) == 5
     assert torch.get_num_threads() == 1
     torch.testing.assert_close(two, one[:1], atol=1e-5, rtol=0)
 

@@ -195,7 +195,8 @@ class ConvBnRelu(nn.Module):
         kernels take it: an up-sampling for the nodes that exist only (:func:`~o3dvis.nn.native.upsample`,
         the same float32 sums), a convolution in bfloat16 dot products (:func:`~o3dvis.nn.native.gather_conv`,
         for an even number of input channels and outputs a multiple of 16, on a CPU with AVX-512
-        bfloat16); torch ops elsewhere."""
+        bfloat16, its rows shared out among the threads of :func:`~o3dvis.nn.native.kernel_threads`);
+        torch ops elsewhere."""
         dtype = self.conv.product_dtype(x)
         weight, shift = self._folded(dtype)
         in_c = x.device.type == "cpu" and x.dtype == torch.float32 and native.available()

@@ -43,19 +43,26 @@
  * pixel border may thus land on the other side. The bfloat16 MLP rounds to
  * nearest even, as torch rounds.
  *
- * C with no dependency (the bfloat16 MLP with the AVX512-BF16 intrinsics, the
- * float32 one with GCC/Clang vector extensions), loaded with ctypes
- * (o3dvis/nn/native.py), which releases the GIL: the view workers run it side
- * by side. Every buffer is allocated by the caller. Built with
+ * C with no dependency but POSIX threads (the bfloat16 MLP with the AVX512-BF16
+ * intrinsics, the float32 one with GCC/Clang vector extensions), loaded with
+ * ctypes (o3dvis/nn/native.py), which releases the GIL: the view workers run it
+ * side by side. The convolutions, up-samplings and view margins also share one
+ * call's blocks with a crew of helper threads kept between calls (see crew_run),
+ * each row's sums the same on any number of threads. Every buffer but the
+ * convolutions' scratch is allocated by the caller. Built with
  * -fno-math-errno -fno-trapping-math -ffp-contract=off, so that the loops
  * vectorise and rounding follows torch's op order (the MLPs aside: their sums
  * run in another order than oneDNN's, with multiply-adds fused as it fuses them).
  */
 
 #include <math.h>
+#include <pthread.h>
+#include <sched.h>
+#include <signal.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
+#include <time.h>
 #ifdef __AVX512F__
 #include <immintrin.h>
 #endif
@@ -397,57 +404,214 @@ int o3dvis_sort_keys(int64_t n, const int64_t *keys, int64_t *sorted, int64_t *o
     return 0;
 }
 
+/* A crew of helper threads kept for the life of the process, that run a share of a kernel's work
+ * beside the calling thread: a kernel of a few hundred microseconds cannot pay for starting a thread
+ * (tens of microseconds here), so the helpers are started once and, after each piece of work, wait
+ * for the next one spinning for a while (CREW_SPIN_NS), then asleep on a condition variable. The
+ * work is claimed item by item from a shared counter, so a helper that starts late (or not at all,
+ * on a busy machine) only takes fewer items: the caller runs what is left. A forked child starts
+ * with no helpers. */
+#define CREW_MAX 64
+#define CREW_SPIN_NS 50000
+
+struct crew_job {
+    void (*run)(struct crew_job *job, int worker); /* claims items with crew_claim until none is left */
+    int64_t items, next;                         /* next: the first item not claimed yet */
+    int workers, joined;                         /* the most workers, the caller included; helpers in */
+};
+
+static struct {
+    pthread_mutex_t lock;
+    pthread_cond_t wake;
+    struct crew_job *job; /* the one running, NULL between */
+    uint64_t posted;      /* jobs posted so far */
+    int helpers, sleeping, first_worker;
+} crew = {PTHREAD_MUTEX_INITIALIZER, PTHREAD_COND_INITIALIZER, NULL, 0, 0, 0, 0};
+static pthread_once_t crew_once = PTHREAD_ONCE_INIT;
+
+static inline void cpu_relax(void) { /* a spinning thread's pause, which leaves the core's units to others */
+#if defined(__x86_64__) || defined(__i386__)
+    __builtin_ia32_pause();
+#elif defined(__aarch64__)
+    __asm__ volatile("yield");
+#endif
+}
+
+/* The next item of the job for a worker, or -1 when every item is claimed. */
+static inline int64_t crew_claim(struct crew_job *job) {
+    const int64_t item = __atomic_fetch_add(&job->next, 1, __ATOMIC_RELAXED);
+    return item < job->items ? item : -1;
+}
+
+static uint64_t now_ns(void) {
+    struct timespec t;
+    clock_gettime(CLOCK_MONOTONIC, &t);
+    return (uint64_t)t.tv_sec * 1000000000u + (uint64_t)t.tv_nsec;
+}
+
+static void *crew_helper(void *unused) {
+    (void)unused;
+    uint64_t seen = __atomic_load_n(&crew.posted, __ATOMIC_ACQUIRE);
+    for (;;) {
+        const uint64_t until = now_ns() + CREW_SPIN_NS;
+        while (__atomic_load_n(&crew.posted, __ATOMIC_ACQUIRE) == seen && now_ns() < until)
+            for (int i = 0; i < 64; i++) cpu_relax();
+        pthread_mutex_lock(&crew.lock);
+        while (crew.posted == seen) {
+            crew.sleeping++;
+            pthread_cond_wait(&crew.wake, &crew.lock);
+            crew.sleeping--;
+        }
+        seen = crew.posted;
+        struct crew_job *job = crew.job;
+        int worker = -1;
+        if (job != NULL && crew.first_worker < job->workers) {
+            worker = crew.first_worker++;
+            __atomic_add_fetch(&job->joined, 1, __ATOMIC_ACQ_REL);
+        }
+        pthread_mutex_unlock(&crew.lock);
+        if (worker >= 0) {
+            job->run(job, worker);
+            __atomic_sub_fetch(&job->joined, 1, __ATOMIC_RELEASE);
+        }
+    }
+    return NULL;
+}
+
+static void crew_forked(void) { /* the child of a fork has this thread only */
+    pthread_mutex_init(&crew.lock, NULL);
+    pthread_cond_init(&crew.wake, NULL);
+    crew.job = NULL, crew.helpers = crew.sleeping = 0;
+}
+
+static void crew_register(void) { pthread_atfork(NULL, NULL, crew_forked); }
+
+/* Runs job->run on the calling thread (worker 0) and on up to job->workers - 1 helpers (workers 1,
+ * 2, ...), starting helpers that are missing; returns when every worker that joined has returned. */
+static void crew_run(struct crew_job *job) {
+    job->next = 0, job->joined = 0;
+    if (job->workers > 1) {
+        pthread_once(&crew_once, crew_register);
+        pthread_mutex_lock(&crew.lock);
+        while (crew.helpers < job->workers - 1 && crew.helpers < CREW_MAX) {
+            pthread_t thread;
+            pthread_attr_t attr;
+            sigset_t all, before; /* a helper takes no signal: they go to the threads of the program */
+            sigfillset(&all);
+            pthread_attr_init(&attr);
+            pthread_attr_setdetachstate(&attr, PTHREAD_CREATE_DETACHED);
+            pthread_sigmask(SIG_SETMASK, &all, &before);
+            const int failed = pthread_create(&thread, &attr, crew_helper, NULL);
+            pthread_sigmask(SIG_SETMASK, &before, NULL);
+            pthread_attr_destroy(&attr);
+            if (failed) break; /* fewer helpers: the caller claims more */
+            crew.helpers++;
+        }
+        crew.job = job, crew.first_worker = 1;
+        __atomic_add_fetch(&crew.posted, 1, __ATOMIC_RELEASE);
+        if (crew.sleeping) pthread_cond_broadcast(&crew.wake);
+        pthread_mutex_unlock(&crew.lock);
+    }
+    job->run(job, 0);
+    if (job->workers > 1) {
+        pthread_mutex_lock(&crew.lock);
+        if (crew.job == job) crew.job = NULL; /* no helper joins from now on (another caller's may) */
+        pthread_mutex_unlock(&crew.lock);
+        for (int spins = 0; __atomic_load_n(&job->joined, __ATOMIC_ACQUIRE); spins++)
+            if (spins < 4096) cpu_relax();
+            else sched_yield();
+    }
+}
+
+/* The threads a job of items shares out among: threads, but no more than the items. */
+static int crew_workers(int threads, int64_t items) { return items < threads ? (items > 1 ? (int)items : 1) : threads; }
+
+#define UPSAMPLE_ROWS 256 /* rows of an item of o3dvis_upsample's crew job: a multiple of 4 */
+
+struct upsample_job {
+    struct crew_job crew;
+    int64_t n;
+    const float *x;
+    int channels;
+    const int64_t *rows;
+    const float *weight;
+    int outputs, relu;
+    const float *shift;
+    float *out;
+};
+
+/* A worker of o3dvis_upsample: the items of UPSAMPLE_ROWS rows it claims. */
+static void upsample_worker(struct crew_job *crew_job, int worker) {
+    (void)worker;
+    const struct upsample_job *s = (const struct upsample_job *)crew_job;
+    const int channels = s->channels, outputs = s->outputs, relu = s->relu;
+    const float *x = s->x, *weight = s->weight, *shift = s->shift;
+    const int64_t *rows = s->rows, stride = 8 * (int64_t)outputs;
+    float *out = s->out;
+    for (int64_t item = crew_claim(crew_job); item >= 0; item = crew_claim(crew_job)) {
+        int64_t i = item * UPSAMPLE_ROWS;
+        const int64_t end = s->n - i < UPSAMPLE_ROWS ? s->n : i + UPSAMPLE_ROWS;
+#ifdef __AVX512F__
+        /* the sums of four rows in up to sixteen registers: four rows' chains of multiply-adds side by side */
+        if (outputs % 16 == 0 && outputs <= 64)
+            for (; i + 4 <= end; i += 4) {
+                const int t = outputs / 16;
+                const float *xp[4], *w[4];
+                __m512 acc[4][4];
+                for (int r = 0; r < 4; r++) {
+                    xp[r] = x + (rows[i + r] >> 3) * channels, w[r] = weight + (rows[i + r] & 7) * outputs;
+                    for (int u = 0; u < 4; u++) acc[r][u] = _mm512_setzero_ps();
+                }
+                for (int k = 0; k < channels; k++)
+                    for (int r = 0; r < 4; r++) {
+                        const __m512 a = _mm512_set1_ps(xp[r][k]);
+                        const float *wk = w[r] + k * stride;
+                        for (int u = 0; u < t; u++)
+                            acc[r][u] = _mm512_fmadd_ps(a, _mm512_loadu_ps(wk + 16 * u), acc[r][u]);
+                    }
+                for (int r = 0; r < 4; r++)
+                    for (int u = 0; u < t; u++) {
+                        __m512 v = _mm512_add_ps(acc[r][u], _mm512_loadu_ps(shift + 16 * u));
+                        if (relu) v = _mm512_max_ps(v, _mm512_setzero_ps());
+                        _mm512_storeu_ps(out + (i + r) * outputs + 16 * u, v);
+                    }
+            }
+#endif
+        for (; i < end; i++) {
+            const float *xp = x + (rows[i] >> 3) * channels, *w = weight + (rows[i] & 7) * outputs;
+            float *o = out + i * outputs;
+            for (int j = 0; j < outputs; j++) o[j] = 0.0f;
+            for (int k = 0; k < channels; k++) {
+                const float a = xp[k], *wk = w + k * stride;
+                for (int j = 0; j < outputs; j++) o[j] = MADD(a, wk[j], o[j]);
+            }
+            for (int j = 0; j < outputs; j++) {
+                const float v = o[j] + shift[j];
+                o[j] = relu && v < 0.0f ? 0.0f : v;
+            }
+        }
+    }
+}
+
 /* An up-sampling of the U-Net in inference, as o3dvis/nn/conv.py's OctreeUpsample and ConvBnRelu
  * compute it, for the rows that exist only: out[i] = relu?(x[p] W_o + shift) with p = rows[i] / 8
  * the parent's row of x (parents, channels) and o = rows[i] % 8 the octant, W_o the octant's
  * outputs columns of weight (channels, 8 outputs); each sum in float32 along the channels in order,
  * multiply-adds fused where the CPU fuses them (as a matrix product's sums run), then the shift
- * added. out: (n, outputs). Returns 0, or -1 (nothing written) for a row out of [0, 8 parents). */
+ * added; the rows shared out among up to threads threads, the caller's and the crew's. out: (n,
+ * outputs). Returns 0, or with nothing written -1 for a row out of [0, 8 parents), -5 for threads
+ * out of [1, CREW_MAX + 1]. */
 int o3dvis_upsample(int64_t n, const float *x, int64_t parents, int32_t channels, const int64_t *rows,
-                    const float *weight, int32_t outputs, const float *shift, int32_t relu, float *out) {
+                    const float *weight, int32_t outputs, const float *shift, int32_t relu, int32_t threads,
+                    float *out) {
+    if (threads < 1 || threads > CREW_MAX + 1) return -5;
     int outside = 0;
     for (int64_t i = 0; i < n; i++) outside |= (rows[i] < 0) | (rows[i] >= 8 * parents);
     if (outside) return -1;
-    const int64_t stride = 8 * (int64_t)outputs;
-    int64_t i = 0;
-#ifdef __AVX512F__
-    /* the sums of four rows in up to sixteen registers: four rows' chains of multiply-adds side by side */
-    if (outputs % 16 == 0 && outputs <= 64)
-        for (; i + 4 <= n; i += 4) {
-            const int t = outputs / 16;
-            const float *xp[4], *w[4];
-            __m512 acc[4][4];
-            for (int r = 0; r < 4; r++) {
-                xp[r] = x + (rows[i + r] >> 3) * channels, w[r] = weight + (rows[i + r] & 7) * outputs;
-                for (int u = 0; u < 4; u++) acc[r][u] = _mm512_setzero_ps();
-            }
-            for (int k = 0; k < channels; k++)
-                for (int r = 0; r < 4; r++) {
-                    const __m512 a = _mm512_set1_ps(xp[r][k]);
-                    const float *wk = w[r] + k * stride;
-                    for (int u = 0; u < t; u++) acc[r][u] = _mm512_fmadd_ps(a, _mm512_loadu_ps(wk + 16 * u), acc[r][u]);
-                }
-            for (int r = 0; r < 4; r++)
-                for (int u = 0; u < t; u++) {
-                    __m512 v = _mm512_add_ps(acc[r][u], _mm512_loadu_ps(shift + 16 * u));
-                    if (relu) v = _mm512_max_ps(v, _mm512_setzero_ps());
-                    _mm512_storeu_ps(out + (i + r) * outputs + 16 * u, v);
-                }
-        }
-#endif
-    for (; i < n; i++) {
-        const float *xp = x + (rows[i] >> 3) * channels, *w = weight + (rows[i] & 7) * outputs;
-        float *o = out + i * outputs;
-        for (int j = 0; j < outputs; j++) o[j] = 0.0f;
-        for (int k = 0; k < channels; k++) {
-            const float a = xp[k], *wk = w + k * stride;
-            for (int j = 0; j < outputs; j++) o[j] = MADD(a, wk[j], o[j]);
-        }
-        for (int j = 0; j < outputs; j++) {
-            const float v = o[j] + shift[j];
-            o[j] = relu && v < 0.0f ? 0.0f : v;
-        }
-    }
+    const int64_t items = (n + UPSAMPLE_ROWS - 1) / UPSAMPLE_ROWS;
+    struct upsample_job job = {{upsample_worker, items, 0, crew_workers(threads, items), 0}, n, x, channels, rows,
+                               weight, outputs, relu, shift, out};
+    crew_run(&job.crew);
     return 0;
 }
 
@@ -1447,35 +1611,41 @@ static void dense_relu_tiles(const uint32_t *x, int pairs, const uint32_t *t, in
 }
 #endif
 
-/* Writes the margins of n points for one view: the predictor's MLP (o3dvis/nn/predictor.py,
- * VisibilityPredictor.margin_from_inputs) on the inputs block_inputs writes, each product in
- * bfloat16 with float32 sums, each layer's output rounded to bfloat16 as torch rounds it. Returns 0,
- * -1 when the sizes exceed the buffers or do not match, -2 in a build without
- * o3dvis_has_view_margin_bf16.
- *
- * layers: the hidden layers; sizes: (layers + 2,) the inputs, padded to even, each
- * hidden layer's outputs, padded to a multiple of 16, then 1; weights: each layer's (sizes[l] / 2,
- * sizes[l + 1]) pairs of bfloat16 along its inputs; biases: each layer's sizes[l + 1] float32.
- * Padding weighs zero. out: (n,) float32.
- */
-int o3dvis_view_margin_bf16(int64_t n, const struct view *v, int32_t layers, const int32_t *sizes,
-                            const uint32_t *weights, const float *biases, float *out) {
+/* The work of o3dvis_view_margin_bf16 and _f32: the blocks of BLOCK points are the crew's items. */
+struct margin_job {
+    struct crew_job crew;
+    int64_t n;
+    const struct view *v;
+    int channels, layers;
+    const int32_t *sizes;
+    const void *weights; /* pairs of bfloat16, or float32 */
+    const float *biases;
+    float *out;
+};
+
 #ifdef __AVX512BF16__
-    const int channels = channels_of(v);
-    float in[MAX_INPUTS * BLOCK] = {0}, y[MAX_WIDTH * 16];
+
+/* A worker of o3dvis_view_margin_bf16: the blocks it claims. */
+static void margin_worker_bf16(struct crew_job *crew_job, int worker) {
+    (void)worker;
+    const struct margin_job *s = (const struct margin_job *)crew_job;
+    const struct view *v = s->v;
+    const int channels = s->channels, layers = s->layers;
+    const int32_t *sizes = s->sizes;
+    const uint32_t *weights = s->weights, *last = weights; /* the last layer's weights and bias */
+    const float *biases = s->biases, *last_bias = biases;
+    float in[MAX_INPUTS * BLOCK] = {0}, y[MAX_WIDTH * 16], *out = s->out;
     uint32_t x[MAX_WIDTH / 2 * 16];
-    if (channels < 0 || layers < 0 || sizes[0] != channels + channels % 2 || sizes[layers + 1] != 1) return -1;
-    for (int l = 1; l <= layers; l++)
-        if (sizes[l] < 16 || sizes[l] % 16 || sizes[l] > MAX_WIDTH) return -1;
-    const uint32_t *last = weights; /* the last layer's weights and bias */
-    const float *last_bias = biases;
     for (int l = 0; l < layers; l++) last += sizes[l] / 2 * sizes[l + 1], last_bias += sizes[l + 1];
+    int64_t b = crew_claim(crew_job);
+    if (b < 0) return;
 #ifdef __AMX_BF16__
     uint32_t *work = NULL; /* the hidden layers on the AMX tiles, where there are some */
     if (layers > 0 && tiles_granted() && (work = tile_work(layers, sizes, weights, biases)) != NULL) configure_tiles();
 #endif
-    for (int64_t b0 = 0; b0 < n; b0 += BLOCK) {
-        const int m = n - b0 < BLOCK ? (int)(n - b0) : BLOCK;
+    for (; b >= 0; b = crew_claim(crew_job)) {
+        const int64_t b0 = b * BLOCK;
+        const int m = s->n - b0 < BLOCK ? (int)(s->n - b0) : BLOCK;
         block_inputs(v, b0, m, in);
 #ifdef __AMX_BF16__
         if (work != NULL) {
@@ -1518,9 +1688,36 @@ int o3dvis_view_margin_bf16(int64_t n, const struct view *v, int32_t layers, con
 #ifdef __AMX_BF16__
     if (work != NULL) release_tiles(), free(work);
 #endif
+}
+#endif
+
+/* Writes the margins of n points for one view: the predictor's MLP (o3dvis/nn/predictor.py,
+ * VisibilityPredictor.margin_from_inputs) on the inputs block_inputs writes, each product in
+ * bfloat16 with float32 sums, each layer's output rounded to bfloat16 as torch rounds it; the blocks
+ * of points shared out among up to threads threads, the caller's and the crew's. Returns 0, -1 when
+ * the sizes exceed the buffers or do not match, -2 in a build without o3dvis_has_view_margin_bf16,
+ * -5 for threads out of [1, CREW_MAX + 1].
+ *
+ * layers: the hidden layers; sizes: (layers + 2,) the inputs, padded to even, each
+ * hidden layer's outputs, padded to a multiple of 16, then 1; weights: each layer's (sizes[l] / 2,
+ * sizes[l + 1]) pairs of bfloat16 along its inputs; biases: each layer's sizes[l + 1] float32.
+ * Padding weighs zero. out: (n,) float32.
+ */
+int o3dvis_view_margin_bf16(int64_t n, const struct view *v, int32_t layers, const int32_t *sizes,
+                            const uint32_t *weights, const float *biases, int32_t threads, float *out) {
+#ifdef __AVX512BF16__
+    const int channels = channels_of(v);
+    if (threads < 1 || threads > CREW_MAX + 1) return -5;
+    if (channels < 0 || layers < 0 || sizes[0] != channels + channels % 2 || sizes[layers + 1] != 1) return -1;
+    for (int l = 1; l <= layers; l++)
+        if (sizes[l] < 16 || sizes[l] % 16 || sizes[l] > MAX_WIDTH) return -1;
+    const int64_t blocks = (n + BLOCK - 1) / BLOCK;
+    struct margin_job job = {{margin_worker_bf16, blocks, 0, crew_workers(threads, blocks), 0}, n, v, channels,
+                             layers, sizes, weights, biases, out};
+    crew_run(&job.crew);
     return 0;
 #else
-    (void)n, (void)v, (void)layers, (void)sizes, (void)weights, (void)biases, (void)out;
+    (void)n, (void)v, (void)layers, (void)sizes, (void)weights, (void)biases, (void)threads, (void)out;
     return -2;
 #endif
 }
@@ -1665,6 +1862,56 @@ int64_t o3dvis_conv_entries(int64_t n, const int64_t *index, int32_t taps, int64
 #endif
 }
 
+#ifdef __AVX512BF16__
+/* o3dvis_gather_conv's work: its blocks of CONV_BLOCK rows are the crew's items; each worker has its
+ * own sums (and the tiles' gathered rows, where they run). */
+struct conv_job {
+    struct crew_job crew;
+    int64_t n;
+    const uint32_t *xb;
+    int pairs, taps, outputs, relu, tiles, kp;
+    const int64_t *index, *offsets, *entries;
+    const uint32_t *packed;
+    const float *shift, *residual;
+    float *sums, *out;
+    size_t sums_size;
+    uint16_t *a;
+};
+
+/* A worker of o3dvis_gather_conv: the blocks it claims, with its own sums. */
+static void conv_worker(struct crew_job *crew_job, int worker) {
+    const struct conv_job *s = (const struct conv_job *)crew_job;
+    float *sums = s->sums + s->sums_size * worker;
+    int64_t b = crew_claim(crew_job);
+    if (b < 0) return;
+#ifdef __AMX_BF16__
+    uint16_t *a = s->tiles ? s->a + (size_t)CONV_BLOCK * s->kp * worker : NULL;
+    if (s->tiles) configure_tiles(); /* the tiles' configuration is each thread's own */
+#endif
+    for (; b >= 0; b = crew_claim(crew_job)) {
+        const int64_t r0 = b * CONV_BLOCK;
+        const int m = s->n - r0 < CONV_BLOCK ? (int)(s->n - r0) : CONV_BLOCK;
+        const float *res = s->residual ? s->residual + r0 * s->outputs : NULL;
+#ifdef __AMX_BF16__
+        if (s->tiles) {
+            for (int r = 0; r < m; r++)
+                gather_row((uint32_t *)(a + (int64_t)r * s->kp), s->xb, s->index + (r0 + r) * s->taps, s->taps,
+                           s->pairs);
+            for (int r = m; r < (m + 15) / 16 * 16; r++) /* rows past n: zeros */
+                memset(a + (int64_t)r * s->kp, 0, sizeof *a * 2 * (size_t)s->taps * s->pairs);
+            conv_block(a, s->kp, m, s->packed, s->outputs, s->shift, res, s->relu, sums, s->out + r0 * s->outputs);
+            continue;
+        }
+#endif
+        conv_block_vectors(s->xb, s->pairs, s->offsets + b * s->taps, s->entries, s->taps, m, s->packed, s->outputs,
+                           s->shift, res, s->relu, sums, s->out + r0 * s->outputs);
+    }
+#ifdef __AMX_BF16__
+    if (s->tiles) release_tiles();
+#endif
+}
+#endif
+
 /* A convolution over gathered rows, as o3dvis/nn/conv.py's gather_matmul and ConvBnRelu compute it
  * in inference: out[r] = relu?(residual[r] + (bf16(sum_t bf16(x[index[r][t]]) W_t) + shift)), the
  * products in bfloat16 with float32 sums (on the AMX tiles where the build and the operating system
@@ -1672,23 +1919,26 @@ int64_t o3dvis_conv_entries(int64_t n, const int64_t *index, int32_t taps, int64
  * x: (rows, channels) float32, channels even; index: (n, taps), rows meaning a row of zeros; packed:
  * the weight as o3dvis/nn/native.py's pack_conv lays it out; outputs a multiple of 16; shift:
  * (outputs,); residual: (n, outputs) or NULL; out: (n, outputs); offsets, entries: the index's
- * o3dvis_conv_entries, listed of them. Returns 0, or with nothing written -1 when out of memory, -2 in
- * a build without AVX-512 bfloat16, -3 for an index out of [0, rows], -4 for entries that are not
- * lists of rows of blocks and of neighbours in [0, rows], or lists that are not whole groups of 8
- * (the index itself is read, and checked, where the tiles run). */
+ * o3dvis_conv_entries, listed of them; threads: the blocks are shared out among up to this many
+ * threads, the caller's and the crew's (each row's sums are the same on any number). Returns 0, or with nothing
+ * written -1 when out of memory, -2 in a build without AVX-512 bfloat16, -3 for an index out of
+ * [0, rows], -4 for entries that are not lists of rows of blocks and of neighbours in [0, rows], or
+ * lists that are not whole groups of 8 (the index itself is read, and checked, where the tiles run),
+ * -5 for threads out of [1, CREW_MAX + 1]. */
 int o3dvis_gather_conv(int64_t n, const float *x, int64_t rows, int32_t channels, const int64_t *index,
                        int32_t taps, const int64_t *offsets, const int64_t *entries, int64_t listed,
                        const uint32_t *packed, int32_t outputs, const float *shift, const float *residual,
-                       int32_t relu, float *out) {
+                       int32_t relu, int32_t threads, float *out) {
 #ifdef __AVX512BF16__
-    int outside = 0;
+    if (threads < 1 || threads > CREW_MAX + 1) return -5;
+    int outside = 0, tiles = 0, kp = 0;
 #ifdef __AMX_BF16__
-    const int tiles = tiles_granted(), kp = (taps * channels + 31) / 32 * 32;
+    tiles = tiles_granted(), kp = (taps * channels + 31) / 32 * 32;
     if (tiles) /* the tiles read the index; the vectors only the lists, checked below */
         for (int64_t i = 0; i < n * taps; i++) outside |= (index[i] < 0) | (index[i] > rows);
     if (outside) return -3;
 #endif
-    const int64_t lists = (n + CONV_BLOCK - 1) / CONV_BLOCK * taps;
+    const int64_t blocks = (n + CONV_BLOCK - 1) / CONV_BLOCK, lists = blocks * taps;
     for (int64_t i = 0; i < lists; i++)
         outside |= (offsets[i] < 0) | (offsets[i + 1] < offsets[i]) | ((offsets[i + 1] - offsets[i]) % 8 != 0);
     outside |= offsets[lists] > listed;
@@ -1697,45 +1947,22 @@ int o3dvis_gather_conv(int64_t n, const float *x, int64_t rows, int32_t channels
     if (outside) return -4;
     const int pairs = channels / 2;
     uint32_t *xb = malloc(sizeof *xb * (size_t)(rows + 1) * pairs); /* x in bfloat16, then a row of zeros */
-    /* the tiles' four 16 x 16 sums, or the vectors' sums of a block and a row */
+    /* per thread: the tiles' four 16 x 16 sums, or the vectors' sums of a block and a row */
     const size_t size = 4 * 256 > (CONV_BLOCK + 1) * outputs ? 4 * 256 : (size_t)(CONV_BLOCK + 1) * outputs;
-    float *sums = malloc(sizeof *sums * size);
-    uint16_t *a = NULL; /* the tiles' gathered rows */
-#ifdef __AMX_BF16__
-    if (tiles) a = calloc((size_t)CONV_BLOCK * kp, sizeof *a);
-    if (tiles && a == NULL) return free(xb), free(sums), -1;
-#endif
-    if (xb == NULL || sums == NULL) return free(a), free(xb), free(sums), -1;
+    float *sums = malloc(sizeof *sums * size * (size_t)threads);
+    uint16_t *a = tiles ? calloc((size_t)CONV_BLOCK * kp * (size_t)threads, sizeof *a) : NULL; /* gathered rows */
+    if (xb == NULL || sums == NULL || (tiles && a == NULL)) return free(a), free(xb), free(sums), -1;
     for (int64_t i = 0; i < rows * pairs; i++)
         xb[i] = bf16_of(x[2 * i]) | (uint32_t)bf16_of(x[2 * i + 1]) << 16;
     memset(xb + rows * pairs, 0, sizeof *xb * pairs);
-#ifdef __AMX_BF16__
-    if (tiles) configure_tiles();
-#endif
-    for (int64_t r0 = 0; r0 < n; r0 += CONV_BLOCK) {
-        const int m = n - r0 < CONV_BLOCK ? (int)(n - r0) : CONV_BLOCK;
-        const float *res = residual ? residual + r0 * outputs : NULL;
-#ifdef __AMX_BF16__
-        if (tiles) {
-            for (int r = 0; r < m; r++)
-                gather_row((uint32_t *)(a + (int64_t)r * kp), xb, index + (r0 + r) * taps, taps, pairs);
-            for (int r = m; r < (m + 15) / 16 * 16; r++) /* rows past n: zeros */
-                memset(a + (int64_t)r * kp, 0, sizeof *a * 2 * (size_t)taps * pairs);
-            conv_block(a, kp, m, packed, outputs, shift, res, relu, sums, out + r0 * outputs);
-            continue;
-        }
-#endif
-        conv_block_vectors(xb, pairs, offsets + r0 / CONV_BLOCK * taps, entries, taps, m, packed, outputs, shift, res,
-                           relu, sums, out + r0 * outputs);
-    }
-#ifdef __AMX_BF16__
-    if (tiles) release_tiles();
-#endif
+    struct conv_job job = {{conv_worker, blocks, 0, crew_workers(threads, blocks), 0}, n, xb, pairs, taps, outputs, relu, tiles, kp, index,
+                           offsets, entries, packed, shift, residual, sums, out, size, a};
+    crew_run(&job.crew);
     free(a), free(xb), free(sums);
     return 0;
 #else
-    (void)n, (void)x, (void)rows, (void)channels, (void)index, (void)taps, (void)packed, (void)outputs;
-    (void)shift, (void)residual, (void)relu, (void)out;
+    (void)n, (void)x, (void)rows, (void)channels, (void)index, (void)taps, (void)offsets, (void)entries;
+    (void)listed, (void)packed, (void)outputs, (void)shift, (void)residual, (void)relu, (void)threads, (void)out;
     return -2;
 #endif
 }
@@ -1815,20 +2042,33 @@ static const float *mlp_f32(const float *in, int32_t layers, const int32_t *size
     return x;
 }
 
+/* A worker of o3dvis_view_margin_f32: the blocks it claims. */
+static void margin_worker_f32(struct crew_job *crew_job, int worker) {
+    (void)worker;
+    const struct margin_job *s = (const struct margin_job *)crew_job;
+    float in[MAX_INPUTS * BLOCK] = {0}, h[2][MAX_WIDTH * BLOCK];
+    for (int64_t b = crew_claim(crew_job); b >= 0; b = crew_claim(crew_job)) {
+        const int64_t b0 = b * BLOCK;
+        const int m = s->n - b0 < BLOCK ? (int)(s->n - b0) : BLOCK;
+        block_inputs(s->v, b0, m, in);
+        memcpy(s->out + b0, mlp_f32(in, s->layers, s->sizes, s->weights, s->biases, h), sizeof(float) * m);
+    }
+}
+
 /* o3dvis_view_margin_bf16 in float32, in plain C: each layer's products and sums in float32, as
  * torch's float32 products but for the order of the sums. sizes: (layers + 2,) the inputs, each
  * hidden layer's outputs, padded to a multiple of 4, then 4 (the margin and 3 of padding);
- * weights: each layer's (sizes[l + 1], sizes[l]) float32 weights. */
+ * weights: each layer's (sizes[l + 1], sizes[l]) float32 weights; threads as for
+ * o3dvis_view_margin_bf16. */
 int o3dvis_view_margin_f32(int64_t n, const struct view *v, int32_t layers, const int32_t *sizes,
-                           const float *weights, const float *biases, float *out) {
+                           const float *weights, const float *biases, int32_t threads, float *out) {
     const int channels = channels_of(v);
-    float in[MAX_INPUTS * BLOCK] = {0}, h[2][MAX_WIDTH * BLOCK];
+    if (threads < 1 || threads > CREW_MAX + 1) return -5;
     if (channels < 0 || sizes[0] != channels || !mlp_f32_fits(layers, sizes)) return -1;
-    for (int64_t b0 = 0; b0 < n; b0 += BLOCK) {
-        const int m = n - b0 < BLOCK ? (int)(n - b0) : BLOCK;
-        block_inputs(v, b0, m, in);
-        memcpy(out + b0, mlp_f32(in, layers, sizes, weights, biases, h), sizeof(float) * m);
-    }
+    const int64_t blocks = (n + BLOCK - 1) / BLOCK;
+    struct margin_job job = {{margin_worker_f32, blocks, 0, crew_workers(threads, blocks), 0}, n, v, channels,
+                             layers, sizes, weights, biases, out};
+    crew_run(&job.crew);
     return 0;
 }
 

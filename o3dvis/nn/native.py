@@ -1,6 +1,8 @@
 """A view's projection, the predictor's inputs and its MLP in a few passes of C, for queries on the
 CPU; and for the encoding the octree's Morton keys, their sort and neighbours, the U-Net's input
-and, on CPUs with AVX-512 bfloat16 dot products, its convolutions, each in one pass.
+and, on CPUs with AVX-512 bfloat16 dot products, its convolutions, each in one pass. The
+convolutions, up-samplings and view margins share the blocks of one call with helper threads of the
+kernels' own (see :func:`kernel_threads`).
 
 ``kernels.c`` computes what :class:`~o3dvis.nn.cues.ViewProjection` and the view
 embedding times the projected features compute in some seventy eager torch
@@ -23,9 +25,10 @@ import torch
 from torch import Tensor
 
 from .. import clib
+from ..threads import usable_cores
 from .features import LeafFeatures
 
-__all__ = ["MAX_POINTS", "MAX_RESIDUAL", "available", "variant", "usable", "has_view_margin", "bounds", "normalize",
+__all__ = ["MAX_POINTS", "MAX_RESIDUAL", "MAX_THREADS", "available", "variant", "usable", "kernel_threads", "has_view_margin", "bounds", "normalize",
            "morton_keys", "sort_keys", "leaf_means",
            "upsample", "has_gather_conv", "pack_conv", "conv_entries", "gather_conv", "cell_thickness",
            "run_flatness", "project",
@@ -55,21 +58,21 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_cell_thickness": ([_I64, _PTR, _I32, _I64, _PTR], _I64),
     "o3dvis_run_flatness": ([_I64, _PTR, _I32, _PTR, _PTR], None),
     "o3dvis_leaf_means": ([_I64, _PTR, _PTR, _PTR, _I32, _I64, _PTR, _PTR], ctypes.c_int),
-    "o3dvis_upsample": ([_I64, _PTR, _I64, _I32, _PTR, _PTR, _I32, _PTR, _I32, _PTR], ctypes.c_int),
+    "o3dvis_upsample": ([_I64, _PTR, _I64, _I32, _PTR, _PTR, _I32, _PTR, _I32, _I32, _PTR], ctypes.c_int),
     "o3dvis_has_gather_conv": ([], ctypes.c_int),
     "o3dvis_octree_counts": ([_I64, _PTR, _I32, _I32, _PTR], ctypes.c_int),
     "o3dvis_octree_fill": ([_I64, _PTR, _I32, _I32, _PTR, _PTR, _PTR], None),
     "o3dvis_conv_entries": ([_I64, _PTR, _I32, _I64, _PTR, _PTR], ctypes.c_int64),
-    "o3dvis_gather_conv": ([_I64, _PTR, _I64, _I32, _PTR, _I32, _PTR, _PTR, _I64, _PTR, _I32, _PTR, _PTR, _I32, _PTR],
-                           ctypes.c_int),
+    "o3dvis_gather_conv": ([_I64, _PTR, _I64, _I32, _PTR, _I32, _PTR, _PTR, _I64, _PTR, _I32, _PTR, _PTR, _I32, _I32,
+                            _PTR], ctypes.c_int),
     "o3dvis_project": ([_I64, _PTR, _PTR, _PTR, _I32, _PTR] + [_PTR] * 6, ctypes.c_int),
     "o3dvis_plane_splat": ([_I64, _PTR, _PTR, _PTR, _PTR, _I32, _PTR, _PTR, _PTR, _PTR, _PTR, ctypes.c_float,
                             ctypes.c_float, _PTR], ctypes.c_int),
     "o3dvis_surfels": ([_I64, _PTR, _PTR, _I32, _I32, _I64, _PTR, _PTR], ctypes.c_int),
     "o3dvis_surfel_zbuffer": ([_I64, _PTR, _PTR, _PTR, _I32, _I32, _I32, ctypes.c_float, _PTR], ctypes.c_int),
     "o3dvis_has_view_margin_bf16": ([], ctypes.c_int),
-    "o3dvis_view_margin_bf16": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
-    "o3dvis_view_margin_f32": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
+    "o3dvis_view_margin_bf16": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _I32, _PTR], ctypes.c_int),
+    "o3dvis_view_margin_f32": ([_I64, _VIEW, _I32, _PTR, _PTR, _PTR, _I32, _PTR], ctypes.c_int),
     "o3dvis_fuse_margin": ([_I64, _PTR, _I64, _PTR, _PTR, _I32, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
     "o3dvis_fit_planes": ([_I64, _I64, _I32, _PTR, _PTR, _PTR, _PTR, _PTR], None),
     "o3dvis_visibility_affinity": ([_I64, _I32, _I32, _I32, _I64, _PTR, _PTR, ctypes.c_float, ctypes.c_float, _PTR],
@@ -87,6 +90,8 @@ MAX_POINTS = 1 << 30
 # the largest magnitude of a residual the per-view kernels take before asinh (their pieces of it
 # cover up to 2^13 with AVX-512)
 MAX_RESIDUAL = 8192.0
+# the most threads a kernel's work is shared out among: the caller's and the helpers of kernels.c's crew
+MAX_THREADS = 65
 _LIBRARY = clib.load(f"{__package__}._kernels", _SIGNATURES)
 
 
@@ -200,7 +205,7 @@ def leaf_means(points: Tensor, normals: Tensor | None, leaf: Tensor, depth: int,
     return out
 
 
-def upsample(x: Tensor, rows: Tensor, weight: Tensor, shift: Tensor, relu: bool) -> Tensor:
+def upsample(x: Tensor, rows: Tensor, weight: Tensor, shift: Tensor, relu: bool, threads: int | None = None) -> Tensor:
     """(n, O) float32: an up-sampling (:class:`~o3dvis.nn.conv.OctreeUpsample` with its batch norm
     folded into ``weight`` and ``shift``) for the rows that exist only: row ``i`` is parent
     ``rows[i] // 8`` of ``x`` times the columns of octant ``rows[i] % 8`` of ``weight``, plus
@@ -212,9 +217,11 @@ def upsample(x: Tensor, rows: Tensor, weight: Tensor, shift: Tensor, relu: bool)
         rows: (n,) int64 in [0, 8 parents), the octree's ``octant_rows``.
         weight: (C, 8 O) float32, columns (octant, channel).
         shift: (O,) float32.
+        threads: the rows are shared out among up to this many threads (see :func:`kernel_threads`);
+            each row's sums are the same on any number.
 
     Raises:
-        ValueError: tensors of the wrong shape or type, or a row out of range.
+        ValueError: tensors of the wrong shape or type, a row or a thread count out of range.
     """
     parents, channels = x.shape
     outputs = weight.shape[1] // 8
@@ -224,7 +231,7 @@ def upsample(x: Tensor, rows: Tensor, weight: Tensor, shift: Tensor, relu: bool)
     _check("shift", shift, (outputs,))
     out = x.new_empty(rows.shape[0], outputs)
     if _LIBRARY.o3dvis_upsample(rows.shape[0], x.data_ptr(), parents, channels, rows.data_ptr(), weight.data_ptr(),
-                                outputs, shift.data_ptr(), int(relu), out.data_ptr()):
+                                outputs, shift.data_ptr(), int(relu), kernel_threads(threads), out.data_ptr()):
         raise ValueError(f"rows must lie in [0, {8 * parents})")
     return out
 
@@ -288,7 +295,8 @@ def conv_entries(index: Tensor, rows: int) -> Tensor:
 
 
 def gather_conv(x: Tensor, index: Tensor, packed: Tensor, taps: int, outputs: int, shift: Tensor,
-                residual: Tensor | None = None, relu: bool = False, entries: Tensor | None = None) -> Tensor:
+                residual: Tensor | None = None, relu: bool = False, entries: Tensor | None = None,
+                threads: int | None = None) -> Tensor:
     """(n, outputs) float32: each row's ``taps`` rows of ``x`` gathered (an index of ``len(x)``: a
     row of zeros) times the weight :func:`pack_conv` packed, in bfloat16 with float32 sums (on
     the AMX tiles where there are some, else AVX-512 dot products in the same order, the products
@@ -304,6 +312,8 @@ def gather_conv(x: Tensor, index: Tensor, packed: Tensor, taps: int, outputs: in
         residual: (n, outputs) float32 or None.
         entries: :func:`conv_entries` of ``index``, where the caller keeps them for several
             convolutions (None: made here).
+        threads: the rows' blocks are shared out among up to this many threads (see
+            :func:`kernel_threads`); each row's sums are the same on any number.
 
     Raises:
         ValueError: tensors of the wrong shape or type, an index out of range, or entries that are
@@ -320,6 +330,7 @@ def gather_conv(x: Tensor, index: Tensor, packed: Tensor, taps: int, outputs: in
         _check("residual", residual, (n, outputs))
     if channels % 2 or outputs % 16:
         raise ValueError(f"need an even number of channels and a multiple of 16 outputs, got {channels} and {outputs}")
+    threads = kernel_threads(threads)
     if entries is None:
         entries = conv_entries(index, rows)
     lists = -(-n // _CONV_BLOCK) * taps
@@ -331,7 +342,8 @@ def gather_conv(x: Tensor, index: Tensor, packed: Tensor, taps: int, outputs: in
     code = _LIBRARY.o3dvis_gather_conv(n, x.data_ptr(), rows, channels, index.data_ptr(), taps, entries.data_ptr(),
                                        entries[lists + 1:].data_ptr(), entries.shape[0] - lists - 1,
                                        packed.data_ptr(), outputs, shift.data_ptr(),
-                                       None if residual is None else residual.data_ptr(), int(relu), out.data_ptr())
+                                       None if residual is None else residual.data_ptr(), int(relu), threads,
+                                       out.data_ptr())
     if code == -3:
         raise ValueError(f"index must lie in [0, {rows}]")
     if code == -4:
@@ -506,6 +518,26 @@ def plane_splat(points: Tensor, surfels: Tensor, depth: Tensor, level: Tensor, s
         raise MemoryError("no memory for the splat's scratch buffers")
 
 
+def kernel_threads(threads: int | None = None) -> int:
+    """The threads a kernel's work is shared out among: the calling thread and up to ``threads - 1``
+    helpers of the kernels' crew, kept for the process's life and asleep between kernels (work is
+    claimed block by block, so a helper that starts late takes less of it).
+
+    Args:
+        threads: a count in [1, :data:`MAX_THREADS`]; None: torch's intra-op thread count of the
+            calling thread (what :func:`o3dvis.threads.torch_threads` sets), at most the cores
+            this process may use.
+
+    Raises:
+        ValueError: a count out of range.
+    """
+    if threads is None:
+        return max(1, min(torch.get_num_threads(), usable_cores(), MAX_THREADS))
+    if isinstance(threads, bool) or not isinstance(threads, int) or not 1 <= threads <= MAX_THREADS:
+        raise ValueError(f"threads must be an int in [1, {MAX_THREADS}], got {threads!r}")
+    return threads
+
+
 def has_view_margin(dtype: torch.dtype) -> bool:
     """Whether :func:`view_margin` runs here in ``dtype``: the kernels are built, and for
     bfloat16 this CPU has bfloat16 dot products (AVX512-BF16)."""
@@ -616,7 +648,7 @@ def pack_mlp(layers: list[tuple[Tensor, Tensor]], dtype: torch.dtype) -> PackedM
 
 def view_margin(rows: slice | Tensor, dirs: Tensor, projected: Tensor | LeafFeatures, num_frequencies: int,
                 buffers: Tensor, corners: Tensor, sides: list[int], depth: Tensor, rpix: Tensor, perspective: bool,
-                empty: float, normals: Tensor | None, mlp: PackedMLP, out: Tensor) -> None:
+                empty: float, normals: Tensor | None, mlp: PackedMLP, out: Tensor, threads: int | None = None) -> None:
     """Writes the margins of the points ``rows`` for one view into ``out``.
 
     The MLP ``mlp`` runs on the first layer's inputs of each point: ``projected[rows]`` times
@@ -636,10 +668,13 @@ def view_margin(rows: slice | Tensor, dirs: Tensor, projected: Tensor | LeafFeat
         normals: (N, 3) unit normals for a model that takes them, else None.
         mlp: the predictor's MLP as :func:`pack_mlp` packs it.
         out: (n,) float32.
+        threads: the points' blocks are shared out among up to this many threads (see
+            :func:`kernel_threads`); the margins are the same on any number.
 
     Raises:
         ValueError: tensors of the wrong shape, dtype, layout or device; an MLP that does not match
-            the inputs or has a layer wider than 128; an ``empty`` out of range.
+            the inputs or has a layer wider than 128; an ``empty`` out of range; a thread count
+            out of range.
         IndexError: rows out of range.
         RuntimeError: no kernel for ``mlp.dtype`` in this build.
     """
@@ -650,7 +685,7 @@ def view_margin(rows: slice | Tensor, dirs: Tensor, projected: Tensor | LeafFeat
         raise RuntimeError(f"the C kernels here have no view_margin in {mlp.dtype} (bfloat16 needs AVX512-BF16)")
     kernel = _LIBRARY.o3dvis_view_margin_bf16 if mlp.dtype == torch.bfloat16 else _LIBRARY.o3dvis_view_margin_f32
     if kernel(n, ctypes.byref(view), len(mlp.sizes) - 2, mlp.sizes.data_ptr(), mlp.weights.data_ptr(),
-              mlp.biases.data_ptr(), out.data_ptr()):
+              mlp.biases.data_ptr(), kernel_threads(threads), out.data_ptr()):
         raise ValueError(f"the MLP (sizes {mlp.sizes.tolist()}) does not match the view's inputs, or it has a "
                          f"layer wider than 128")
 

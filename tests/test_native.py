@@ -558,6 +558,9 @@ def test_kernels_share_their_blocks_among_threads_with_the_same_answers(variant,
     fast, _ = _views(points, camera=_CAMERA)
     projected = torch.randn(network.predictor.embedding.dim, len(points), generator=g).T
     monkeypatch.setattr(native, "usable_cores", lambda: 8)  # the threads torch is given, whatever the cores
+    with torch_threads(3):  # by default, torch's count for calls of work enough, one for the others
+        assert native.kernel_threads() == native.kernel_threads(work=native.SHARED_WORK) == 3
+        assert native.kernel_threads(work=native.SHARED_WORK - 1) == 1 and native.kernel_threads(2, work=1) == 2
     for dtype in (torch.float32, torch.bfloat16):
         if native.has_view_margin(dtype):
             margins = []

@@ -28,7 +28,7 @@ from .. import clib
 from ..threads import usable_cores
 from .features import LeafFeatures
 
-__all__ = ["MAX_POINTS", "MAX_RESIDUAL", "MAX_THREADS", "available", "variant", "usable", "kernel_threads", "has_view_margin", "bounds", "normalize",
+__all__ = ["MAX_POINTS", "MAX_RESIDUAL", "MAX_THREADS", "SHARED_WORK", "available", "variant", "usable", "kernel_threads", "has_view_margin", "bounds", "normalize",
            "morton_keys", "sort_keys", "leaf_means",
            "upsample", "has_gather_conv", "pack_conv", "conv_entries", "gather_conv", "cell_thickness",
            "run_flatness", "project",
@@ -231,7 +231,8 @@ def upsample(x: Tensor, rows: Tensor, weight: Tensor, shift: Tensor, relu: bool,
     _check("shift", shift, (outputs,))
     out = x.new_empty(rows.shape[0], outputs)
     if _LIBRARY.o3dvis_upsample(rows.shape[0], x.data_ptr(), parents, channels, rows.data_ptr(), weight.data_ptr(),
-                                outputs, shift.data_ptr(), int(relu), kernel_threads(threads), out.data_ptr()):
+                                outputs, shift.data_ptr(), int(relu),
+                                kernel_threads(threads, rows.shape[0] * channels * outputs), out.data_ptr()):
         raise ValueError(f"rows must lie in [0, {8 * parents})")
     return out
 
@@ -330,7 +331,7 @@ def gather_conv(x: Tensor, index: Tensor, packed: Tensor, taps: int, outputs: in
         _check("residual", residual, (n, outputs))
     if channels % 2 or outputs % 16:
         raise ValueError(f"need an even number of channels and a multiple of 16 outputs, got {channels} and {outputs}")
-    threads = kernel_threads(threads)
+    threads = kernel_threads(threads, n * taps * channels * outputs)
     if entries is None:
         entries = conv_entries(index, rows)
     lists = -(-n // _CONV_BLOCK) * taps
@@ -518,7 +519,12 @@ def plane_splat(points: Tensor, surfels: Tensor, depth: Tensor, level: Tensor, s
         raise MemoryError("no memory for the splat's scratch buffers")
 
 
-def kernel_threads(threads: int | None = None) -> int:
+SHARED_WORK = 1 << 24
+"""Multiply-adds of a kernel call from which it shares its blocks with helper threads by default
+(see :func:`kernel_threads`)."""
+
+
+def kernel_threads(threads: int | None = None, work: int | None = None) -> int:
     """The threads a kernel's work is shared out among: the calling thread and up to ``threads - 1``
     helpers of the kernels' crew, kept for the process's life and asleep between kernels (work is
     claimed block by block, so a helper that starts late takes less of it).
@@ -526,12 +532,15 @@ def kernel_threads(threads: int | None = None) -> int:
     Args:
         threads: a count in [1, :data:`MAX_THREADS`]; None: torch's intra-op thread count of the
             calling thread (what :func:`o3dvis.threads.torch_threads` sets), at most the cores
-            this process may use.
+            this process may use, and one for a call of less ``work`` than :data:`SHARED_WORK`.
+        work: the call's multiply-adds, where known.
 
     Raises:
         ValueError: a count out of range.
     """
     if threads is None:
+        if work is not None and work < SHARED_WORK:
+            return 1
         return max(1, min(torch.get_num_threads(), usable_cores(), MAX_THREADS))
     if isinstance(threads, bool) or not isinstance(threads, int) or not 1 <= threads <= MAX_THREADS:
         raise ValueError(f"threads must be an int in [1, {MAX_THREADS}], got {threads!r}")

@@ -1955,8 +1955,8 @@ int o3dvis_gather_conv(int64_t n, const float *x, int64_t rows, int32_t channels
     for (int64_t i = 0; i < rows * pairs; i++)
         xb[i] = bf16_of(x[2 * i]) | (uint32_t)bf16_of(x[2 * i + 1]) << 16;
     memset(xb + rows * pairs, 0, sizeof *xb * pairs);
-    struct conv_job job = {{conv_worker, blocks, 0, crew_workers(threads, blocks), 0}, n, xb, pairs, taps, outputs, relu, tiles, kp, index,
-                           offsets, entries, packed, shift, residual, sums, out, size, a};
+    struct conv_job job = {{conv_worker, blocks, 0, crew_workers(threads, blocks), 0}, n, xb, pairs, taps, outputs,
+                           relu, tiles, kp, index, offsets, entries, packed, shift, residual, sums, out, size, a};
     crew_run(&job.crew);
     free(a), free(xb), free(sums);
     return 0;

@@ -28,7 +28,8 @@ from .. import clib
 from ..threads import usable_cores
 from .features import LeafFeatures
 
-__all__ = ["MAX_POINTS", "MAX_RESIDUAL", "MAX_THREADS", "SHARED_WORK", "available", "variant", "usable", "kernel_threads", "has_view_margin", "bounds", "normalize",
+__all__ = ["MAX_POINTS", "MAX_RESIDUAL", "MAX_THREADS", "SHARED_WORK", "available", "variant", "usable",
+           "kernel_threads", "has_view_margin", "bounds", "normalize",
            "morton_keys", "sort_keys", "leaf_means",
            "upsample", "has_gather_conv", "pack_conv", "conv_entries", "gather_conv", "cell_thickness",
            "run_flatness", "project",

@@ -692,6 +692,21 @@ def test_native_patch_terms_match_the_torch_eigenvalues(monkeypatch):
         native.cell_thickness(ordered.double(), 5, 8)
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_noise_cues_lower_quartile_is_torch_quantile_to_the_bit(dtype):
+    """The cues' lower quartile by two selections equals torch.quantile's sort and interpolation,
+    value for value, with ties, at ranks between two values and on them, and NaN where one is."""
+    from o3dvis.nn.noise import _quartile
+
+    g = torch.Generator().manual_seed(3)
+    for n in [*range(1, 40), 1001, 2048, 5000]:
+        values = torch.rand(n, generator=g, dtype=dtype) ** 3
+        values[::5] = values[0]
+        assert torch.equal(_quartile(values), torch.quantile(values, 0.25)), n
+    values[7] = float("nan")
+    assert _quartile(values).isnan() and torch.quantile(values, 0.25).isnan()
+
+
 def test_noise_cues_of_clouds_too_small_to_measure_are_zero():
     assert torch.equal(noise_cues(_noisy_sphere(10, 0.01)), torch.zeros(2, dtype=torch.float64))
 

@@ -2,7 +2,7 @@
 
 o3dvis uses two kinds of threads: torch's intra-op threads (an OpenMP team that
 splits each op, used while encoding a cloud; the C kernels share the blocks of a
-convolution or of a view with as many threads of their own, see
+convolution, a view or a sort with as many threads of their own, see
 :func:`o3dvis.nn.native.kernel_threads`) and its own worker threads (views or
 chunks of points answered side by side, each worker on one torch thread). One
 task uses one kind at a time, so the threads it runs on are what

@@ -250,7 +250,8 @@ def test_the_unit_frame_of_flat_and_degenerate_clouds_is_the_torch_one():
 @pytest.mark.parametrize("keys", ["ties", "wide", "one byte high", "cloud", "one", "equal", "none"])
 def test_sort_keys_equals_a_stable_torch_sort(keys):
     """The radix sort of the Morton keys: the same sorted keys and the same permutation as a stable
-    sort, ties (points in one cell) in their order, whichever bytes the keys differ in."""
+    sort, ties (points in one cell) in their order, whichever bytes the keys differ in, on one
+    thread or its buckets shared among several."""
     from o3dvis.nn.octree import MORTON_DEPTH, cell_keys, morton_sort
 
     g = torch.Generator().manual_seed(3)
@@ -263,14 +264,17 @@ def test_sort_keys_equals_a_stable_torch_sort(keys):
             "equal": lambda: torch.full((300,), 12345),
             "none": lambda: torch.empty(0, dtype=torch.long)}[keys]()
     expected = torch.sort(keys, stable=True)
-    got = native.sort_keys(keys)
-    assert torch.equal(got[0], expected.values) and torch.equal(got[1], expected.indices)
-    assert torch.equal(got[2][got[1]], torch.arange(len(keys)))
+    for threads in (1, 3):
+        got = native.sort_keys(keys, threads=threads)
+        assert torch.equal(got[0], expected.values) and torch.equal(got[1], expected.indices)
+        assert torch.equal(got[2][got[1]], torch.arange(len(keys)))
     assert torch.equal(morton_sort(points)[1], torch.sort(cell_keys(points, MORTON_DEPTH), stable=True).indices)
     with pytest.raises(ValueError, match="non-negative"):
         native.sort_keys(torch.tensor([4, -1, 2]))
     with pytest.raises(ValueError, match="keys must be"):
         native.sort_keys(keys.int())
+    with pytest.raises(ValueError, match="threads must be"):
+        native.sort_keys(keys, threads=0)
 
 
 @needs_kernels

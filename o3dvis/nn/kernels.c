@@ -46,9 +46,9 @@
  * C with no dependency but POSIX threads (the bfloat16 MLP with the AVX512-BF16
  * intrinsics, the float32 one with GCC/Clang vector extensions), loaded with
  * ctypes (o3dvis/nn/native.py), which releases the GIL: the view workers run it
- * side by side. The convolutions, up-samplings and view margins also share one
- * call's blocks with a crew of helper threads kept between calls (see crew_run),
- * each row's sums the same on any number of threads. Every buffer but the
+ * side by side. The convolutions, up-samplings, view margins and the keys' sort
+ * also share one call's blocks with a crew of helper threads kept between calls
+ * (see crew_run), each row's sums the same on any number of threads. Every buffer but the
  * convolutions' scratch is allocated by the caller. Built with
  * -fno-math-errno -fno-trapping-math -ffp-contract=off, so that the loops
  * vectorise and rounding follows torch's op order (the MLPs aside: their sums
@@ -352,58 +352,6 @@ void o3dvis_normalize(int64_t n, const double *points, const double *center, dou
     memcpy(scatter, s, sizeof s);
 }
 
-struct keyed { int64_t key, index; };
-
-/* Sorts a[0..n) by their keys' bytes below the `digits`-th, stably: one counting pass a byte from the
- * lowest, over the bytes that differ, between a and b (n each). Returns where the result lies. */
-static struct keyed *radix_passes(struct keyed *a, struct keyed *b, int64_t n, int digits) {
-    uint32_t count[8][256];
-    memset(count, 0, sizeof count[0] * digits);
-    for (int64_t i = 0; i < n; i++)
-        for (int d = 0; d < digits; d++) count[d][(a[i].key >> (8 * d)) & 255]++;
-    for (int d = 0; d < digits; d++) {
-        if (count[d][(a[0].key >> (8 * d)) & 255] == (uint32_t)n) continue; /* a byte every key shares */
-        uint32_t start[256], sum = 0;
-        for (int k = 0; k < 256; k++) start[k] = sum, sum += count[d][k];
-        for (int64_t i = 0; i < n; i++) b[start[(a[i].key >> (8 * d)) & 255]++] = a[i];
-        struct keyed *t = a;
-        a = b, b = t;
-    }
-    return a;
-}
-
-/* Sorts n non-negative keys, n < 2^32, with the permutation that sorts them, as a stable sort
- * (torch.sort(keys, stable=True)) does: one counting pass on the highest byte that differs, then
- * radix_passes on the lower bytes within each of its buckets, which fit in the cache. sorted,
- * order, rank: (n,) out, rank the inverse permutation (the place of each key); scratch: 4n of the
- * caller's. Returns 0, or -1 (nothing written) when a key is negative. */
-int o3dvis_sort_keys(int64_t n, const int64_t *keys, int64_t *sorted, int64_t *order, int64_t *rank,
-                     int64_t *scratch) {
-    int64_t any = 0, differ = 0;
-    for (int64_t i = 0; i < n; i++) any |= keys[i], differ |= keys[i] ^ keys[0];
-    if (any < 0) return -1;
-    int top = 0; /* the highest byte in which keys differ */
-    while (top < 7 && differ >> (8 * (top + 1))) top++;
-    struct keyed *a = (struct keyed *)scratch, *b = a + n;
-    uint32_t count[257] = {0};
-    for (int64_t i = 0; i < n; i++) count[((keys[i] >> (8 * top)) & 255) + 1]++;
-    for (int k = 0; k < 256; k++) count[k + 1] += count[k];
-    uint32_t start[256];
-    memcpy(start, count, sizeof start);
-    for (int64_t i = 0; i < n; i++) {
-        struct keyed *to = a + start[(keys[i] >> (8 * top)) & 255]++;
-        to->key = keys[i], to->index = i;
-    }
-    for (int k = 0; k < 256; k++) {
-        const int64_t first = count[k], m = count[k + 1] - count[k];
-        if (m == 0) continue;
-        const struct keyed *r = radix_passes(a + first, b + first, m, top);
-        for (int64_t i = 0; i < m; i++)
-            sorted[first + i] = r[i].key, order[first + i] = r[i].index, rank[r[i].index] = first + i;
-    }
-    return 0;
-}
-
 /* A crew of helper threads kept for the life of the process, that run a share of a kernel's work
  * beside the calling thread: a kernel of a few hundred microseconds cannot pay for starting a thread
  * (tens of microseconds here), so the helpers are started once and, after each piece of work, wait
@@ -525,6 +473,78 @@ static void crew_run(struct crew_job *job) {
 
 /* The threads a job of items shares out among: threads, but no more than the items. */
 static int crew_workers(int threads, int64_t items) { return items < threads ? (items > 1 ? (int)items : 1) : threads; }
+
+struct keyed { int64_t key, index; };
+
+/* Sorts a[0..n) by their keys' bytes below the `digits`-th, stably: one counting pass a byte from the
+ * lowest, over the bytes that differ, between a and b (n each). Returns where the result lies. */
+static struct keyed *radix_passes(struct keyed *a, struct keyed *b, int64_t n, int digits) {
+    uint32_t count[8][256];
+    memset(count, 0, sizeof count[0] * digits);
+    for (int64_t i = 0; i < n; i++)
+        for (int d = 0; d < digits; d++) count[d][(a[i].key >> (8 * d)) & 255]++;
+    for (int d = 0; d < digits; d++) {
+        if (count[d][(a[0].key >> (8 * d)) & 255] == (uint32_t)n) continue; /* a byte every key shares */
+        uint32_t start[256], sum = 0;
+        for (int k = 0; k < 256; k++) start[k] = sum, sum += count[d][k];
+        for (int64_t i = 0; i < n; i++) b[start[(a[i].key >> (8 * d)) & 255]++] = a[i];
+        struct keyed *t = a;
+        a = b, b = t;
+    }
+    return a;
+}
+
+/* o3dvis_sort_keys' buckets of the highest byte that differs: each is the crew's item. */
+struct sort_job {
+    struct crew_job crew;
+    struct keyed *a, *b;
+    const uint32_t *count; /* the buckets' starts, then n */
+    int top;
+    int64_t *sorted, *order, *rank;
+};
+
+/* A worker of o3dvis_sort_keys: the buckets it claims, sorted on their lower bytes and written out. */
+static void sort_worker(struct crew_job *crew_job, int worker) {
+    (void)worker;
+    const struct sort_job *s = (const struct sort_job *)crew_job;
+    for (int64_t k = crew_claim(crew_job); k >= 0; k = crew_claim(crew_job)) {
+        const int64_t first = s->count[k], m = s->count[k + 1] - s->count[k];
+        if (m == 0) continue;
+        const struct keyed *r = radix_passes(s->a + first, s->b + first, m, s->top);
+        for (int64_t i = 0; i < m; i++)
+            s->sorted[first + i] = r[i].key, s->order[first + i] = r[i].index, s->rank[r[i].index] = first + i;
+    }
+}
+
+/* Sorts n non-negative keys, n < 2^32, with the permutation that sorts them, as a stable sort
+ * (torch.sort(keys, stable=True)) does: one counting pass on the highest byte that differs, then
+ * radix_passes on the lower bytes within each of its buckets, which fit in the cache, the buckets
+ * shared out among up to threads threads, the caller's and the crew's. sorted, order, rank: (n,)
+ * out, rank the inverse permutation (the place of each key); scratch: 4n of the caller's. Returns
+ * 0, or with nothing written -1 when a key is negative, -5 for threads out of [1, CREW_MAX + 1]. */
+int o3dvis_sort_keys(int64_t n, const int64_t *keys, int64_t *sorted, int64_t *order, int64_t *rank,
+                     int64_t *scratch, int32_t threads) {
+    if (threads < 1 || threads > CREW_MAX + 1) return -5;
+    int64_t any = 0, differ = 0;
+    for (int64_t i = 0; i < n; i++) any |= keys[i], differ |= keys[i] ^ keys[0];
+    if (any < 0) return -1;
+    int top = 0; /* the highest byte in which keys differ */
+    while (top < 7 && differ >> (8 * (top + 1))) top++;
+    struct keyed *a = (struct keyed *)scratch; /* then b, n more, for radix_passes */
+    uint32_t count[257] = {0};
+    for (int64_t i = 0; i < n; i++) count[((keys[i] >> (8 * top)) & 255) + 1]++;
+    for (int k = 0; k < 256; k++) count[k + 1] += count[k];
+    uint32_t start[256];
+    memcpy(start, count, sizeof start);
+    for (int64_t i = 0; i < n; i++) {
+        struct keyed *to = a + start[(keys[i] >> (8 * top)) & 255]++;
+        to->key = keys[i], to->index = i;
+    }
+    struct sort_job job = {{sort_worker, 256, 0, crew_workers(threads, 256), 0}, a, a + n, count, top, sorted, order,
+                           rank};
+    crew_run(&job.crew);
+    return 0;
+}
 
 #define UPSAMPLE_ROWS 256 /* rows of an item of o3dvis_upsample's crew job: a multiple of 4 */
 

@@ -1,8 +1,8 @@
 """A view's projection, the predictor's inputs and its MLP in a few passes of C, for queries on the
 CPU; and for the encoding the octree's Morton keys, their sort and neighbours, the U-Net's input
 and, on CPUs with AVX-512 bfloat16 dot products, its convolutions, each in one pass. The
-convolutions, up-samplings and view margins share the blocks of one call with helper threads of the
-kernels' own (see :func:`kernel_threads`).
+convolutions, up-samplings, view margins and the keys' sort share the blocks of one call with helper
+threads of the kernels' own (see :func:`kernel_threads`).
 
 ``kernels.c`` computes what :class:`~o3dvis.nn.cues.ViewProjection` and the view
 embedding times the projected features compute in some seventy eager torch
@@ -28,7 +28,7 @@ from .. import clib
 from ..threads import usable_cores
 from .features import LeafFeatures
 
-__all__ = ["MAX_POINTS", "MAX_RESIDUAL", "MAX_THREADS", "SHARED_WORK", "available", "variant", "usable",
+__all__ = ["MAX_POINTS", "MAX_RESIDUAL", "MAX_THREADS", "SHARED_WORK", "SHARED_KEYS", "available", "variant", "usable",
            "kernel_threads", "has_view_margin", "bounds", "normalize",
            "morton_keys", "sort_keys", "leaf_means",
            "upsample", "has_gather_conv", "pack_conv", "conv_entries", "gather_conv", "cell_thickness",
@@ -55,7 +55,7 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_bounds": ([_I64, _PTR, _PTR], None),
     "o3dvis_normalize": ([_I64, _PTR, _PTR, ctypes.c_double, _PTR, _PTR, _PTR, _PTR], None),
     "o3dvis_morton_keys": ([_I64, _PTR, _I32, _PTR], None),
-    "o3dvis_sort_keys": ([_I64, _PTR, _PTR, _PTR, _PTR, _PTR], ctypes.c_int),
+    "o3dvis_sort_keys": ([_I64, _PTR, _PTR, _PTR, _PTR, _PTR, _I32], ctypes.c_int),
     "o3dvis_cell_thickness": ([_I64, _PTR, _I32, _I64, _PTR], _I64),
     "o3dvis_run_flatness": ([_I64, _PTR, _I32, _PTR, _PTR], None),
     "o3dvis_leaf_means": ([_I64, _PTR, _PTR, _PTR, _I32, _I64, _PTR, _PTR], ctypes.c_int),
@@ -160,12 +160,15 @@ def morton_keys(points: Tensor, depth: int) -> Tensor:
     return keys
 
 
-def sort_keys(keys: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def sort_keys(keys: Tensor, threads: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """``torch.sort(keys, stable=True)`` of (N,) non-negative int64 keys by a radix sort:
-    ``(sorted, permutation, its inverse)``, the inverse the place of each key.
+    ``(sorted, permutation, its inverse)``, the inverse the place of each key. ``threads``: the
+    buckets of the highest byte in which the keys differ are shared out among up to this many
+    threads (see :func:`kernel_threads`; by default from :data:`SHARED_KEYS` keys on).
 
     Raises:
-        ValueError: keys of another shape or dtype, 2^32 or more of them, or a negative one.
+        ValueError: keys of another shape or dtype, 2^32 or more of them, or a negative one; a
+            thread count out of range.
     """
     _check("keys", keys, (keys.shape[0],), torch.long)
     n = keys.shape[0]
@@ -173,8 +176,9 @@ def sort_keys(keys: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         raise ValueError(f"at most 2^32 - 1 keys, got {n}")
     out, order, rank, scratch = (torch.empty_like(keys), torch.empty_like(keys), torch.empty_like(keys),
                                  keys.new_empty(4 * n))
+    threads = kernel_threads(threads) if threads is not None or n >= SHARED_KEYS else 1
     if _LIBRARY.o3dvis_sort_keys(n, keys.data_ptr(), out.data_ptr(), order.data_ptr(), rank.data_ptr(),
-                                 scratch.data_ptr()):
+                                 scratch.data_ptr(), threads):
         raise ValueError("keys must be non-negative")
     return out, order, rank
 
@@ -523,6 +527,9 @@ def plane_splat(points: Tensor, surfels: Tensor, depth: Tensor, level: Tensor, s
 SHARED_WORK = 1 << 24
 """Multiply-adds of a kernel call from which it shares its blocks with helper threads by default
 (see :func:`kernel_threads`)."""
+
+SHARED_KEYS = 1 << 16
+"""Keys from which :func:`sort_keys` shares its buckets with helper threads by default."""
 
 
 def kernel_threads(threads: int | None = None, work: int | None = None) -> int:

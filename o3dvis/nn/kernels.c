@@ -48,8 +48,8 @@
  * ctypes (o3dvis/nn/native.py), which releases the GIL: the view workers run it
  * side by side. The convolutions, up-samplings, view margins and the keys' sort
  * also share one call's blocks with a crew of helper threads kept between calls
- * (see crew_run), each row's sums the same on any number of threads. Every buffer but the
- * convolutions' scratch is allocated by the caller. Built with
+ * (see crew_run), their answers the same to the bit on any number of threads.
+ * Every buffer but the convolutions' scratch is allocated by the caller. Built with
  * -fno-math-errno -fno-trapping-math -ffp-contract=off, so that the loops
  * vectorise and rounding follows torch's op order (the MLPs aside: their sums
  * run in another order than oneDNN's, with multiply-adds fused as it fuses them).

@@ -175,6 +175,11 @@ class VisibilityField:
                     self._features = self._leaves.rows()
             return self._features
 
+    def _kernels_answer(self) -> bool:
+        """Whether the C kernels answer this field's queries on the calling thread now (on the CPU,
+        without autograd, with a per-view kernel in the field's product dtype)."""
+        return native.usable(self.points) and native.has_view_margin(self.matmul_dtype)
+
     def _query_features(self, views: int) -> Tensor | LeafFeatures:
         """The features a query of ``views`` views reads. Those of a cloud of several points a leaf
         (:data:`_LEAF_READ_POINTS`) are read from the leaves by every query that the C kernels
@@ -183,9 +188,7 @@ class VisibilityField:
         them writes); any other query reads those carried to the points (:attr:`features`)."""
         first, self._queried = not self._queried, True
         if self._features is None and self.num_points >= _LEAF_READ_POINTS * self._leaves.leaves.shape[1]:
-            in_c = (self.device.type == "cpu" and not torch.is_grad_enabled()
-                    and native.has_view_margin(self.matmul_dtype))
-            if in_c or (first and views == 1):
+            if self._kernels_answer() or (first and views == 1):
                 return self._leaves
         return self.features
 
@@ -442,8 +445,8 @@ class VisibilityField:
         # chunk of points is a few large torch ops that split well over the threads, and is left to
         # them. A single batch of views has its chunks side by side instead.
         cpu = self.device.type == "cpu"
-        in_c = cpu and native.usable(self.points) and native.has_view_margin(self.matmul_dtype)
-        threads = plan_threads(n * total, _KERNEL_SPLIT_ROWS if in_c else self.chunk_size) if cpu else 1
+        split_from = _KERNEL_SPLIT_ROWS if self._kernels_answer() else self.chunk_size
+        threads = plan_threads(n * total, split_from) if cpu else 1
         side_by_side = cpu and not torch.is_grad_enabled()
         if side_by_side and threads > 1 and len(batches) == 1 and n > self.chunk_size:
             with torch_threads(1):  # no OpenMP team of the caller's to spin beside the workers

@@ -285,7 +285,7 @@ class NeuralVisibility:
 
     @property
     def device(self) -> torch.device:
-        return next(self.network.parameters()).device
+        return self.network.device
 
     def to(self, device: str | torch.device) -> "NeuralVisibility":
         """Moves the networks to ``device`` (in place), in eval mode, and returns self. A network

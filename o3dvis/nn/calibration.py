@@ -27,10 +27,9 @@ _LOG_SIZE_CENTRE, _LOG_SIZE_SCALE = 9.5, 1.5  # ln(N) of 2 k - 82 k points maps 
 
 def calibration_terms(noise: Tensor, num_points: int) -> Tensor:
     """(6,) float64 ``g`` of a cloud from its (2,) noise cues and its number of points."""
-    c1, c2 = noise.detach().double().cpu()
+    c1, c2 = noise.detach().double().cpu().tolist()
     s = (math.log(max(num_points, 1)) - _LOG_SIZE_CENTRE) / _LOG_SIZE_SCALE
-    return torch.stack([torch.ones((), dtype=torch.float64), c1, c2, torch.tensor(s, dtype=torch.float64),
-                        c1 * s, c2 * s])
+    return torch.tensor([1.0, c1, c2, s, c1 * s, c2 * s], dtype=torch.float64)
 
 
 class CloudCalibration(nn.Module):

@@ -327,6 +327,12 @@ class VisibilityNetwork(nn.Module):
         return (len(children) == len(state) and all(child is kept for child, (kept, _) in zip(children, state))
                 and all(weights.holds([child]) for child, weights in state))
 
+    @property
+    def device(self) -> torch.device:
+        """Where the weights are (all on one device): its U-Net's last layer's, read without a walk
+        of the modules."""
+        return self.unet.head.weight.device
+
     def num_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())
 

@@ -179,8 +179,10 @@ class VisibilityPredictor(nn.Module):
     def packed_mlp(self, dtype: torch.dtype) -> native.PackedMLP:
         """The MLP of :meth:`margin` as :func:`o3dvis.nn.native.view_margin` reads it for products
         in ``dtype``, packed again only when a weight has changed or another dtype was asked last."""
-        hidden = [(layer.weight, layer.bias) for layer in self.mlp[:-1:2]]
-        return _PACKED.get(self.mlp, (dtype,), lambda: native.pack_mlp(hidden + [self._margin_layer()], dtype))
+        def pack() -> native.PackedMLP:
+            hidden = [(layer.weight, layer.bias) for layer in list(self.mlp)[:-1:2]]
+            return native.pack_mlp(hidden + [self._margin_layer()], dtype)
+        return _PACKED.get(self.mlp, (dtype,), pack)
 
     def _margin_layer(self) -> tuple[Tensor, Tensor]:
         """The last layer's (1, H) weight and (1,) bias of "visible" minus "hidden"."""

@@ -43,11 +43,12 @@ the orthographic view in its direction, the limit of ever farther cameras. The p
 in float32 relative to the cloud, where a camera 10^5 diagonals away starts to lose the points'
 depth differences (accuracy falls from 10^5 on, to half at 10^7): the switch sits well below that,
 where a perspective view differs from the orthographic one by a thousandth of a radian."""
-# points a leaf from which queries read the features from the leaves (see _query_features): with
-# fewer, a view's reads from the leaves cost more than carrying them to the points (drop-in calls
-# measured 4-7 % slower at 1.2-1.8 points a leaf, the same at 7, 6 % faster at 13 (a 1 M-point room)
-# and 24 % faster at 33 (a 1 M-point object); 26 views of 200 k points, 7.2 a leaf, 3-4 % faster
-# than carrying them once, on one thread or two)
+# points a leaf from which every query the C kernels answer reads the features from the leaves (see
+# _query_features): with fewer, views that read them again and again cost more than carrying them
+# to the points once (26 views of 200 k points, 7.2 a leaf, 3-4 % faster than carrying them once,
+# on one thread or two; drop-in calls 6 % faster at 13 (a 1 M-point room) and 24 % at 33 (a 1 M-point
+# object)). A first query of one view reads the leaves at any density: a drop-in call of 2 k and 8 k
+# points, 1.2 points a leaf, 1-2 % faster (1 000 rounds interleaved)
 _LEAF_READ_POINTS = 4
 # queries of fewer rows (views x points) run on one thread where the C kernels answer: their helper
 # threads (see native.kernel_threads) take over some blocks of a view from there
@@ -181,15 +182,15 @@ class VisibilityField:
         return native.usable(self.points) and native.has_view_margin(self.matmul_dtype)
 
     def _query_features(self, views: int) -> Tensor | LeafFeatures:
-        """The features a query of ``views`` views reads. Those of a cloud of several points a leaf
-        (:data:`_LEAF_READ_POINTS`) are read from the leaves by every query that the C kernels
-        answer (each point's term added as they read: no pass that carries them to every point)
-        and, where the torch ops answer, by a first query of one view (it reads less than carrying
-        them writes); any other query reads those carried to the points (:attr:`features`)."""
+        """The features a query of ``views`` views reads: from the leaves for a first query of one
+        view (it reads less than carrying them to every point writes) and, for a cloud of several
+        points a leaf (:data:`_LEAF_READ_POINTS`), for every query that the C kernels answer (each
+        point's term added as they read); any other query reads those carried to the points
+        (:attr:`features`)."""
         first, self._queried = not self._queried, True
-        if self._features is None and self.num_points >= _LEAF_READ_POINTS * self._leaves.leaves.shape[1]:
-            if self._kernels_answer() or (first and views == 1):
-                return self._leaves
+        if self._features is None and ((first and views == 1) or (
+                self.num_points >= _LEAF_READ_POINTS * self._leaves.leaves.shape[1] and self._kernels_answer())):
+            return self._leaves
         return self.features
 
     @property
@@ -201,18 +202,20 @@ class VisibilityField:
         frames = f", {1 + len(self.rotated)} frames" if self.rotated else ""
         return f"VisibilityField({self.num_points} points on {self.device}{normals}{frames})"
 
-    def _normalised(self, views: Views) -> tuple[Tensor | None, Tensor, list[bool]]:
+    def _normalised(self, views: Views, inside: Tensor | None = None) -> tuple[Tensor | None, Tensor, list[bool]]:
         """The views in the field's normalised frame: (V, 3) camera positions (None for views
         given as directions), (V, 3) unit viewing directions, and which views are orthographic:
         those given as directions, and cameras beyond ``_FAR_VIEW`` diagonals, whose direction is
-        the one from the camera to the cloud's centre."""
+        the one from the camera to the cloud's centre. ``inside``: the views' :meth:`_inside`,
+        where the caller has it."""
         dtype = self.points.dtype
         if views.directions is not None:
             return None, views.directions.to(self.device).to(dtype), [True] * len(views)
         positions = views.positions.to(self.device)
         lo, hi = self.bounds
-        tol = _INSIDE_TOL * (hi - lo).amax() / 2  # zero when all points coincide: only they are inside
-        for i in self._inside(views).nonzero()[:, 0].tolist():  # only a camera inside the box can be on a point
+        inside = self._inside(views) if inside is None else inside
+        for i in inside.nonzero()[:, 0].tolist():  # only a camera inside the box can be on a point
+            tol = _INSIDE_TOL * (hi - lo).amax() / 2  # zero when all points coincide: only they are inside
             gap = self._nearest_distance(positions[i].detach())
             if gap <= tol:
                 raise ValueError(f"camera {i} at {_fmt(positions[i])} lies on a point of the cloud "
@@ -236,17 +239,18 @@ class VisibilityField:
                     self._scene = self._scene_factory()
             return self._scene
 
-    def _parts(self, views: Views) -> list[tuple["VisibilityField", np.ndarray | None, Views]]:
-        """``(field, the views' indices (None: all), those views)``: the cameras inside the bounding box
-        go to the scene field where there is one, the other views stay with this one."""
+    def _parts(self, views: Views) -> list[tuple["VisibilityField", np.ndarray | None, Views, Tensor | None]]:
+        """``(field, the views' indices (None: all), those views, which of them are inside the
+        bounding box (None for directions))``: the cameras inside go to the scene field where there
+        is one, the other views stay with this one."""
         inside = self._inside(views)
         if self._scene_factory is None or inside is None or not inside.any():
-            return [(self, None, views)]
+            return [(self, None, views, inside)]
         if inside.all():
-            return [(self._scene_field(), None, views)]
-        inside = inside.cpu().numpy()
-        return [(field, index, _subset(views, index)) for field, index in
-                ((self, np.flatnonzero(~inside)), (self._scene_field(), np.flatnonzero(inside)))]
+            return [(self._scene_field(), None, views, inside)]
+        flags = inside.cpu().numpy()
+        return [(field, index, _subset(views, index), inside[torch.from_numpy(index).to(inside.device)])
+                for field, index in ((self, np.flatnonzero(~flags)), (self._scene_field(), np.flatnonzero(flags)))]
 
     def _restricted(self, kept: Tensor) -> "VisibilityField":
         """This field on the stored rows ``kept`` only: they alone occlude and are answered, in that order."""
@@ -281,15 +285,16 @@ class VisibilityField:
                  finish: Callable[[Tensor], Tensor] | None = None) -> Iterator[tuple[np.ndarray | slice, Tensor]]:
         """Yields ``(views' indices, (v, M) probabilities)`` of the points ``rows`` (None: all) for
         every view, each view by its field (see :meth:`_parts`), or ``finish`` of them."""
-        for field, index, part in self._parts(views):
+        for field, index, part, inside in self._parts(views):
             if max_range is None:
-                for batch, probs in field._batches(part, rows, finish):
+                for batch, probs in field._batches(part, rows, finish, inside=inside):
                     yield (batch if index is None else index[batch]), probs
                 continue
             for j in range(len(part)):
                 probs = field._cropped(_subset(part, np.array([j])), max_range)
                 probs = probs if rows is None else probs[:, rows]
-                yield (slice(j, j + 1) if index is None else index[j:j + 1]), (probs if finish is None else finish(probs))
+                batch = slice(j, j + 1) if index is None else index[j:j + 1]
+                yield batch, (probs if finish is None else finish(probs))
 
     def _nearest_distance(self, position: Tensor) -> float:
         """The distance from a (3,) position in the cloud's frame to its nearest point: one pass over
@@ -395,13 +400,14 @@ class VisibilityField:
         return torch.sigmoid(margin)
 
     def _batches(self, views: Views, rows: Tensor | None = None,
-                 finish: Callable[[Tensor], Tensor] | None = None, stored: bool = False
-                 ) -> Iterator[tuple[slice, Tensor]]:
+                 finish: Callable[[Tensor], Tensor] | None = None, stored: bool = False,
+                 inside: Tensor | None = None) -> Iterator[tuple[slice, Tensor]]:
         """Yields ``(views slice, (v, M) probabilities)`` of the points ``rows`` (None: all),
         with frustum culling applied, or ``finish`` of them (done on the thread that answered
         the views). Every point occludes, whichever rows are asked for. ``stored``: ``rows`` and
-        the answers in the order the points are stored in (along the Morton curve), not the cloud's."""
-        cameras, directions, orthographic = self._normalised(views)
+        the answers in the order the points are stored in (along the Morton curve), not the cloud's.
+        ``inside``: the views' :meth:`_inside`, where the caller has it."""
+        cameras, directions, orthographic = self._normalised(views, inside)
         clear = self._off_the_hull(views)
         n, total = self.num_points if rows is None else len(rows), len(views)
         unsort = None  # the columns, in the cloud's order, of an answer for all stored rows
@@ -470,8 +476,8 @@ class VisibilityField:
         views = as_views(cameras, None)
         rows = self._checked_indices(rows)
         with torch.inference_mode():
-            parts = [(index, torch.cat([probs for _, probs in field._batches(part, rows, stored=True)]))
-                     for field, index, part in self._parts(views)]
+            parts = [(index, torch.cat([p for _, p in field._batches(part, rows, stored=True, inside=inside)]))
+                     for field, index, part, inside in self._parts(views)]
             if len(parts) == 1:
                 return parts[0][1]
             out = parts[0][1].new_empty(len(views), parts[0][1].shape[1])

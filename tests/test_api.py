@@ -731,14 +731,16 @@ def test_the_runtime_never_imports_training_code():
 
 
 def test_dense_clouds_read_the_features_from_the_leaves(vis, points):
-    """A dense cloud's queries that the C kernels answer read the features where they are
-    stored, per octree leaf, the drop-in's one view among them; where the torch ops answer, a
-    first query of one view reads them there and a later query carries them to every point once.
-    The answers do not change. A cloud of few points a leaf has them carried at once."""
+    """A first query of one view (the drop-in's) reads the features where they are stored, per
+    octree leaf, at any density; a dense cloud's later queries that the C kernels answer read them
+    there too, where the torch ops answer a later query carries them to every point once, and a
+    cloud of few points a leaf has them carried by its second query. The answers do not change."""
     camera = _camera(points)
     sparse = vis.encode(points)
     assert sparse.num_points < 4 * sparse._leaves.leaves.shape[1]
-    sparse.probabilities(camera)
+    once = sparse.probabilities(camera)
+    assert sparse._features is None
+    torch.testing.assert_close(sparse.probabilities(camera), once, atol=1e-6, rtol=0)
     assert sparse._features is not None
     rng = np.random.default_rng(5)  # 16 points around each of the cloud's
     points = np.repeat(points, 16, axis=0) + 1e-3 * rng.standard_normal((16 * len(points), 3))

@@ -415,10 +415,18 @@ def test_upsample_equals_the_torch_ops(shape, variant):
     product = (x @ weight).view(8 * parents, outputs).index_select(0, rows) + shift
     for relu, expected in [(False, product), (True, torch.relu(product))]:
         torch.testing.assert_close(native.upsample(x, rows, weight, shift, relu), expected, rtol=1e-5, atol=1e-5)
+    # a residual before the ReLU and an addend after it: torch's adds, to the bit
+    plain = native.upsample(x, rows, weight, shift, False)
+    residual, addend = torch.randn(2, len(rows), outputs, generator=g)
+    for relu, expected in [(False, plain + residual + addend), (True, torch.relu(plain + residual) + addend)]:
+        assert torch.equal(native.upsample(x, rows, weight, shift, relu, residual=residual, addend=addend), expected)
+    assert torch.equal(native.upsample(x, rows, weight, shift, True, addend=addend), torch.relu(plain) + addend)
     with pytest.raises(ValueError, match="rows must lie"):
         native.upsample(x, rows + 8 * parents - int(rows.min()), weight, shift, True)
     with pytest.raises(ValueError, match="weight must be"):
         native.upsample(x, rows, weight[:, 1:], shift, True)
+    with pytest.raises(ValueError, match="addend must be"):
+        native.upsample(x, rows, weight, shift, True, addend=addend[1:])
 
 
 @needs_kernels
@@ -432,7 +440,7 @@ def test_the_unet_with_native_upsamplings_answers_as_the_torch_ops(monkeypatch):
     network = VisibilityNetwork(NetworkConfig(noise_cues=True)).eval()
     points = _points(5000)
     calls, upsample = [], native.upsample
-    monkeypatch.setattr(native, "upsample", lambda *args: calls.append(1) or upsample(*args))
+    monkeypatch.setattr(native, "upsample", lambda *args, **kw: calls.append(1) or upsample(*args, **kw))
     with torch.no_grad(), conv.products_in(torch.float32):
         fused = network.encode(points)
         assert len(calls) == 5  # four decoder stages and the leaves

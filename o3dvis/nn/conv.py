@@ -160,7 +160,7 @@ class OctreeUpsample(_GatherMatmul):
 
 LayerStep = Callable[..., Tensor]
 """A layer in inference, ``step(x, octree, level)``; a :class:`ConvBnRelu`'s also takes a
-``residual``: see :meth:`ConvBnRelu.step`."""
+``residual`` and an ``addend``: see :meth:`ConvBnRelu.step`."""
 
 STEPS = Derived()
 """The layers' kept steps (and the U-Net's lists of them)."""
@@ -177,11 +177,15 @@ class ConvBnRelu(nn.Module):
         self.bn = nn.BatchNorm1d(out_channels)
         self.relu = relu
 
-    def forward(self, x: Tensor, octree: Octree, level: int) -> Tensor:
+    def forward(self, x: Tensor, octree: Octree, level: int, residual: Tensor | None = None,
+                addend: Tensor | None = None) -> Tensor:
+        """``relu(bn(conv(x)) + residual) + addend``: without a ``residual``, the ReLU only where the
+        layer has one; without an ``addend``, nothing added after it."""
         if self.training or torch.is_grad_enabled():
             x = self.bn(self.conv(x, octree, level))
-            return torch.relu(x) if self.relu else x
-        return self.inference_step(x)(x, octree, level)
+            x = torch.relu(x + residual) if residual is not None else torch.relu(x) if self.relu else x
+            return x if addend is None else x + addend
+        return self.inference_step(x)(x, octree, level, residual, addend)
 
     def inference_step(self, x: Tensor) -> LayerStep:
         """:meth:`step` for inputs like ``x``, kept until the weights change."""
@@ -189,8 +193,9 @@ class ConvBnRelu(nn.Module):
 
     def step(self, x: Tensor) -> LayerStep:
         """This layer in inference for inputs like ``x``, with its weights as they are now:
-        ``step(x, octree, level, residual=None)``, with a ``residual`` ``relu(residual + convolution
-        + shift)`` (a :class:`ResBlock`'s end). The batch norm is folded into the weight (rounded to
+        ``step(x, octree, level, residual=None, addend=None)``, with a ``residual`` ``relu(residual +
+        convolution + shift)`` (a :class:`ResBlock`'s end), with an ``addend`` that plus the
+        ``addend`` (a U-Net's skip). The batch norm is folded into the weight (rounded to
         the layer's :meth:`~_GatherMatmul.product_dtype`) and a shift. One pass of C where the
         kernels take it: an up-sampling for the nodes that exist only (:func:`~o3dvis.nn.native.upsample`,
         the same float32 sums), a convolution in bfloat16 dot products (:func:`~o3dvis.nn.native.gather_conv`,
@@ -209,9 +214,12 @@ class ConvBnRelu(nn.Module):
         if isinstance(conv, OctreeUpsample):
             weight, shift = weight.contiguous(), shift.contiguous()
 
-            def upsample(x: Tensor, octree: Octree, level: int, residual: Tensor | None = None) -> Tensor:
+            def upsample(x: Tensor, octree: Octree, level: int, residual: Tensor | None = None,
+                         addend: Tensor | None = None) -> Tensor:
                 rows = octree.octant_rows(level + 1).contiguous()
-                return finish(native.upsample(x.contiguous(), rows, weight, shift, relu and residual is None), residual)
+                return native.upsample(x.contiguous(), rows, weight, shift, relu or residual is not None,
+                                       residual=None if residual is None else residual.contiguous(),
+                                       addend=None if addend is None else addend.contiguous())
             return upsample
         if (weight.dtype != torch.bfloat16 or conv.in_channels % 2 or conv.out_channels % 16
                 or not native.has_gather_conv()):
@@ -219,20 +227,24 @@ class ConvBnRelu(nn.Module):
         taps, outputs = len(weight) // conv.in_channels, conv.out_channels
         packed, shift = native.pack_conv(weight, taps), shift.float().contiguous()
 
-        def gathered(x: Tensor, octree: Octree, level: int, residual: Tensor | None = None) -> Tensor:
+        def gathered(x: Tensor, octree: Octree, level: int, residual: Tensor | None = None,
+                     addend: Tensor | None = None) -> Tensor:
             index = conv.index(octree, level).contiguous()
             entries = octree.derived(("conv entries", taps, level), lambda: native.conv_entries(index, len(x)))
-            return native.gather_conv(x.contiguous(), index, packed, taps, outputs, shift,
-                                      None if residual is None else residual.contiguous(),
-                                      relu=relu or residual is not None, entries=entries)
+            out = native.gather_conv(x.contiguous(), index, packed, taps, outputs, shift,
+                                     None if residual is None else residual.contiguous(),
+                                     relu=relu or residual is not None, entries=entries)
+            return out if addend is None else out.add_(addend)
         return gathered
 
     def _torch_step(self, weight: Tensor, shift: Tensor) -> LayerStep:
         """:meth:`step` in torch ops with the folded ``weight`` and ``shift``."""
         conv, finish = self.conv, self._finish
 
-        def torch_ops(x: Tensor, octree: Octree, level: int, residual: Tensor | None = None) -> Tensor:
-            return finish(conv(x, octree, level, weight).add_(shift), residual)
+        def torch_ops(x: Tensor, octree: Octree, level: int, residual: Tensor | None = None,
+                      addend: Tensor | None = None) -> Tensor:
+            out = finish(conv(x, octree, level, weight).add_(shift), residual)
+            return out if addend is None else out.add_(addend)
         return torch_ops
 
     def _finish(self, out: Tensor, residual: Tensor | None) -> Tensor:

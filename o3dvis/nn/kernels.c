@@ -556,9 +556,18 @@ struct upsample_job {
     const int64_t *rows;
     const float *weight;
     int outputs, relu;
-    const float *shift;
+    const float *shift, *residual, *addend;
     float *out;
 };
+
+/* out[i][j] of o3dvis_upsample from the sum v of its products: plus the shift, plus the residual,
+ * through the ReLU, plus the addend, each where given */
+#define UPSAMPLE_FINISH(v, i, j, ADD, MAX)                                                                   \
+    do {                                                                                                     \
+        if (s->residual) v = ADD(v, s->residual + (i) * outputs + (j));                                      \
+        if (relu) v = MAX(v);                                                                                \
+        if (s->addend) v = ADD(v, s->addend + (i) * outputs + (j));                                          \
+    } while (0)
 
 /* A worker of o3dvis_upsample: the items of UPSAMPLE_ROWS rows it claims. */
 static void upsample_worker(struct crew_job *crew_job, int worker) {
@@ -589,12 +598,16 @@ static void upsample_worker(struct crew_job *crew_job, int worker) {
                         for (int u = 0; u < t; u++)
                             acc[r][u] = _mm512_fmadd_ps(a, _mm512_loadu_ps(wk + 16 * u), acc[r][u]);
                     }
+#define ADD_V(v, p) _mm512_add_ps(v, _mm512_loadu_ps(p))
+#define MAX_V(v) _mm512_max_ps(v, _mm512_setzero_ps())
                 for (int r = 0; r < 4; r++)
                     for (int u = 0; u < t; u++) {
                         __m512 v = _mm512_add_ps(acc[r][u], _mm512_loadu_ps(shift + 16 * u));
-                        if (relu) v = _mm512_max_ps(v, _mm512_setzero_ps());
+                        UPSAMPLE_FINISH(v, i + r, 16 * u, ADD_V, MAX_V);
                         _mm512_storeu_ps(out + (i + r) * outputs + 16 * u, v);
                     }
+#undef ADD_V
+#undef MAX_V
             }
 #endif
         for (; i < end; i++) {
@@ -605,32 +618,38 @@ static void upsample_worker(struct crew_job *crew_job, int worker) {
                 const float a = xp[k], *wk = w + k * stride;
                 for (int j = 0; j < outputs; j++) o[j] = MADD(a, wk[j], o[j]);
             }
+#define ADD_S(v, p) ((v) + *(p))
+#define MAX_S(v) ((v) < 0.0f ? 0.0f : (v))
             for (int j = 0; j < outputs; j++) {
-                const float v = o[j] + shift[j];
-                o[j] = relu && v < 0.0f ? 0.0f : v;
+                float v = o[j] + shift[j];
+                UPSAMPLE_FINISH(v, i, j, ADD_S, MAX_S);
+                o[j] = v;
             }
+#undef ADD_S
+#undef MAX_S
         }
     }
 }
 
 /* An up-sampling of the U-Net in inference, as o3dvis/nn/conv.py's OctreeUpsample and ConvBnRelu
- * compute it, for the rows that exist only: out[i] = relu?(x[p] W_o + shift) with p = rows[i] / 8
- * the parent's row of x (parents, channels) and o = rows[i] % 8 the octant, W_o the octant's
- * outputs columns of weight (channels, 8 outputs); each sum in float32 along the channels in order,
- * multiply-adds fused where the CPU fuses them (as a matrix product's sums run), then the shift
- * added; the rows shared out among up to threads threads, the caller's and the crew's. out: (n,
- * outputs). Returns 0, or with nothing written -1 for a row out of [0, 8 parents), -5 for threads
- * out of [1, CREW_MAX + 1]. */
+ * compute it, for the rows that exist only: out[i] = relu?(x[p] W_o + shift + residual[i]) +
+ * addend[i] with p = rows[i] / 8 the parent's row of x (parents, channels) and o = rows[i] % 8 the
+ * octant, W_o the octant's outputs columns of weight (channels, 8 outputs); each sum in float32 along
+ * the channels in order, multiply-adds fused where the CPU fuses them (as a matrix product's sums
+ * run), then the shift added, then the residual and the addend (n, outputs) where not NULL, each
+ * sum rounded to float32 as torch's adds round it; the rows shared out among up to threads threads,
+ * the caller's and the crew's. out: (n, outputs). Returns 0, or with nothing written -1 for a row out
+ * of [0, 8 parents), -5 for threads out of [1, CREW_MAX + 1]. */
 int o3dvis_upsample(int64_t n, const float *x, int64_t parents, int32_t channels, const int64_t *rows,
-                    const float *weight, int32_t outputs, const float *shift, int32_t relu, int32_t threads,
-                    float *out) {
+                    const float *weight, int32_t outputs, const float *shift, const float *residual, int32_t relu,
+                    const float *addend, int32_t threads, float *out) {
     if (threads < 1 || threads > CREW_MAX + 1) return -5;
     int outside = 0;
     for (int64_t i = 0; i < n; i++) outside |= (rows[i] < 0) | (rows[i] >= 8 * parents);
     if (outside) return -1;
     const int64_t items = (n + UPSAMPLE_ROWS - 1) / UPSAMPLE_ROWS;
     struct upsample_job job = {{upsample_worker, items, 0, crew_workers(threads, items), 0}, n, x, channels, rows,
-                               weight, outputs, relu, shift, out};
+                               weight, outputs, relu, shift, residual, addend, out};
     crew_run(&job.crew);
     return 0;
 }

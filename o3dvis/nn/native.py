@@ -59,7 +59,7 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_cell_thickness": ([_I64, _PTR, _I32, _I64, _PTR], _I64),
     "o3dvis_run_flatness": ([_I64, _PTR, _I32, _PTR, _PTR], None),
     "o3dvis_leaf_means": ([_I64, _PTR, _PTR, _PTR, _I32, _I64, _PTR, _PTR], ctypes.c_int),
-    "o3dvis_upsample": ([_I64, _PTR, _I64, _I32, _PTR, _PTR, _I32, _PTR, _I32, _I32, _PTR], ctypes.c_int),
+    "o3dvis_upsample": ([_I64, _PTR, _I64, _I32, _PTR, _PTR, _I32, _PTR, _PTR, _I32, _PTR, _I32, _PTR], ctypes.c_int),
     "o3dvis_has_gather_conv": ([], ctypes.c_int),
     "o3dvis_octree_counts": ([_I64, _PTR, _I32, _I32, _PTR], ctypes.c_int),
     "o3dvis_octree_fill": ([_I64, _PTR, _I32, _I32, _PTR, _PTR, _PTR], None),
@@ -115,7 +115,7 @@ def usable(*tensors: Tensor | None) -> bool:
 
 
 def _check(name: str, t: Tensor, shape: tuple[int, ...], dtype: torch.dtype = torch.float32) -> None:
-    if t.shape != shape or t.dtype != dtype or not t.is_contiguous() or t.device.type != "cpu":
+    if t.shape != shape or t.dtype != dtype or not t.is_contiguous() or not t.is_cpu:
         raise ValueError(f"{name} must be a contiguous {shape} {dtype} CPU tensor, got "
                          f"{tuple(t.shape)} {t.dtype} on {t.device}")
 
@@ -210,12 +210,13 @@ def leaf_means(points: Tensor, normals: Tensor | None, leaf: Tensor, depth: int,
     return out
 
 
-def upsample(x: Tensor, rows: Tensor, weight: Tensor, shift: Tensor, relu: bool, threads: int | None = None) -> Tensor:
+def upsample(x: Tensor, rows: Tensor, weight: Tensor, shift: Tensor, relu: bool, threads: int | None = None, *,
+             residual: Tensor | None = None, addend: Tensor | None = None) -> Tensor:
     """(n, O) float32: an up-sampling (:class:`~o3dvis.nn.conv.OctreeUpsample` with its batch norm
     folded into ``weight`` and ``shift``) for the rows that exist only: row ``i`` is parent
     ``rows[i] // 8`` of ``x`` times the columns of octant ``rows[i] % 8`` of ``weight``, plus
-    ``shift``, through a ReLU where ``relu``; in one pass instead of a product for all eight
-    octants of every parent and a gather.
+    ``shift``, plus ``residual``, through a ReLU where ``relu``, plus ``addend``; in one pass
+    instead of a product for all eight octants of every parent, a gather and the adds.
 
     Args:
         x: (parents, C) float32.
@@ -224,6 +225,8 @@ def upsample(x: Tensor, rows: Tensor, weight: Tensor, shift: Tensor, relu: bool,
         shift: (O,) float32.
         threads: the rows are shared out among up to this many threads (see :func:`kernel_threads`);
             each row's sums are the same on any number.
+        residual, addend: (n, O) float32 or None, added before and after the ReLU (each sum rounded
+            as torch's add rounds it).
 
     Raises:
         ValueError: tensors of the wrong shape or type, a row or a thread count out of range.
@@ -234,10 +237,15 @@ def upsample(x: Tensor, rows: Tensor, weight: Tensor, shift: Tensor, relu: bool,
     _check("rows", rows, (rows.shape[0],), torch.long)
     _check("weight", weight, (channels, 8 * outputs))
     _check("shift", shift, (outputs,))
-    out = x.new_empty(rows.shape[0], outputs)
-    if _LIBRARY.o3dvis_upsample(rows.shape[0], x.data_ptr(), parents, channels, rows.data_ptr(), weight.data_ptr(),
-                                outputs, shift.data_ptr(), int(relu),
-                                kernel_threads(threads, rows.shape[0] * channels * outputs), out.data_ptr()):
+    n = rows.shape[0]
+    for name, t in (("residual", residual), ("addend", addend)):
+        if t is not None:
+            _check(name, t, (n, outputs))
+    out = x.new_empty(n, outputs)
+    if _LIBRARY.o3dvis_upsample(n, x.data_ptr(), parents, channels, rows.data_ptr(), weight.data_ptr(), outputs,
+                                shift.data_ptr(), None if residual is None else residual.data_ptr(), int(relu),
+                                None if addend is None else addend.data_ptr(),
+                                kernel_threads(threads, n * channels * outputs), out.data_ptr()):
         raise ValueError(f"rows must lie in [0, {8 * parents})")
     return out
 

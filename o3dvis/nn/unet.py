@@ -59,10 +59,10 @@ class OctreeUNet(nn.Module):
                 x = block(x, octree, level)
             skips.append(x)
         for up, block, skip in zip(ups, decoder, reversed(skips[:-1])):
-            x = up(x, octree, level)
+            x = up(x, octree, level, None, skip)  # the skip added after the ReLU
             level += 1
-            x = block(x + skip, octree, level)
-        x = torch.relu(up_leaf(x, octree, level) + self.skip_leaf(signal))
+            x = block(x, octree, level)
+        x = up_leaf(x, octree, level, self.skip_leaf(signal))  # relu(up-sampled + skip)
         return self.head(x)
 
     def _steps(self, signal: Tensor) -> tuple:

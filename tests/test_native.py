@@ -17,6 +17,69 @@ from o3dvis import clib
 from o3dvis.nn import native
 from o3dvis.nn.cues import ViewProjection, point_surfels
 
+@pytest.mark.skipif(not native.has_gather_conv(), reason="no AVX-512 bfloat16 kernels here")
+@pytest.mark.parametrize("blocks", [1, 2])
+def test_the_unet_in_one_call_answers_as_its_layers_one_by_one(monkeypatch, blocks):
+    """The down-samplings, encoder, up-samplings and decoder in one call of C (native.unet): the
+    features of the layers' steps called one by one, to the bit; made anew when a weight changes."""
+    import copy
+
+    from o3dvis.nn import unet
+    from o3dvis.nn.conv import products_in
+    from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
+
+    torch.manual_seed(1)
+    network = VisibilityNetwork(NetworkConfig(noise_cues=True, blocks=blocks)).eval()
+    alone = copy.deepcopy(network)
+    points = _points(3000)
+    calls, run = [], native.unet
+    monkeypatch.setattr(native, "unet", lambda *args, **kw: calls.append(1) or run(*args, **kw))
+    with torch.no_grad(), products_in(torch.bfloat16):
+        fused = network.encode(points)
+        assert calls == [1]
+        with monkeypatch.context() as m:
+            m.setattr(unet._NativeBody, "of", classmethod(lambda cls, *steps: None))
+            assert torch.equal(alone.encode(points), fused) and calls == [1]
+            alone.unet.enc[1][0].a.conv.weight.mul_(1.5)
+            network.unet.enc[1][0].a.conv.weight.mul_(1.5)
+            changed = alone.encode(points)
+        assert not torch.equal(changed, fused)
+        assert torch.equal(network.encode(points), changed) and calls == [1, 1]
+
+
+@pytest.mark.skipif(not native.has_gather_conv(), reason="no AVX-512 bfloat16 kernels here")
+def test_unet_checks_that_its_table_holds_together():
+    """native.unet on a table of two up-samplings: the answers of native.upsample; a table whose
+    buffers, channels or shapes do not fit, or a row out of range, raises before anything runs."""
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(3, 4, generator=g)
+    w1, s1 = torch.randn(4, 8 * 16, generator=g), torch.randn(16, generator=g)
+    w2, s2 = torch.randn(16, 8 * 16, generator=g), torch.randn(16, generator=g)
+    rows1 = torch.tensor([0, 5, 9, 17, 23])
+    rows2 = torch.tensor([1, 2, 8, 30, 39])
+    first = native.upsample(x, rows1, w1, s1, True)
+    expected = native.upsample(first, rows2, w2, s2, True, addend=first)
+
+    def table(**change) -> torch.Tensor:
+        fields = {"kind": 1, "input": [0, 1], "residual": -1, "addend": [-1, 1], "channels": [4, 16], "outputs": 16,
+                  "taps": 1, "relu": 1, "weight": [w1.data_ptr(), w2.data_ptr()],
+                  "shift": [s1.data_ptr(), s2.data_ptr()], "rows": 5, "index": [rows1.data_ptr(), rows2.data_ptr()],
+                  "offsets": 0, "entries": 0, "listed": 0}
+        fields.update(change)
+        return torch.tensor([[v[i] if isinstance(v, list) else v for v in fields.values()] for i in range(2)])
+
+    assert table().shape == (2, native.UNET_FIELDS)
+    assert torch.equal(native.unet(table(), x, torch.empty(5, 16)), expected)
+    for change in [{"input": [0, 2]}, {"channels": [4, 8]}, {"addend": [-1, 0]}, {"kind": [1, 2]},
+                   {"kind": [0, 1]}, {"rows": [4, 5]}]:
+        with pytest.raises(ValueError, match="does not hold together"):
+            native.unet(table(**change), x, torch.empty(5, 16))
+    with pytest.raises(ValueError, match="layer 1 failed"):
+        native.unet(table(index=[rows1.data_ptr(), (rows2 + 40).data_ptr()]), x, torch.empty(5, 16))
+    with pytest.raises(ValueError, match="out must be"):
+        native.unet(table(), x, torch.empty(4, 16))
+
+
 _CAMERA = torch.tensor([2.0, 1.0, -0.5])
 _DIRECTION = torch.tensor([-0.3, 0.2, 1.0])
 # the comparisons need the kernels; test_every_variant_this_cpu_runs_is_built fails where they should be and are not
@@ -389,11 +452,12 @@ def test_the_unet_of_gathered_convolutions_answers_as_the_torch_ops(monkeypatch)
     torch.manual_seed(0)
     network = VisibilityNetwork(NetworkConfig(noise_cues=True)).eval()
     points = _points(5000)
-    calls, gather_conv = [], native.gather_conv
-    monkeypatch.setattr(native, "gather_conv", lambda *args, **kw: calls.append(1) or gather_conv(*args, **kw))
+    calls, unet = [], native.unet
+    monkeypatch.setattr(native, "unet", lambda table, *args, **kw: calls.append(table[:, 0].tolist()) or unet(
+        table, *args, **kw))
     with torch.no_grad(), products_in(torch.bfloat16):
         fused = network.encode(points)
-        assert len(calls) == 23  # 5 down-samplings, 9 residual blocks of 2
+        assert [kinds.count(0) for kinds in calls] == [23]  # in one call: 5 down-samplings, 9 residual blocks of 2
         monkeypatch.setattr(native, "has_gather_conv", lambda: False)
         plain = network.encode(points)
     assert float((fused - plain).abs().mean()) < 4e-3 * float(plain.abs().mean())

@@ -10,6 +10,7 @@ import contextlib
 import math
 import threading
 from collections.abc import Callable, Iterator
+from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -19,8 +20,8 @@ from . import native
 from .octree import Octree
 from .state import Derived
 
-__all__ = ["OctreeConv", "OctreeDownsample", "OctreeUpsample", "ConvBnRelu", "ResBlock", "LayerStep", "STEPS",
-           "gather_rows", "products_in", "step_conditions"]
+__all__ = ["OctreeConv", "OctreeDownsample", "OctreeUpsample", "ConvBnRelu", "ResBlock", "LayerStep", "NativeLayer",
+           "STEPS", "gather_rows", "products_in", "step_conditions"]
 
 _PRODUCTS = threading.local()
 
@@ -166,6 +167,21 @@ STEPS = Derived()
 """The layers' kept steps (and the U-Net's lists of them)."""
 
 
+class NativeLayer(NamedTuple):
+    """A layer's step as the C kernels run it (see :data:`o3dvis.nn.native.UNET_FIELDS`): ``kind`` 0
+    a convolution of :func:`~o3dvis.nn.native.gather_conv` (``weight`` packed for it), 1 an
+    up-sampling of :func:`~o3dvis.nn.native.upsample`; its folded ``shift``, input ``channels``,
+    ``taps``, ``outputs`` and ReLU."""
+
+    kind: int
+    weight: Tensor
+    shift: Tensor
+    channels: int
+    taps: int
+    outputs: int
+    relu: bool
+
+
 class ConvBnRelu(nn.Module):
     """A convolution, batch norm and ReLU; in inference (eval mode, no gradient) the batch norm is
     folded into the convolution's weight, scaled per output channel, and a shift."""
@@ -220,6 +236,7 @@ class ConvBnRelu(nn.Module):
                 return native.upsample(x.contiguous(), rows, weight, shift, relu or residual is not None,
                                        residual=None if residual is None else residual.contiguous(),
                                        addend=None if addend is None else addend.contiguous())
+            upsample.native = NativeLayer(1, weight, shift, conv.in_channels, 1, conv.out_channels // 8, relu)
             return upsample
         if (weight.dtype != torch.bfloat16 or conv.in_channels % 2 or conv.out_channels % 16
                 or not native.has_gather_conv()):
@@ -235,6 +252,7 @@ class ConvBnRelu(nn.Module):
                                      None if residual is None else residual.contiguous(),
                                      relu=relu or residual is not None, entries=entries)
             return out if addend is None else out.add_(addend)
+        gathered.native = NativeLayer(0, packed, shift, conv.in_channels, taps, outputs, relu)
         return gathered
 
     def _torch_step(self, weight: Tensor, shift: Tensor) -> LayerStep:
@@ -283,6 +301,11 @@ class ResBlock(nn.Module):
         return self.b.inference_step(x)(self.a(x, octree, level), octree, level, x)
 
     def step(self, x: Tensor) -> LayerStep:
-        """This block in inference for inputs like ``x`` (see :meth:`ConvBnRelu.step`)."""
+        """This block in inference for inputs like ``x`` (see :meth:`ConvBnRelu.step`); its two
+        layers' steps are the step's ``layers``."""
         a, b = self.a.step(x), self.b.step(x)
-        return lambda x, octree, level: b(a(x, octree, level), octree, level, x)
+
+        def block(x: Tensor, octree: Octree, level: int) -> Tensor:
+            return b(a(x, octree, level), octree, level, x)
+        block.layers = (a, b)  # what a caller that runs the layers itself reads
+        return block

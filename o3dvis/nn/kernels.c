@@ -2006,6 +2006,88 @@ int o3dvis_gather_conv(int64_t n, const float *x, int64_t rows, int32_t channels
 #endif
 }
 
+/* The fields of a layer of o3dvis_unet, an int64 each (the pointers' addresses too): the kind (0 a
+ * convolution of o3dvis_gather_conv, 1 an up-sampling of o3dvis_upsample); the buffers of its input,
+ * residual and addend (-1: none; buffer 0 is the network's input, buffer i + 1 the output of layer
+ * i); the input channels, outputs, taps (of a convolution), ReLU; the packed weight (pack_conv's, or
+ * the up-sampling's) and shift; the output rows; the index (a convolution's (rows, taps), an
+ * up-sampling's rows), and a convolution's offsets, entries and listed of o3dvis_conv_entries. */
+enum { UNET_KIND, UNET_INPUT, UNET_RESIDUAL, UNET_ADDEND, UNET_CHANNELS, UNET_OUTPUTS, UNET_TAPS, UNET_RELU,
+       UNET_WEIGHT, UNET_SHIFT, UNET_ROWS, UNET_INDEX, UNET_OFFSETS, UNET_ENTRIES, UNET_LISTED, UNET_FIELDS };
+#define UNET_MAX_LAYERS 256
+
+/* Layers of an octree U-Net in inference, one after the other in one call: each as o3dvis_gather_conv
+ * or o3dvis_upsample computes it (the same sums), on up to threads threads where its multiply-adds
+ * reach shared_work, else on the caller's alone; intermediate outputs in buffers of its own, the last
+ * layer's in out. table: layers x UNET_FIELDS, its addresses those of live arrays of the right
+ * sizes (the caller's to keep so; a layer checks its index as it runs); x: (rows, channels) the
+ * input. Returns 0, or -6 for a table that does not hold together (a buffer that is not an earlier
+ * one, channels or a residual's or an addend's shape that are not its buffer's, a convolution's
+ * channels odd or outputs not a multiple of 16, a null address, layers out of [1,
+ * UNET_MAX_LAYERS]), -1 when out of memory, or a layer's own code
+ * (see o3dvis_gather_conv and o3dvis_upsample: -1 for an up-sampling's row out of range); *failed:
+ * the layer that failed. -2 in a build without AVX-512 bfloat16. */
+int o3dvis_unet(int32_t layers, const int64_t *table, int64_t rows, int32_t channels, const float *x,
+                int32_t threads, int64_t shared_work, float *out, int32_t *failed) {
+#ifdef __AVX512BF16__
+    *failed = -1;
+    if (layers < 1 || layers > UNET_MAX_LAYERS || rows < 0 || channels < 1) return -6;
+    if (threads < 1 || threads > CREW_MAX + 1) return -5;
+    const float *in[UNET_MAX_LAYERS + 1];
+    float *made[UNET_MAX_LAYERS + 1] = {NULL};
+    int64_t height[UNET_MAX_LAYERS + 1], width[UNET_MAX_LAYERS + 1];
+    in[0] = x, height[0] = rows, width[0] = channels;
+    for (int i = 0; i < layers; i++) { /* the table holds together before anything runs */
+        const int64_t *f = table + (int64_t)i * UNET_FIELDS;
+        const int64_t src = f[UNET_INPUT], res = f[UNET_RESIDUAL], add = f[UNET_ADDEND];
+        const int64_t c = f[UNET_CHANNELS], o = f[UNET_OUTPUTS], n = f[UNET_ROWS];
+        int bad = (f[UNET_KIND] != 0 && f[UNET_KIND] != 1) || src < 0 || src > i || res < -1 || res > i || add < -1 ||
+                  add > i || n < 0 || o < 1 || o > INT32_MAX / 8 || c != width[src < 0 ? 0 : src] || !f[UNET_WEIGHT] ||
+                  !f[UNET_SHIFT] || !f[UNET_INDEX];
+        if (f[UNET_KIND] == 0)
+            bad |= c % 2 || o % 16 || f[UNET_TAPS] < 1 || f[UNET_TAPS] > INT32_MAX / c || add >= 0 ||
+                   !f[UNET_OFFSETS] || !f[UNET_ENTRIES] || f[UNET_LISTED] < 0;
+        if (!bad && res >= 0) bad |= height[res] != n || width[res] != o;
+        if (!bad && add >= 0) bad |= height[add] != n || width[add] != o;
+        if (bad) return *failed = i, -6;
+        height[i + 1] = n, width[i + 1] = o;
+    }
+    int code = 0;
+    for (int i = 0; i < layers && !code; i++) {
+        const int64_t *f = table + (int64_t)i * UNET_FIELDS;
+        const int64_t n = f[UNET_ROWS], c = f[UNET_CHANNELS], o = f[UNET_OUTPUTS];
+        const int64_t taps = f[UNET_KIND] ? 1 : f[UNET_TAPS];
+        float *dst = i == layers - 1 ? out : (made[i + 1] = malloc(sizeof(float) * (size_t)(n * o + 1)));
+        if (dst == NULL) {
+            code = -1;
+            break;
+        }
+        in[i + 1] = dst;
+        const float *res = f[UNET_RESIDUAL] < 0 ? NULL : in[f[UNET_RESIDUAL]];
+        const int t = n * taps * c * o < shared_work ? 1 : threads;
+        if (f[UNET_KIND] == 0)
+            code = o3dvis_gather_conv(n, in[f[UNET_INPUT]], height[f[UNET_INPUT]], (int32_t)c,
+                                      (const int64_t *)(intptr_t)f[UNET_INDEX], (int32_t)taps,
+                                      (const int64_t *)(intptr_t)f[UNET_OFFSETS],
+                                      (const int64_t *)(intptr_t)f[UNET_ENTRIES], f[UNET_LISTED],
+                                      (const uint32_t *)(intptr_t)f[UNET_WEIGHT], (int32_t)o,
+                                      (const float *)(intptr_t)f[UNET_SHIFT], res, (int32_t)f[UNET_RELU], t, dst);
+        else
+            code = o3dvis_upsample(n, in[f[UNET_INPUT]], height[f[UNET_INPUT]], (int32_t)c,
+                                   (const int64_t *)(intptr_t)f[UNET_INDEX], (const float *)(intptr_t)f[UNET_WEIGHT],
+                                   (int32_t)o, (const float *)(intptr_t)f[UNET_SHIFT], res, (int32_t)f[UNET_RELU],
+                                   f[UNET_ADDEND] < 0 ? NULL : in[f[UNET_ADDEND]], t, dst);
+        if (code) *failed = i;
+    }
+    for (int i = 1; i <= layers; i++) free(made[i]);
+    return code;
+#else
+    (void)layers, (void)table, (void)rows, (void)channels, (void)x, (void)threads, (void)shared_work, (void)out;
+    *failed = -1;
+    return -2;
+#endif
+}
+
 /* A vector of the compiler's (GCC and Clang vector extensions) as wide as the CPU's registers, and
    how many of them a layer's step takes along the points: 4 x 4 x 16 sums in the 32 AVX-512
    registers, 4 x 2 x 8 in the 16 of AVX, 4 x 2 x 4 in those of SSE and NEON */

@@ -61,6 +61,7 @@ _SIGNATURES = {  # name: (argument types, result type)
     "o3dvis_leaf_means": ([_I64, _PTR, _PTR, _PTR, _I32, _I64, _PTR, _PTR], ctypes.c_int),
     "o3dvis_upsample": ([_I64, _PTR, _I64, _I32, _PTR, _PTR, _I32, _PTR, _PTR, _I32, _PTR, _I32, _PTR], ctypes.c_int),
     "o3dvis_has_gather_conv": ([], ctypes.c_int),
+    "o3dvis_unet": ([_I32, _PTR, _I64, _I32, _PTR, _I32, _I64, _PTR, _PTR], ctypes.c_int),
     "o3dvis_octree_counts": ([_I64, _PTR, _I32, _I32, _PTR], ctypes.c_int),
     "o3dvis_octree_fill": ([_I64, _PTR, _I32, _I32, _PTR, _PTR, _PTR], None),
     "o3dvis_conv_entries": ([_I64, _PTR, _I32, _I64, _PTR, _PTR], ctypes.c_int64),
@@ -274,7 +275,7 @@ def pack_conv(weight: Tensor, taps: int) -> Tensor:
     return tiles.view(torch.int16).view(torch.int32).flatten().cpu()
 
 
-_CONV_BLOCK = 64
+CONV_BLOCK = 64
 """Output rows of a block of :func:`gather_conv` (``CONV_BLOCK`` of ``kernels.c``)."""
 
 
@@ -297,7 +298,7 @@ def conv_entries(index: Tensor, rows: int) -> Tensor:
     """
     n, taps = index.shape
     _check("index", index, (n, taps), torch.long)
-    lists = -(-n // _CONV_BLOCK) * taps
+    lists = -(-n // CONV_BLOCK) * taps
     out = index.new_empty(lists + 1 + n * taps + 8 * (lists + 1))
     listed = _LIBRARY.o3dvis_conv_entries(n, index.data_ptr(), taps, rows, out.data_ptr(),
                                           out[lists + 1:].data_ptr())
@@ -347,7 +348,7 @@ def gather_conv(x: Tensor, index: Tensor, packed: Tensor, taps: int, outputs: in
     threads = kernel_threads(threads, n * taps * channels * outputs)
     if entries is None:
         entries = conv_entries(index, rows)
-    lists = -(-n // _CONV_BLOCK) * taps
+    lists = -(-n // CONV_BLOCK) * taps
     if entries.ndim != 1 or len(entries) <= lists:
         raise ValueError(f"entries must be conv_entries of the index: at least {lists + 1} values, got "
                          f"{tuple(entries.shape)}")
@@ -366,6 +367,60 @@ def gather_conv(x: Tensor, index: Tensor, packed: Tensor, taps: int, outputs: in
         raise RuntimeError("gather_conv needs the AVX-512 bfloat16 kernels (see has_gather_conv)")
     if code:
         raise MemoryError("gather_conv: out of memory")
+    return out
+
+
+UNET_FIELDS = 15
+"""The int64 fields of a layer of :func:`unet`'s table, in order: kind (0 a convolution of
+:func:`gather_conv`, 1 an up-sampling of :func:`upsample`), input, residual and addend buffers (-1:
+none; buffer 0 is the input ``x``, buffer ``i + 1`` the output of layer ``i``), input channels,
+outputs, taps, ReLU, the addresses of the weight (:func:`pack_conv`'s, or the up-sampling's) and the
+shift, output rows, the address of the index (a convolution's (rows, taps), an up-sampling's
+rows), and a convolution's :func:`conv_entries` as :func:`gather_conv` passes them: the addresses of
+the offsets and the entries, and the number listed."""
+
+
+def unet(table: Tensor, x: Tensor, out: Tensor, threads: int | None = None) -> Tensor:
+    """Runs the layers of ``table`` one after the other in one call: each as :func:`gather_conv` or
+    :func:`upsample` computes it (the same sums), its blocks shared out among up to ``threads``
+    threads where its multiply-adds reach :data:`SHARED_WORK`; the last layer's output in ``out``.
+    The tensors at the table's addresses are the caller's to keep alive and right (made by
+    :func:`pack_conv`, :func:`conv_entries` and the octree); the kernel checks that the layers hold
+    together (buffers, channels, the shapes of residuals and addends) and every index as the layers
+    do, before or while they run.
+
+    Args:
+        table: (layers, :data:`UNET_FIELDS`) int64.
+        x: (rows, C) float32, buffer 0.
+        out: (rows of the last layer, its outputs) float32.
+        threads: as in :func:`kernel_threads` (None: the calling thread's torch count).
+
+    Returns:
+        ``out``.
+
+    Raises:
+        ValueError: tensors of the wrong shape or type, a table that does not hold together, or an
+            index out of range.
+        RuntimeError: no AVX-512 bfloat16 kernels here (see :func:`has_gather_conv`).
+    """
+    layers = table.shape[0]
+    _check("table", table, (layers, UNET_FIELDS), torch.long)
+    _check("x", x, tuple(x.shape))
+    if x.ndim != 2 or layers == 0:
+        raise ValueError(f"x must be (rows, C) and the table hold layers, got {tuple(x.shape)} and {layers}")
+    last = table[-1]
+    _check("out", out, (int(last[10]), int(last[5])))
+    failed = ctypes.c_int32(-1)
+    code = _LIBRARY.o3dvis_unet(layers, table.data_ptr(), x.shape[0], x.shape[1], x.data_ptr(), kernel_threads(threads),
+                                SHARED_WORK, out.data_ptr(), ctypes.byref(failed))
+    if code == -2:
+        raise RuntimeError("unet needs the AVX-512 bfloat16 kernels (see has_gather_conv)")
+    if code == -1 and (failed.value < 0 or int(table[failed.value, 0]) == 0):
+        raise MemoryError("unet: out of memory")
+    if code == -6:
+        raise ValueError(f"unet: layer {failed.value} of the table does not hold together with those before it")
+    if code:
+        raise ValueError(f"unet: layer {failed.value} failed with code {code} (an index out of range)")
     return out
 
 

@@ -210,8 +210,8 @@ class ConvBnRelu(nn.Module):
     def step(self, x: Tensor) -> LayerStep:
         """This layer in inference for inputs like ``x``, with its weights as they are now:
         ``step(x, octree, level, residual=None, addend=None)``, with a ``residual`` ``relu(residual +
-        convolution + shift)`` (a :class:`ResBlock`'s end), with an ``addend`` that plus the
-        ``addend`` (a U-Net's skip). The batch norm is folded into the weight (rounded to
+        convolution + shift)`` (a :class:`ResBlock`'s end), with an ``addend`` the result plus it
+        after the ReLU (a U-Net's skip). The batch norm is folded into the weight (rounded to
         the layer's :meth:`~_GatherMatmul.product_dtype`) and a shift. One pass of C where the
         kernels take it: an up-sampling for the nodes that exist only (:func:`~o3dvis.nn.native.upsample`,
         the same float32 sums), a convolution in bfloat16 dot products (:func:`~o3dvis.nn.native.gather_conv`,
@@ -226,7 +226,7 @@ class ConvBnRelu(nn.Module):
     def _native_step(self, weight: Tensor, shift: Tensor) -> LayerStep | None:
         """:meth:`step` in one pass of C with the folded ``weight`` and ``shift``, or None where the
         kernels do not take this layer."""
-        conv, relu, finish = self.conv, self.relu, self._finish
+        conv, relu = self.conv, self.relu
         if isinstance(conv, OctreeUpsample):
             weight, shift = weight.contiguous(), shift.contiguous()
 

@@ -8,7 +8,7 @@ import torch
 from torch import Tensor, nn
 
 from . import native
-from .conv import STEPS, ConvBnRelu, OctreeDownsample, OctreeUpsample, ResBlock, step_conditions
+from .conv import STEPS, ConvBnRelu, NativeLayer, OctreeDownsample, OctreeUpsample, ResBlock, step_conditions
 from .octree import Octree
 
 __all__ = ["OctreeUNet"]
@@ -99,7 +99,7 @@ class _NativeBody:
         weights: the layers' :class:`~o3dvis.nn.conv.NativeLayer`, kept for the table's addresses.
     """
 
-    def __init__(self, table: Tensor, plan: list[tuple[int, int]], weights: list):
+    def __init__(self, table: Tensor, plan: list[tuple[int, int]], weights: list[NativeLayer]):
         self.table, self.plan, self.weights = table, plan, weights
 
     @classmethod
@@ -137,14 +137,16 @@ class _NativeBody:
 
     def __call__(self, signal: Tensor, octree: Octree) -> Tensor:
         """(nodes of the level above the leaves, channels) the decoder's output for ``signal``."""
-        fields = []
+        fields, indices = [], []  # indices: alive until the call returns (the octree keeps the lists)
         for (how, below), layer in zip(self.plan, self.weights):
             level = octree.depth - below
             if how == _UP:
                 index = octree.octant_rows(level + 1).contiguous()
+                indices.append(index)
                 fields += (index.shape[0], index.data_ptr(), 0, 0, 0)
                 continue
             index = (octree.child_rows(level - 1) if how == _DOWN else octree.neighbours(level)).contiguous()
+            indices.append(index)
             nodes = octree.num_nodes(level)
             entries = octree.derived(("conv entries", layer.taps, level), lambda: native.conv_entries(index, nodes))
             lists = -(-index.shape[0] // native.CONV_BLOCK) * layer.taps

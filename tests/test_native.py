@@ -50,7 +50,8 @@ def test_the_unet_in_one_call_answers_as_its_layers_one_by_one(monkeypatch, bloc
 @pytest.mark.skipif(not native.has_gather_conv(), reason="no AVX-512 bfloat16 kernels here")
 def test_unet_checks_that_its_table_holds_together():
     """native.unet on a table of two up-samplings: the answers of native.upsample; a table whose
-    buffers, channels or shapes do not fit, or a row out of range, raises before anything runs."""
+    buffers, channels, kinds or shapes do not fit, or with a null address (a convolution without its
+    lists), raises before anything runs; a row out of range raises from the layer that reads it."""
     g = torch.Generator().manual_seed(3)
     x = torch.randn(3, 4, generator=g)
     w1, s1 = torch.randn(4, 8 * 16, generator=g), torch.randn(16, generator=g)

@@ -4,8 +4,9 @@ Open3D users call ``hidden_point_removal`` once per camera with the same cloud; 
 drop-ins (:mod:`o3dvis.dropins`) then run the U-Net once and each further camera
 costs a query only. An encoding is reused when the same cloud object is asked
 again, with the same model, unchanged (its settings, rotations and networks, none put in anew or
-taken out, and the weights of the networks the encoding came from, changed in place or put in anew by no one, an optimiser included; see :mod:`o3dvis.nn.state`
-for changes made through ``.data``), the same ``normals`` choice,
+taken out, and the weights of the networks the encoding came from, changed in place or put in anew
+by no one, an optimiser included; see :mod:`o3dvis.nn.state` for changes made through ``.data``),
+the same ``normals`` choice,
 and its points (and normals) still equal, value for value, to those encoded: a
 cloud changed in place, or a new cloud at the address of a freed one, is encoded
 anew. With a scene network, a camera inside the cloud's bounding box and one

@@ -224,7 +224,8 @@ class VisibilityField:
         # scaled by the largest coordinate first, so that no norm overflows
         largest = offsets.detach().abs().amax(dim=1, keepdim=True).clamp_min(torch.finfo(offsets.dtype).tiny)
         directions = -torch.nn.functional.normalize(offsets / largest, dim=1)
-        far = offsets.detach().norm(dim=1) > _FAR_VIEW * ((hi - lo).norm() / self.scale)
+        # in the normalised frame: the world's diagonal squared underflows below 1e-154, overflows above 1e154
+        far = offsets.detach().norm(dim=1) > _FAR_VIEW * ((hi - lo) / self.scale).norm()
         return offsets.to(dtype), directions.to(dtype), far.tolist()
 
     def _inside(self, views: Views) -> Tensor | None:

@@ -62,7 +62,7 @@ def _count(value, source: str) -> int | None:
         return None
     if isinstance(value, int) and not isinstance(value, bool):
         count = value
-    elif isinstance(value, str) and value.strip().isdigit():
+    elif isinstance(value, str) and value.strip().isdecimal():  # not isdigit: "²" is a digit int() refuses
         count = int(value)
     else:
         count = 0

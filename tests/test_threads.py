@@ -50,7 +50,7 @@ def test_a_fixed_count_is_used_up_to_the_cores(monkeypatch):
     assert threads.plan_threads(10**9, 1) == 1
 
 
-@pytest.mark.parametrize("bad", [0, -1, 1.5, "two", True, "2.0"])
+@pytest.mark.parametrize("bad", [0, -1, 1.5, "two", True, "2.0", "²"])
 def test_bad_counts_raise(bad, monkeypatch):
     with pytest.raises(ValueError, match="positive int"):
         o3dvis.set_num_threads(bad)

@@ -99,6 +99,14 @@ def test_trailing_bytes_and_bad_headers_are_refused(tmp_path):
     huge.write_bytes(struct.pack("<Q", 10**12) + b"{}")
     with pytest.raises(ValueError, match="truncated"):
         load_model(huge)
+    nested = b'{"x": ' + b"[" * 100_000 + b"]" * 100_000 + b"}"  # JSON deeper than Python's reader goes
+    deep = tmp_path / "deep.safetensors"
+    deep.write_bytes(struct.pack("<Q", len(nested)) + nested)
+    with pytest.raises(ValueError, match="header nests deeper"):
+        load_model(deep)
+    (tmp_path / "model_card.json").write_bytes(b'{"models": ' + nested + b"}")
+    with pytest.raises(ValueError, match="model card is not valid JSON"):
+        load_model("m", weights_dir=tmp_path)
 
 
 class _Payload:

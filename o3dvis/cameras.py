@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from ._open3d import is_open3d, require_open3d
-from .geometry import bounds, fibonacci_sphere
+from .geometry import bounds, box_diagonal, fibonacci_sphere
 
 if TYPE_CHECKING:
     import open3d as o3d
@@ -318,7 +318,7 @@ def viewpoints_around(points: np.ndarray, count: int, distance: float | None = N
     """
     lo, hi = bounds(points)
     if distance is None:
-        distance = float(np.linalg.norm(hi - lo))
+        distance = box_diagonal(lo, hi)
     if not distance > 0:
         raise ValueError("the points span no volume: viewpoints need a positive distance")
     return (lo + hi) / 2 + distance * fibonacci_sphere(count)

@@ -70,6 +70,17 @@ def test_a_cloud_and_its_cameras_scaled_alike_get_the_same_answers(vis, torus, s
     assert expected[:-1].mean() < 0.75  # perspective views: a camera counted far would see more
 
 
+@pytest.mark.parametrize("scale", [1e-170, 1e160])
+def test_viewpoints_around_a_cloud_scale_with_it(torus, scale):
+    from o3dvis.cameras import viewpoints_around
+    from o3dvis.geometry import diagonal
+
+    _, points, _, size = torus
+    assert diagonal(points * scale) == pytest.approx(size * scale, rel=1e-12)
+    np.testing.assert_allclose(viewpoints_around(points * scale, 14), viewpoints_around(points, 14) * scale,
+                               rtol=1e-12, atol=0)
+
+
 def test_a_distant_camera_stays_differentiable(vis, torus):
     _, points, centre, diagonal = torus
     camera = torch.tensor(centre + AWAY * diagonal * 1e8, requires_grad=True)

@@ -73,7 +73,7 @@ def _stats(path: Path) -> tuple:
     try:
         stat = path.stat()
     except OSError:
-        return None,
+        return (None,)
     return stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns
 
 

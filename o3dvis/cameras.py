@@ -26,16 +26,20 @@ import torch
 from torch import Tensor
 
 from ._open3d import is_open3d, require_open3d
-from .geometry import bounds, fibonacci_sphere
+from .geometry import bounds, box_diagonal, fibonacci_sphere
 
 if TYPE_CHECKING:
     import open3d as o3d
 
 __all__ = ["Frustum", "Views", "as_views", "as_vectors", "all_finite", "as_camera_location", "real_array",
            "frustum_from_pinhole", "intrinsic_matrix", "View", "make_view", "look_at", "fibonacci_sphere",
-           "viewpoints_around", "camera_location_of"]
+           "viewpoints_around", "camera_location_of", "MAX_PIXELS"]
 
 _ORTHONORMAL_TOL = 1e-4
+MAX_PIXELS = 1 << 28
+"""The most pixels an image of :func:`make_view` may have (16384 x 16384): a render's per-pixel buffers
+(the point each pixel shows, its depth, its colour in float64) take some 40 bytes a pixel, 10 GiB here."""
+_PIXEL_BYTES = 40
 
 
 @dataclass(frozen=True)
@@ -314,7 +318,7 @@ def viewpoints_around(points: np.ndarray, count: int, distance: float | None = N
     """
     lo, hi = bounds(points)
     if distance is None:
-        distance = float(np.linalg.norm(hi - lo))
+        distance = box_diagonal(lo, hi)
     if not distance > 0:
         raise ValueError("the points span no volume: viewpoints need a positive distance")
     return (lo + hi) / 2 + distance * fibonacci_sphere(count)
@@ -425,6 +429,9 @@ def make_view(points: np.ndarray, camera, width: int | None = None, height: int 
 
     Returns:
         A :class:`View`.
+
+    Raises:
+        ValueError: a width or height below 1, or more than :data:`MAX_PIXELS` pixels.
     """
     location, extrinsic, frustum = _extrinsic_of(camera)
     if extrinsic is None:
@@ -437,6 +444,10 @@ def make_view(points: np.ndarray, camera, width: int | None = None, height: int 
     if width is None or height is None or int(width) < 1 or int(height) < 1:
         raise ValueError(f"the image needs a positive width and height, got {width} x {height}")
     width, height = int(width), int(height)
+    if width * height > MAX_PIXELS:
+        raise ValueError(f"a {width} x {height} image has {width * height} pixels, more than the {MAX_PIXELS} "
+                         f"(16384 x 16384) an image may have: its buffers alone would need "
+                         f"{width * height * _PIXEL_BYTES / 2**30:.3g} GiB")
     if intrinsic is None:
         cam = points @ extrinsic[:3, :3].T + extrinsic[:3, 3]
         intrinsic = _fit_intrinsic(cam, width, height, margin)

@@ -15,6 +15,7 @@ from . import encodings
 from .cameras import as_camera_location, as_views
 from .clouds import cloud_arrays, cloud_device
 from .field import checked_range
+from .geometry import lengths
 from .models import torch_device
 from .pretrained import resolve_model
 
@@ -43,7 +44,7 @@ def _visible_indices(pcd, cameras, direction, threshold: float, model, device, n
     estimate = isinstance(normals, str)  # "estimate": estimated on the crop (encode checks the value)
     _, unit = model._network_and_normals(cloud_normals, False if estimate else normals, points.shape[0])
     camera = camera.detach().to(points.device)
-    near = torch.nonzero((points - camera).square().sum(dim=1) <= max_range ** 2)[:, 0]
+    near = torch.nonzero(lengths(points - camera) <= max_range)[:, 0]
     if len(near) == 0:
         return np.zeros(0, dtype=np.int64)
     cropped = normals if estimate else False if unit is None else unit[near.to(unit.device)]
@@ -172,7 +173,7 @@ def select_visible(pcd, camera=None, *, direction=None, threshold: float = 0.5, 
         device = pcd.point.positions.device
         return pcd.select_by_index(o3d.core.Tensor(index, dtype=o3d.core.Dtype.Int64, device=device))
     points, _ = cloud_arrays(pcd)
-    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.cpu().numpy()[index]))
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.detach().cpu().numpy()[index]))
 
 
 def register() -> None:

@@ -3,9 +3,10 @@
 Open3D users call ``hidden_point_removal`` once per camera with the same cloud; the
 drop-ins (:mod:`o3dvis.dropins`) then run the U-Net once and each further camera
 costs a query only. An encoding is reused when the same cloud object is asked
-again, with the same model, unchanged (its settings, and the weights of the networks the encoding
-came from, changed in place or put in anew by no one, an optimiser included; see :mod:`o3dvis.nn.state`
-for changes made through ``.data``), the same ``normals`` choice,
+again, with the same model, unchanged (its settings, rotations and networks, none put in anew or
+taken out, and the weights of the networks the encoding came from, changed in place or put in anew
+by no one, an optimiser included; see :mod:`o3dvis.nn.state` for changes made through ``.data``),
+the same ``normals`` choice,
 and its points (and normals) still equal, value for value, to those encoded: a
 cloud changed in place, or a new cloud at the address of a freed one, is encoded
 anew. With a scene network, a camera inside the cloud's bounding box and one
@@ -54,11 +55,15 @@ _lock = threading.Lock()
 
 
 def _settings(model: "NeuralVisibility", normals, points: Tensor, camera: Tensor | None) -> tuple:
-    """What an encoding depends on besides the cloud and the networks' weights: with a scene
-    network, whether the camera is inside the cloud's bounding box too."""
+    """What an encoding depends on besides the cloud and the networks' weights: the networks the
+    model holds now (compared by identity: which of them a cloud is routed to follows from them), its
+    rotations, value for value, and with a scene network, whether the camera is inside the cloud's
+    bounding box too."""
     inside = (model.scene_network is not None and camera is not None
               and bool(inside_box(camera.detach().to(points)[None], bounding_box(points))[0]))
-    return normals, str(model.device), model.precision, model.chunk_size, len(model.rotations), inside
+    held = (model.network, model.normals_network, model.scene_network, model.small_network)
+    rotations = tuple(model.rotations.flatten().tolist())
+    return normals, str(model.device), model.precision, model.chunk_size, held, rotations, inside
 
 
 def _networks(model: "NeuralVisibility", field: "VisibilityField", normals, count: int) -> list["VisibilityNetwork"]:

@@ -24,6 +24,7 @@ import torch
 from torch import Tensor
 
 from .cameras import Views, as_views
+from .geometry import lengths
 from .nn import native
 from .nn.network import VisibilityNetwork
 from .nn.cues import point_surfels
@@ -31,7 +32,7 @@ from .nn.features import LeafFeatures
 from .nn.zbuffer import surfel_zbuffer
 from .threads import plan_threads, threaded_map, torch_threads
 
-__all__ = ["VisibilityField", "RotatedEncoding", "DEFAULT_CHUNK", "checked_range", "inside_box"]
+__all__ = ["VisibilityField", "RotatedEncoding", "DEFAULT_CHUNK", "checked_range", "inside_box", "OnPointError"]
 
 DEFAULT_CHUNK = 1 << 15
 """Rows (views x points) that one predictor call processes at most: small enough for the cache."""
@@ -57,6 +58,23 @@ _KERNEL_SPLIT_ROWS = 4096
 
 def _fmt(vector: Tensor) -> str:
     return "(" + ", ".join(f"{x:.6g}" for x in vector.detach().tolist()) + ")"
+
+
+class OnPointError(ValueError):
+    """A camera (or light) that lies on a point of the cloud, where visibility is undefined.
+
+    Attributes:
+        view: the index of the camera among the views asked.
+    """
+
+    def __init__(self, view: int, position: str, nearest: str, name: str | None = None):
+        self.view, self.position, self.nearest = view, position, nearest
+        super().__init__(f"{name or f'camera {view}'} at {position} lies on a point of the cloud ({nearest}); "
+                         "move it off the surface")
+
+    def named(self, name: str) -> "OnPointError":
+        """This error, its camera called ``name`` (as ``"the light"``)."""
+        return OnPointError(self.view, self.position, self.nearest, name)
 
 
 def _subset(views: Views, index: np.ndarray) -> Views:
@@ -202,29 +220,22 @@ class VisibilityField:
         frames = f", {1 + len(self.rotated)} frames" if self.rotated else ""
         return f"VisibilityField({self.num_points} points on {self.device}{normals}{frames})"
 
-    def _normalised(self, views: Views, inside: Tensor | None = None) -> tuple[Tensor | None, Tensor, list[bool]]:
+    def _normalised(self, views: Views) -> tuple[Tensor | None, Tensor, list[bool]]:
         """The views in the field's normalised frame: (V, 3) camera positions (None for views
         given as directions), (V, 3) unit viewing directions, and which views are orthographic:
         those given as directions, and cameras beyond ``_FAR_VIEW`` diagonals, whose direction is
-        the one from the camera to the cloud's centre. ``inside``: the views' :meth:`_inside`,
-        where the caller has it."""
+        the one from the camera to the cloud's centre."""
         dtype = self.points.dtype
         if views.directions is not None:
             return None, views.directions.to(self.device).to(dtype), [True] * len(views)
         positions = views.positions.to(self.device)
         lo, hi = self.bounds
-        inside = self._inside(views) if inside is None else inside
-        for i in inside.nonzero()[:, 0].tolist():  # only a camera inside the box can be on a point
-            tol = _INSIDE_TOL * (hi - lo).amax() / 2  # zero when all points coincide: only they are inside
-            gap = self._nearest_distance(positions[i].detach())
-            if gap <= tol:
-                raise ValueError(f"camera {i} at {_fmt(positions[i])} lies on a point of the cloud "
-                                 f"(the nearest is {gap:.3g} away); move it off the surface")
         offsets = (positions - self.center) / self.scale  # float64: exact enough at any distance
         # scaled by the largest coordinate first, so that no norm overflows
         largest = offsets.detach().abs().amax(dim=1, keepdim=True).clamp_min(torch.finfo(offsets.dtype).tiny)
         directions = -torch.nn.functional.normalize(offsets / largest, dim=1)
-        far = offsets.detach().norm(dim=1) > _FAR_VIEW * ((hi - lo).norm() / self.scale)
+        # in the normalised frame: the world's diagonal squared underflows below 1e-154, overflows above 1e154
+        far = offsets.detach().norm(dim=1) > _FAR_VIEW * ((hi - lo) / self.scale).norm()
         return offsets.to(dtype), directions.to(dtype), far.tolist()
 
     def _inside(self, views: Views) -> Tensor | None:
@@ -239,17 +250,22 @@ class VisibilityField:
                     self._scene = self._scene_factory()
             return self._scene
 
-    def _parts(self, views: Views) -> list[tuple["VisibilityField", np.ndarray | None, Views, Tensor | None]]:
-        """``(field, the views' indices (None: all), those views, which of them are inside the
-        bounding box (None for directions))``: the cameras inside go to the scene field where there
-        is one, the other views stay with this one."""
+    def _parts(self, views: Views) -> list[tuple["VisibilityField", np.ndarray | None, Views]]:
+        """``(field, the views' indices (None: all), those views)``: the cameras inside the bounding
+        box go to the scene field where there is one, the other views stay with this one.
+
+        Raises:
+            OnPointError: a camera on a point of the cloud (see :meth:`_check_off_points`).
+        """
         inside = self._inside(views)
+        if inside is not None:
+            self._check_off_points(views.positions, inside)
         if self._scene_factory is None or inside is None or not inside.any():
-            return [(self, None, views, inside)]
+            return [(self, None, views)]
         if inside.all():
-            return [(self._scene_field(), None, views, inside)]
+            return [(self._scene_field(), None, views)]
         flags = inside.cpu().numpy()
-        return [(field, index, _subset(views, index), inside[torch.from_numpy(index).to(inside.device)])
+        return [(field, index, _subset(views, index))
                 for field, index in ((self, np.flatnonzero(~flags)), (self._scene_field(), np.flatnonzero(flags)))]
 
     def _restricted(self, kept: Tensor) -> "VisibilityField":
@@ -273,7 +289,7 @@ class VisibilityField:
         cameras, _, _ = self._normalised(view)
         if cameras is None:
             raise ValueError("max_range needs camera positions, not viewing directions")
-        reach = (self.points - cameras[0].detach()).square().sum(dim=1) <= (max_range / float(self.scale)) ** 2
+        reach = lengths(self.points - cameras[0].detach()) <= max_range / float(self.scale)
         kept = reach.nonzero()[:, 0]
         probs = self.points.new_zeros(1, self.num_points)
         if len(kept):
@@ -285,9 +301,9 @@ class VisibilityField:
                  finish: Callable[[Tensor], Tensor] | None = None) -> Iterator[tuple[np.ndarray | slice, Tensor]]:
         """Yields ``(views' indices, (v, M) probabilities)`` of the points ``rows`` (None: all) for
         every view, each view by its field (see :meth:`_parts`), or ``finish`` of them."""
-        for field, index, part, inside in self._parts(views):
+        for field, index, part in self._parts(views):
             if max_range is None:
-                for batch, probs in field._batches(part, rows, finish, inside=inside):
+                for batch, probs in field._batches(part, rows, finish):
                     yield (batch if index is None else index[batch]), probs
                 continue
             for j in range(len(part)):
@@ -295,6 +311,22 @@ class VisibilityField:
                 probs = probs if rows is None else probs[:, rows]
                 batch = slice(j, j + 1) if index is None else index[j:j + 1]
                 yield batch, (probs if finish is None else finish(probs))
+
+    def _check_off_points(self, positions: Tensor, inside: Tensor) -> None:
+        """Raises :class:`OnPointError` for the first of the (V, 3) cameras that lies on a point: within
+        a millionth of the cloud's extent of one (zero when all points coincide). Only a camera inside
+        the bounding box (``inside``) can be. The points are float32 in the normalised frame: a distance
+        below their rounding (a cloud stretched by a far outlier) is given as that bound, not as a figure."""
+        lo, hi = self.bounds
+        tol = float(_INSIDE_TOL * (hi - lo).amax() / 2)
+        rounding = 3 ** 0.5 * torch.finfo(self.points.dtype).eps * float(self.scale)
+        for i in inside.nonzero()[:, 0].tolist():
+            gap = self._nearest_distance(positions[i].detach().to(self.device))
+            if gap <= tol:
+                nearest = (f"the nearest is {gap:.3g} away, within a millionth of its extent" if gap > rounding else
+                           f"the nearest is within {rounding:.3g}, what the network resolves in a cloud "
+                           f"{float((hi - lo).amax()):.3g} across")
+                raise OnPointError(i, _fmt(positions[i]), nearest)
 
     def _nearest_distance(self, position: Tensor) -> float:
         """The distance from a (3,) position in the cloud's frame to its nearest point: one pass over
@@ -400,14 +432,13 @@ class VisibilityField:
         return torch.sigmoid(margin)
 
     def _batches(self, views: Views, rows: Tensor | None = None,
-                 finish: Callable[[Tensor], Tensor] | None = None, stored: bool = False,
-                 inside: Tensor | None = None) -> Iterator[tuple[slice, Tensor]]:
+                 finish: Callable[[Tensor], Tensor] | None = None, stored: bool = False
+                 ) -> Iterator[tuple[slice, Tensor]]:
         """Yields ``(views slice, (v, M) probabilities)`` of the points ``rows`` (None: all),
         with frustum culling applied, or ``finish`` of them (done on the thread that answered
         the views). Every point occludes, whichever rows are asked for. ``stored``: ``rows`` and
-        the answers in the order the points are stored in (along the Morton curve), not the cloud's.
-        ``inside``: the views' :meth:`_inside`, where the caller has it."""
-        cameras, directions, orthographic = self._normalised(views, inside)
+        the answers in the order the points are stored in (along the Morton curve), not the cloud's."""
+        cameras, directions, orthographic = self._normalised(views)
         clear = self._off_the_hull(views)
         n, total = self.num_points if rows is None else len(rows), len(views)
         unsort = None  # the columns, in the cloud's order, of an answer for all stored rows
@@ -476,8 +507,8 @@ class VisibilityField:
         views = as_views(cameras, None)
         rows = self._checked_indices(rows)
         with torch.inference_mode():
-            parts = [(index, torch.cat([p for _, p in field._batches(part, rows, stored=True, inside=inside)]))
-                     for field, index, part, inside in self._parts(views)]
+            parts = [(index, torch.cat([p for _, p in field._batches(part, rows, stored=True)]))
+                     for field, index, part in self._parts(views)]
             if len(parts) == 1:
                 return parts[0][1]
             out = parts[0][1].new_empty(len(views), parts[0][1].shape[1])

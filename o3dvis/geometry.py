@@ -8,7 +8,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["bounds", "diagonal", "random_rotation", "fixed_rotations", "fibonacci_sphere"]
+__all__ = ["bounds", "diagonal", "box_diagonal", "lengths", "random_rotation", "fixed_rotations", "fibonacci_sphere"]
 
 
 def bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -24,8 +24,21 @@ def bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def diagonal(points: np.ndarray) -> float:
     """Length of the diagonal of the axis-aligned bounding box."""
-    lo, hi = bounds(points)
-    return float(np.linalg.norm(hi - lo))
+    return box_diagonal(*bounds(points))
+
+
+def box_diagonal(lo: np.ndarray, hi: np.ndarray) -> float:
+    """Length of the diagonal from corner ``lo`` to ``hi``, by ``hypot``: no square underflows
+    (below 1e-154) or overflows (above 1e154)."""
+    return float(np.hypot.reduce(hi - lo))
+
+
+def lengths(vectors: Tensor) -> Tensor:
+    """(N,) Euclidean lengths of (N, D) float vectors, each divided by its largest coordinate before it
+    is squared: no square underflows (below 1e-154 in float64) or overflows (above 1e154); a length
+    beyond the dtype's range is inf."""
+    largest = vectors.abs().amax(dim=1, keepdim=True)
+    return largest[:, 0] * (vectors / largest.clamp_min(torch.finfo(vectors.dtype).tiny)).norm(dim=1)
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:

@@ -75,7 +75,7 @@ def read_model_card(weights_dir: str | Path | None = None) -> dict:
                                 f"give the path of a .safetensors checkpoint as the model instead")
     try:
         card = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as e:  # nested deeper than json reads
         raise ValueError(f"{path}: model card is not valid JSON ({e})") from None
     models = card.get("models") if isinstance(card, dict) else None
     if not isinstance(models, dict):
@@ -169,6 +169,9 @@ def check_safetensors(path: str | Path) -> None:
             header = json.loads(f.read(header_len))
         except (json.JSONDecodeError, UnicodeDecodeError):
             raise ValueError(f"{path}: not a safetensors file (its header is not JSON)") from None
+        except RecursionError:
+            raise ValueError(f"{path}: not a safetensors file (its header nests deeper than Python's JSON "
+                             "reader goes)") from None
     if not isinstance(header, dict):
         raise ValueError(f"{path}: not a safetensors file (its header is not a JSON object)")
     try:

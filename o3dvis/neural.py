@@ -106,6 +106,9 @@ def _unit_frame(points: Tensor) -> tuple[Tensor, Tensor | None, Tensor, Tensor, 
         lo, hi, total = native.bounds(points)
     else:
         lo, hi = bounding_box(points)
+    if not bool(torch.isfinite(hi - lo).all()):
+        raise ValueError(f"the cloud spans more than float64 holds: its bounding box runs from {lo.tolist()} to "
+                         f"{hi.tolist()}, whose sides overflow; scale it down")
     if not (in_c and (hi - lo).amax() > 0):  # torch ops, or all points coincide
         normalized, center, scale = _normalize(points, (lo, hi))
         hull = _flat_hull(normalized, ((hi - lo) / scale).norm())  # float64: flat to the last bits
@@ -367,7 +370,7 @@ class NeuralVisibility:
             row order.
 
         Raises:
-            ValueError: an empty cloud, NaN/Inf coordinates, wrong shapes, or
+            ValueError: an empty cloud, NaN/Inf coordinates, a cloud wider than float64 holds, wrong shapes, or
                 normals that the loaded models cannot use (``"estimate"``
                 without a normals model).
             TypeError: unsupported input types or dtypes.

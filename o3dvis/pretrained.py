@@ -1,4 +1,5 @@
-"""The shipped models, loaded once per process and shared, and the ``model=`` argument."""
+"""The shipped models and checkpoints given by path, loaded once per process and shared, and the
+``model=`` argument."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ __all__ = ["shared_pretrained", "resolve_model"]
 
 _CACHE: dict[tuple[str, str, str], NeuralVisibility] = {}
 _CACHE_LOCK = threading.Lock()
+_FILES: dict[tuple[str, str], tuple[tuple, NeuralVisibility]] = {}  # (path, device): (files' stats, model)
 
 
 def shared_pretrained(name: str = "default", device: str | torch.device | None = None) -> NeuralVisibility:
@@ -61,6 +63,36 @@ def resolve_model(model, device: torch.device) -> NeuralVisibility:
         name = "default" if model is None else model
         if isinstance(name, str) and (_cache_key(name, device) in _CACHE or name in available_models()):
             return shared_pretrained(name, device)
-        return NeuralVisibility.pretrained(name, device)
+        return _shared_file(name, device)
     raise TypeError("model must be None, a model name or path, a NeuralVisibility or a "
                     f"VisibilityNetwork, got {type(model).__name__}")
+
+
+def _stats(path: Path) -> tuple:
+    """What tells a file written anew: its inode, size and times (None for a missing file)."""
+    try:
+        stat = path.stat()
+    except OSError:
+        return (None,)
+    return stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns
+
+
+def _shared_file(path: str | Path, device: torch.device) -> NeuralVisibility:
+    """The model of the checkpoint at ``path`` on ``device``, loaded (and its sha256 checked) once per
+    process and shared while neither the file nor the model card next to it (which may list its
+    sha256) is written anew, so that the drop-ins' kept encoding (:mod:`o3dvis.encodings`) holds
+    across calls.
+
+    Raises:
+        As :meth:`NeuralVisibility.pretrained`.
+    """
+    resolved = Path(path).resolve()
+    if not resolved.is_file():
+        return NeuralVisibility.pretrained(path, device)  # its error names what is missing
+    key = str(resolved), str(torch_device(device))
+    stats = _stats(resolved) + _stats(resolved.parent / models.CARD_NAME)
+    with _CACHE_LOCK:
+        kept = _FILES.get(key)
+        if kept is None or kept[0] != stats:
+            _FILES[key] = stats, NeuralVisibility.pretrained(path, device)
+        return _FILES[key][1]

@@ -27,7 +27,8 @@ times slower as there are threads. Hence two signals: the runnable tasks of
 right now catch a load that has just started, the pressure of the last seconds
 one that pauses now and then. Each is read again after 50 ms at most. :func:`set_num_threads` (or
 ``O3DVIS_NUM_THREADS`` in the environment) fixes the count instead, whatever
-the load and the size.
+the load and the size; in a forked child (a DataLoader worker), at most torch's
+count there.
 """
 
 from __future__ import annotations
@@ -61,7 +62,7 @@ def _count(value, source: str) -> int | None:
         return None
     if isinstance(value, int) and not isinstance(value, bool):
         count = value
-    elif isinstance(value, str) and value.strip().isdigit():
+    elif isinstance(value, str) and value.strip().isdecimal():  # not isdigit: "²" is a digit int() refuses
         count = int(value)
     else:
         count = 0
@@ -74,9 +75,9 @@ def set_num_threads(count: int | str | None) -> None:
     """Fixes the CPU threads o3dvis runs on, or goes back to the automatic policy.
 
     Args:
-        count: a positive int (at most :func:`usable_cores` are used), or None
-            or ``"auto"`` for the policy of this module (then ``O3DVIS_NUM_THREADS``
-            applies again, when set).
+        count: a positive int (at most :func:`usable_cores` are used, and in a forked child at
+            most its torch thread count), or None or ``"auto"`` for the policy of this
+            module (then ``O3DVIS_NUM_THREADS`` applies again, when set).
 
     Raises:
         ValueError: ``count`` is not a positive int, None or ``"auto"``.
@@ -206,9 +207,9 @@ def plan_threads(work: int, min_work: int) -> int:
     """
     fixed = get_num_threads()
     cores = usable_cores()
-    if fixed is not None:
-        return min(fixed, cores)
     limit = min(getattr(_OWN, "limit", None) or torch.get_num_threads(), cores)
+    if fixed is not None:  # in a forked child, at most its own count: see _after_fork_in_child
+        return min(fixed, limit if _forked else cores)
     if limit <= 1 or work < min_work or (cpu_pressure() or 0.0) > MAX_PRESSURE:
         return 1
     return max(1, min(limit, cores - busy_cores()))
@@ -261,13 +262,20 @@ def _worker_pool() -> ThreadPoolExecutor:
         return _POOL
 
 
-def _forget_pool() -> None:
-    global _POOL, _POOL_LOCK
-    _POOL, _POOL_LOCK = None, threading.Lock()
+_forked = False  # whether this process is the child of a fork
+
+
+def _after_fork_in_child() -> None:
+    """A forked child has none of its parent's threads: it makes its own workers, and a fixed count
+    no longer raises torch's count above the child's own. Torch's OpenMP (GNU libgomp), in a child
+    forked after its parent ran a team, takes the team's threads for still there: a team of more
+    than one waits for them for ever, which is why DataLoader workers set one torch thread."""
+    global _POOL, _POOL_LOCK, _forked
+    _POOL, _POOL_LOCK, _forked = None, threading.Lock(), True
 
 
 if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_forget_pool)
+    os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
 def threaded_map(fn: Callable, items: Iterable, workers: int) -> Iterator:

@@ -7,6 +7,7 @@ import pickle
 import struct
 
 import numpy as np
+import open3d as o3d
 import pytest
 import torch
 
@@ -98,6 +99,14 @@ def test_trailing_bytes_and_bad_headers_are_refused(tmp_path):
     huge.write_bytes(struct.pack("<Q", 10**12) + b"{}")
     with pytest.raises(ValueError, match="truncated"):
         load_model(huge)
+    nested = b'{"x": ' + b"[" * 100_000 + b"]" * 100_000 + b"}"  # JSON deeper than Python's reader goes
+    deep = tmp_path / "deep.safetensors"
+    deep.write_bytes(struct.pack("<Q", len(nested)) + nested)
+    with pytest.raises(ValueError, match="header nests deeper"):
+        load_model(deep)
+    (tmp_path / "model_card.json").write_bytes(b'{"models": ' + nested + b"}")
+    with pytest.raises(ValueError, match="model card is not valid JSON"):
+        load_model("m", weights_dir=tmp_path)
 
 
 class _Payload:
@@ -283,3 +292,28 @@ def test_load_builds_the_network_on_map_location(tmp_path):
     points = points[morton_order(points)]
     with torch.no_grad():
         torch.testing.assert_close(gpu.encode(points.cuda()).cpu(), cpu.encode(points), atol=1e-4, rtol=1e-4)
+
+
+def test_a_path_model_is_loaded_once_until_its_file_changes(tmp_path, monkeypatch):
+    """``model=path`` loads (and hashes) the checkpoint once per process, so that the drop-ins' kept
+    encoding holds across calls; a file written anew, or the card next to it, is read again."""
+    from o3dvis import encodings, neural
+    from o3dvis.pretrained import resolve_model
+
+    path = tmp_path / "mine.safetensors"
+    _network(7).save(path)
+    loads, encodes = [], []
+    load, encode = neural.load_model, neural.NeuralVisibility._encode
+    monkeypatch.setattr(neural, "load_model", lambda *a, **k: loads.append(a) or load(*a, **k))
+    monkeypatch.setattr(neural.NeuralVisibility, "_encode", lambda *a, **k: encodes.append(a) or encode(*a, **k))
+    encodings.clear()
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.random.default_rng(0).normal(size=(500, 3))))
+    answers = [o3dvis.hidden_point_removal_neural(pcd, [0, 0, 5.0], model=m)[1] for m in (path, str(path), path)]
+    assert len(loads) == 1 and len(encodes) == 1 and answers[0] == answers[1] == answers[2]
+    assert resolve_model(path, torch.device("cpu")) is resolve_model(str(path), torch.device("cpu"))
+    _network(8).save(path)  # written anew
+    assert _same_weights(resolve_model(path, torch.device("cpu")).network, _network(8)) and len(loads) == 2
+    (tmp_path / "model_card.json").write_text(json.dumps({"models": {"mine": {"file": path.name, "sha256": "0" * 64}}}))
+    with pytest.raises(ValueError, match="sha256 mismatch"):
+        resolve_model(path, torch.device("cpu"))
+    encodings.clear()

@@ -150,3 +150,37 @@ def test_cameras_inside_and_outside_are_kept_apart(counted):
     again = o3dvis.hidden_point_removal_neural(pcd, inside[0], model=model)[1]
     assert len(counted) == 3
     assert answers + [far, again] == [_fresh(room, c, model) for c in [*inside, outside[0], inside[0]]]
+    o3dvis.hidden_point_removal_neural(pcd, inside[0], model=model)
+    model.scene_network = model.small_network  # another network answers the cameras inside
+    put_in = o3dvis.hidden_point_removal_neural(pcd, inside[0], model=model)[1]
+    assert put_in == _fresh(room, inside[0], model) != again
+
+
+def test_networks_and_rotations_put_in_anew_are_encoded_anew(scene, counted):
+    """What the model holds now decides: a network put in (or taken out) where the cloud is routed, and
+    rotations of the same count but other turns, give the answer of a fresh call, not the kept one."""
+    from o3dvis.geometry import fixed_rotations
+
+    points, cameras = scene
+    model = NeuralVisibility.pretrained(precision="float32")
+    other = NeuralVisibility.pretrained(precision="float32").scene_network  # a network without normals
+    if other is None or model.small_network is None or model.normals_network is None:
+        pytest.skip("needs the shipped scene, small and normals models")
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    pcd.estimate_normals()
+    pcd.orient_normals_towards_camera_location(points.mean(axis=0))
+    answers = [o3dvis.hidden_point_removal_neural(pcd, cameras[0], model=model)[1]]
+    changes = [lambda: setattr(model, "normals_network", None),  # the normals now go unused
+               lambda: setattr(model, "small_network", other),  # these 3 000 points' network, put in anew
+               lambda: setattr(model, "small_network", None),  # the main network answers them
+               lambda: setattr(model, "network", other),
+               lambda: setattr(model, "rotations", fixed_rotations(2)),
+               lambda: setattr(model, "rotations", fixed_rotations(3)[[0, 2]])]  # as many turns, other ones
+    for change in changes:
+        change()
+        kept = o3dvis.hidden_point_removal_neural(pcd, cameras[0], model=model)[1]
+        encodings.clear()
+        fresh = o3dvis.hidden_point_removal_neural(pcd, cameras[0], model=model)[1]
+        assert kept == fresh
+        answers.append(fresh)
+    assert all(a != b for a, b in zip(answers, answers[1:]))  # each change changed the answer

@@ -314,6 +314,7 @@ _TEST_BASELINES = frozenset({"empty cloud", "NaN point", "1 point", "2 points", 
                              "a hair off planar (1e-9)", "camera 1e9 away",
                              "camera at a point", "points of shape (N, 2)"})
 _IMAGE = (24, 32)
+_LIGHT_ON_A_POINT = (ValueError, "^the light at .* lies on a point")
 _FAR_PICTURE = {"camera 1e9 away": "valid"}  # framed anew at each distance (tests/test_view_limits.py)
 
 FUNCS: dict[str, Func] = {
@@ -330,10 +331,12 @@ FUNCS: dict[str, Func] = {
         "any", lambda c, cam, vis: vis.encode(c).probabilities(cam),
         lambda r, p, o: _probability_answer(r, len(p)), method=False, skip=_TEST_API | {"two cameras"}),
     "points_in_shadow": Func(
-        "any", lambda c, cam, m: ~o3dvis.points_in_shadow(c, cam, m), lambda r, p, o: _mask_answer(r, len(p))),
+        "any", lambda c, cam, m: ~o3dvis.points_in_shadow(c, cam, m), lambda r, p, o: _mask_answer(r, len(p)),
+        errors={"camera at a point": _LIGHT_ON_A_POINT}),
     "shadow_map": Func(
         "any", lambda c, cam, m: o3dvis.shadow_map(c, cam, 32, m),
-        lambda r, p, o: _image_answer(r, (32, 32), np.float32), risky=True, truths=_FAR_PICTURE),
+        lambda r, p, o: _image_answer(r, (32, 32), np.float32), risky=True, truths=_FAR_PICTURE,
+        errors={"camera at a point": _LIGHT_ON_A_POINT}),
     "depth_image": Func(
         "any", lambda c, cam, m: o3dvis.depth_image(c, cam, width=32, height=24, model=m),
         lambda r, p, o: _image_answer(r, _IMAGE, np.float32), truths=_FAR_PICTURE),
@@ -425,6 +428,12 @@ PARAMETERS: dict[str, tuple[Callable, tuple, bool]] = {
                                    (ValueError, "point_size"), False),
     "render_with_shadows ambient 2": (lambda vis: o3dvis.render_with_shadows(_PCD, CAMERA, CAMERA, 32, 24, vis,
                                                                              ambient=2), (ValueError, "ambient"), False),
+    "points spanning 2e308": (lambda vis: vis.encode(np.r_[SPHERE, [[-1e308, 0, 0], [1e308, 0, 0]]]),
+                              (ValueError, "spans more than float64"), False),
+    "render_points 10^6 x 10^6 pixels": (lambda vis: o3dvis.render_points(_PCD, CAMERA, True, 10**6, 10**6, vis),
+                                         (ValueError, "1000000000000 pixels"), False),
+    "shadow_map resolution 10^5": (lambda vis: o3dvis.shadow_map(_PCD, CAMERA, 10**5, vis), (ValueError, "pixels"),
+                                   False),
     "best_view steps 0": (lambda vis: o3dvis.best_view(_PCD, steps=0, model=vis), (ValueError, "steps"), False),
     "best_view negative distance": (lambda vis: o3dvis.best_view(_PCD, steps=2, model=vis, distance=-1.0),
                                     (ValueError, "distance"), False),
@@ -738,3 +747,63 @@ def test_cli_bench_creates_no_folder_it_was_not_given(tmp_path, capsys):
     line = _cli_error(capsys, "bench", "--methods", "hpr", "--points", "200", "--views", "1", "-o", str(out))
     assert "no folder" in line and str(out.parent) in line
     assert not out.parent.exists()
+
+
+# ------------------------------------------------------------------------------ errors made clear
+
+def test_a_max_range_beyond_1e154_or_a_tiny_cloud_crops_by_true_distances(vis):
+    """Distances to the camera are compared, not their squares: a range of 1e200 crops nothing, and a
+    cloud of 1e-170 units (whose squared distances underflow) is cropped as the unit one."""
+    pcd = as_cloud(SPHERE)
+    whole = np.asarray(o3dvis.select_visible(pcd, CAMERA, model=vis, max_range=10.0).points)
+    np.testing.assert_array_equal(np.asarray(o3dvis.select_visible(pcd, CAMERA, model=vis, max_range=1e200).points),
+                                  whole)
+    np.testing.assert_array_equal(vis.encode(SPHERE).query(CAMERA, max_range=1e300),
+                                  vis.encode(SPHERE).query(CAMERA, max_range=10.0))
+    tiny = 1e-170
+    for max_range in (2.7, 3.2):  # a crop that cuts the sphere
+        unit = o3dvis.hidden_point_removal_neural(pcd, CAMERA, model=vis, max_range=max_range)[1]
+        small = o3dvis.hidden_point_removal_neural(as_cloud(SPHERE * tiny), CAMERA * tiny, model=vis,
+                                                   max_range=max_range * tiny)[1]
+        assert 0 < len(small) == len(unit) and small == unit
+        field = vis.encode(SPHERE * tiny).query(CAMERA * tiny, max_range=max_range * tiny)
+        np.testing.assert_array_equal(field, vis.encode(SPHERE).query(CAMERA, max_range=max_range))
+
+
+def test_select_visible_takes_a_tensor_that_requires_grad(vis):
+    points = torch.tensor(SPHERE, requires_grad=True)
+    visible = o3dvis.select_visible(points, CAMERA, model=vis)
+    np.testing.assert_array_equal(np.asarray(visible.points), np.asarray(o3dvis.select_visible(SPHERE, CAMERA,
+                                                                                                model=vis).points))
+
+
+def test_a_camera_on_a_point_is_reported_with_a_true_distance_and_a_light_as_the_light(vis):
+    """A camera 2.5 units from every point of a sphere stretched by an outlier 1e9 away is on its
+    points at the network's resolution (float32 coordinates of the normalised frame, some 100 units
+    here): refused, with a bound that holds the true distance. One 5e-7 off a point of the unit
+    sphere is refused with that distance; a light on a point is named the light."""
+    import re
+
+    stretched = np.r_[2.5 * SPHERE, [[1e9, 0.0, 0.0]]]
+    with pytest.raises(o3dvis.field.OnPointError, match=r"^camera 0 at \(0, 0, 0\) lies on a point") as error:
+        vis.encode(stretched).query(np.zeros(3))
+    assert float(re.search(r"nearest is within ([0-9.e+]+),", str(error.value))[1]) >= 2.5
+    off = SPHERE[7] * (1 - 5e-7)
+    with pytest.raises(ValueError, match="lies on a point") as error:
+        vis.encode(SPHERE).query([CAMERA, off])
+    assert error.value.view == 1 and error.value.args[0].startswith("camera 1 at")
+    assert float(re.search(r"nearest is ([0-9.e+-]+) away", str(error.value))[1]) == pytest.approx(5e-7, rel=0.5)
+    for shadows in (lambda: o3dvis.points_in_shadow(SPHERE, SPHERE[7], vis),
+                    lambda: o3dvis.render_with_shadows(as_cloud(SPHERE), SPHERE[7], CAMERA, 32, 24, vis)):
+        with pytest.raises(ValueError, match=r"^the light at .* lies on a point"):
+            shadows()
+
+
+@pytest.mark.parametrize("command", ["render", "shadow"])
+def test_cli_refuses_an_image_too_large_in_one_line(tmp_path, capsys, command):
+    path = tmp_path / "sphere.ply"
+    o3d.io.write_point_cloud(str(path), as_cloud(SPHERE))
+    args = [a.format(out=tmp_path / "out") for a in CLI_READERS[command]]
+    line = _cli_error(capsys, command, str(path), *args, "--width", "1000000", "--height", "1000000")
+    assert line.startswith(f"o3dvis {command}: error: ") and "1000000 x 1000000 image" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sphere.ply"]

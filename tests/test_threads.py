@@ -45,9 +45,12 @@ def test_a_fixed_count_is_used_up_to_the_cores(monkeypatch):
     assert o3dvis.get_num_threads() == 1 and threads.plan_threads(10**9, 1) == 1
     o3dvis.set_num_threads(2)  # a call wins over the environment
     assert threads.plan_threads(10**9, 1) == 2
+    monkeypatch.setattr(threads, "_forked", True)  # in a forked child: at most its own torch count
+    torch.set_num_threads(1)
+    assert threads.plan_threads(10**9, 1) == 1
 
 
-@pytest.mark.parametrize("bad", [0, -1, 1.5, "two", True, "2.0"])
+@pytest.mark.parametrize("bad", [0, -1, 1.5, "two", True, "2.0", "²"])
 def test_bad_counts_raise(bad, monkeypatch):
     with pytest.raises(ValueError, match="positive int"):
         o3dvis.set_num_threads(bad)
@@ -274,3 +277,52 @@ def test_worker_threads_are_made_anew_in_a_forked_child():
         os._exit(0 if ok else 1)
     _, status = os.waitpid(pid, 0)
     assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0
+
+
+_FORKED_WORKER = """
+import multiprocessing, os, sys
+import numpy as np, open3d as o3d, torch
+import o3dvis
+
+def answer(points):
+    return o3dvis.hidden_point_removal_neural(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)),
+                                              [0.0, 0.0, 3.0])[1]
+
+def worker(points, queue):  # as a DataLoader worker: one torch thread of its own, then a call
+    torch.set_num_threads(1)
+    queue.put(answer(points))
+
+if __name__ == "__main__":
+    if sys.argv[1] == "call":
+        o3dvis.set_num_threads(2)
+    points = np.random.default_rng(0).normal(size=(60_000, 3))
+    points /= np.linalg.norm(points, axis=1, keepdims=True)
+    parent = answer(points)  # an OpenMP team of two threads has run here
+    context = multiprocessing.get_context("fork")
+    queue = context.Queue()
+    child = context.Process(target=worker, args=(points, queue), daemon=True)  # one that hangs ends with us
+    child.start()
+    print(queue.get(timeout=60) == parent)
+"""
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="no fork here")
+@pytest.mark.skipif(threads.usable_cores() < 2, reason="one core: no OpenMP team in the parent")
+@pytest.mark.parametrize("fixed_by", ["call", "environment"])
+def test_a_fixed_count_never_overrides_a_forked_workers_own(fixed_by):
+    """A child forked after the parent ran a call on a fixed two threads, that sets one torch thread
+    (as a DataLoader worker does), answers on that one, as the parent did: torch's OpenMP (GNU
+    libgomp) keeps none of the parent's team in the child, and a team of two there waits for ever."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = {**os.environ, "PYTHONPATH": str(Path(o3dvis.__file__).parent.parent)}
+    env.pop(threads.ENV_VAR, None)
+    if fixed_by == "environment":
+        env[threads.ENV_VAR] = "2"
+    run = subprocess.run([sys.executable, "-c", _FORKED_WORKER, fixed_by], capture_output=True, text=True,
+                         timeout=240, env=env)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.strip() == "True"

@@ -56,6 +56,31 @@ def test_cameras_at_the_edge_of_float64_are_directions(vis, torus):
         np.testing.assert_array_equal(field.query(camera), field.query(direction=direction))
 
 
+@pytest.mark.parametrize("scale", [1e-170, 1e160, 1e-300, 1e300])
+def test_a_cloud_and_its_cameras_scaled_alike_get_the_same_answers(vis, torus, scale):
+    """The far-camera switch compares distances in the cloud's normalised frame: a cloud of 1e-170
+    units (whose squared diagonal underflows) or 1e160 (overflows) is answered as at scale 1, near
+    cameras and distant ones alike."""
+    _, points, centre, diagonal = torus
+    cameras = centre + AWAY * diagonal * np.array([[0.6], [2.0], [5.0], [1e4]])
+    expected = vis.encode(points).query(cameras)
+    np.testing.assert_array_equal(vis.encode(points * scale).query(cameras * scale), expected)
+    _, pt_map = o3dvis.hidden_point_removal_neural(_cloud(points * scale), cameras[1] * scale, model=vis)
+    np.testing.assert_array_equal(pt_map, np.flatnonzero(expected[1]))
+    assert expected[:-1].mean() < 0.75  # perspective views: a camera counted far would see more
+
+
+@pytest.mark.parametrize("scale", [1e-170, 1e160])
+def test_viewpoints_around_a_cloud_scale_with_it(torus, scale):
+    from o3dvis.cameras import viewpoints_around
+    from o3dvis.geometry import diagonal
+
+    _, points, _, size = torus
+    assert diagonal(points * scale) == pytest.approx(size * scale, rel=1e-12)
+    np.testing.assert_allclose(viewpoints_around(points * scale, 14), viewpoints_around(points, 14) * scale,
+                               rtol=1e-12, atol=0)
+
+
 def test_a_distant_camera_stays_differentiable(vis, torus):
     _, points, centre, diagonal = torus
     camera = torch.tensor(centre + AWAY * diagonal * 1e8, requires_grad=True)

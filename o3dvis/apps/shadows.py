@@ -13,11 +13,23 @@ import open3d as o3d
 
 from ..cameras import as_camera_location, make_view
 from ..clouds import cloud_points, legacy_cloud
+from ..field import OnPointError
 from ..methods import accepts_method_keyword, resolve_method
 from .render import image_from, lambert, rasterize, splat, splat_size
 from .triangulation import DEFAULT_EDGE_FACTOR, local_spacing, visible_triangles
 
 __all__ = ["shadow_map", "points_in_shadow", "render_with_shadows"]
+
+
+def _seen_from(model, points: np.ndarray, cameras: np.ndarray, light: int) -> np.ndarray:
+    """(V, N) bool: which points each camera sees by ``model`` (see :func:`~o3dvis.methods.resolve_method`);
+    a camera on a point is reported as the light where it is camera ``light``."""
+    try:
+        return resolve_method(model)(points, cameras)
+    except OnPointError as error:
+        if error.view != light:
+            raise
+        raise error.named("the light") from None
 
 
 @accepts_method_keyword
@@ -49,7 +61,7 @@ def shadow_map(pcd, light, resolution: int = 512, model=None, *,
     if int(resolution) < 1:
         raise ValueError(f"resolution must be a positive number of pixels, got {resolution}")
     view = make_view(points, light, int(resolution), int(resolution))
-    seen = np.flatnonzero(resolve_method(model)(points, light[None])[0])
+    seen = np.flatnonzero(_seen_from(model, points, light[None], 0)[0])
     triangles = visible_triangles(points, light, seen, edge_factor * local_spacing(points))
     return o3d.geometry.Image(rasterize(view, points, triangles).astype(np.float32))
 
@@ -69,7 +81,7 @@ def points_in_shadow(pcd, light, model=None) -> np.ndarray:
     """
     points = cloud_points(pcd)
     light = as_camera_location(light, "light")
-    return ~resolve_method(model)(points, light[None])[0]
+    return ~_seen_from(model, points, light[None], 0)[0]
 
 
 @accepts_method_keyword
@@ -103,7 +115,7 @@ def render_with_shadows(pcd, light, camera, width: int = 640, height: int = 480,
     points = cloud_points(pcd)
     light = as_camera_location(light, "light")
     view = make_view(points, camera, width, height, intrinsic)
-    seen_by_camera, lit = resolve_method(model)(points, np.stack([view.location, light]))
+    seen_by_camera, lit = _seen_from(model, points, np.stack([view.location, light]), 1)
     base = np.clip(np.asarray(pcd.colors), 0, 1) if pcd.has_colors() else np.full((len(points), 3), 0.8)
     brightness = np.where(lit, ambient + (1 - ambient) * lambert(pcd, points, light), ambient)
     index, _ = splat(view, points, splat_size(points, point_size), seen_by_camera)

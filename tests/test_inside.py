@@ -9,7 +9,7 @@ import torch
 
 import o3dvis
 from o3dvis.apps import render, shadows
-from o3dvis.nn import NetworkConfig, VisibilityNetwork
+from o3dvis.nn import NetworkConfig, VisibilityNetwork, native
 from o3dvis.pretrained import shared_pretrained
 
 from conftest import box_surface
@@ -152,6 +152,23 @@ def test_scene_model_answers_the_cameras_inside(room):
     np.testing.assert_array_equal(pt_map, np.flatnonzero(probs[0] > 0.5))
     with pytest.raises(ValueError, match="takes no normals"):
         o3dvis.NeuralVisibility(default, scene_network=VisibilityNetwork(NetworkConfig(use_normals=True)))
+
+
+@pytest.mark.skipif(not native.available(), reason="no C kernels here")
+@pytest.mark.parametrize("scene", [False, True], ids=["default model", "scene model"])
+def test_the_torch_ops_answer_the_cameras_inside_as_the_kernels(room, scene, monkeypatch):
+    """The C kernels are the reference: the torch ops (a GPU, autograd, no kernels built) find each
+    point's pixel as they do, from a mean view direction summed in double. From inside a room that
+    direction is short, and rounded as torch rounds it, points on the far side of the azimuthal
+    image changed pixels: answers 0.2 apart."""
+    points, _ = room
+    model = shared_pretrained() if scene else o3dvis.NeuralVisibility(shared_pretrained().network)
+    cameras = np.vstack([CAMERAS, [[0.3, 3.7, 2.8], [3.0, 0.2, 0.1]]])
+    kernels = model.encode(points).probabilities(cameras)
+    monkeypatch.setattr(native, "usable", lambda *tensors: False)
+    torch_ops = model.encode(points).probabilities(cameras)
+    assert float((kernels - torch_ops).abs().max()) < 1e-4
+    assert torch.equal(kernels > 0.5, torch_ops > 0.5)
 
 
 def test_stored_probabilities_are_the_probabilities_in_the_stored_order(room):

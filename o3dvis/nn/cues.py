@@ -23,7 +23,8 @@ from torch import Tensor
 from . import native
 from .octree import cell_keys
 
-__all__ = ["ViewProjection", "view_cues", "num_cues", "point_surfels", "DEFAULT_SCALES"]
+__all__ = ["ViewProjection", "view_cues", "num_cues", "point_surfels", "DEFAULT_SCALES", "atan2_pos", "dot3",
+           "rounded_sqrt"]
 
 DEFAULT_SCALES = (1, 2, 4, 8)
 
@@ -257,13 +258,13 @@ def _pixel_rays(forward: Tensor, right: Tensor, up: Tensor, half: Tensor, camera
     return rays
 
 
-def _dot3(x: Tensor, y: Tensor) -> Tensor:
+def dot3(x: Tensor, y: Tensor) -> Tensor:
     """The dot products of the rows of ``x`` (..., 3) with ``y`` (..., 3 or 3,), summed in the order of the
     C kernels, each product rounded (they fuse no multiply-add there): the same rounding as theirs."""
     return x[..., 0] * y[..., 0] + x[..., 1] * y[..., 1] + x[..., 2] * y[..., 2]
 
 
-def _sqrt(x: Tensor) -> Tensor:
+def rounded_sqrt(x: Tensor) -> Tensor:
     """``sqrt(x)`` correctly rounded to ``x``'s dtype, as C's ``sqrtf`` gives it (torch's float32 ``sqrt`` on
     the CPU is an ulp off for about one value in seven; the double root rounded to float is exact)."""
     return x.double().sqrt().to(x.dtype)
@@ -277,7 +278,7 @@ def _madd(a: Tensor, b: Tensor, c: float, fused: bool) -> Tensor:
     return (a.double() * b.double() + float(torch.tensor(c, dtype=a.dtype))).to(a.dtype)
 
 
-def _atan2_pos(s: Tensor, z: Tensor) -> Tensor:
+def atan2_pos(s: Tensor, z: Tensor) -> Tensor:
     """``atan2(s, z)`` for ``s >= 0`` as the C kernels compute it (``atan2_pos`` of ``kernels.c``: the
     octant reduction, then Cephes' polynomial, its multiply-adds fused where the loaded kernels fuse
     them: every variant but x86-64's base), so that the points fall into the kernels' pixels."""
@@ -313,7 +314,7 @@ def _project(points: Tensor, camera: Tensor | None, direction: Tensor | None
     dtype = points.dtype
     if direction is None:
         offset = points - camera
-        depth = _sqrt(_dot3(offset, offset)).clamp_min(1e-12)
+        depth = rounded_sqrt(dot3(offset, offset)).clamp_min(1e-12)
         dirs = offset / depth[:, None]
         total = dirs.detach().double().sum(dim=0)
         forward = total / total.norm().clamp_min(1e-12 * len(points))
@@ -323,14 +324,14 @@ def _project(points: Tensor, camera: Tensor | None, direction: Tensor | None
     right, up = _frame(forward.detach().double())
     right, up = right.to(dtype), up.to(dtype)
     if direction is not None:
-        u, v = _dot3(points, right).detach(), _dot3(points, up).detach()
-        return dirs, _dot3(points, forward), u, v, None, (forward.detach(), right, up)
+        u, v = dot3(points, right).detach(), dot3(points, up).detach()
+        return dirs, dot3(points, forward), u, v, None, (forward.detach(), right, up)
     forward = forward.to(dtype)
     with torch.no_grad():
         seen = dirs.detach()
-        a, b, z = _dot3(seen, right), _dot3(seen, up), _dot3(seen, forward)
-        s = _sqrt(a * a + b * b + 1e-24)
-        k = _atan2_pos(s, z) / s
+        a, b, z = dot3(seen, right), dot3(seen, up), dot3(seen, forward)
+        s = rounded_sqrt(a * a + b * b + 1e-24)
+        k = atan2_pos(s, z) / s
     return dirs, depth, a * k, b * k, k, (forward, right, up)
 
 

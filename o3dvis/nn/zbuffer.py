@@ -50,8 +50,8 @@ def _pixel_rays(rows: int, pi: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     (``2 rows``), as the kernels' tables hold them: angles in float, their cosines and sines rounded
     from double."""
     pixel = pi / rows
-    elevation = (torch.arange(rows, dtype=pi.dtype) + 0.5) * pixel - pi / 2
-    azimuth = (torch.arange(2 * rows, dtype=pi.dtype) + 0.5) * pixel - pi
+    elevation = (torch.arange(rows, dtype=pi.dtype, device=pi.device) + 0.5) * pixel - pi / 2
+    azimuth = (torch.arange(2 * rows, dtype=pi.dtype, device=pi.device) + 0.5) * pixel - pi
     return tuple(f(angle.double()).to(pi.dtype) for angle in (elevation, azimuth) for f in (torch.cos, torch.sin))
 
 

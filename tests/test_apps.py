@@ -422,6 +422,22 @@ def test_poisson_on_neural_normals_recovers_the_sphere(sphere, search_param):
                                 search_param=o3d.geometry.KDTreeSearchParamHybrid(radius=1e-9, max_nn=5))
 
 
+def test_poisson_refuses_a_depth_beyond_what_open3d_the_cloud_and_memory_allow(sphere, monkeypatch):
+    """Refused before the normals are estimated: Open3D crashes at depth 30, and deep octrees exhaust memory."""
+    from o3dvis.apps import reconstruction
+
+    points, _, method = sphere
+    with pytest.raises(ValueError, match="depth=30 is beyond 16"):
+        reconstruct_poisson(_cloud(points), depth=30, model=method)
+    with pytest.raises(ValueError, match="depth=11 is beyond 10, the deepest octree 160 points fill"):
+        reconstruct_poisson(_cloud(points[:160]), depth=11, model=method)
+    monkeypatch.setattr(reconstruction, "_available_memory", lambda: 2**20)
+    with pytest.raises(ValueError, match=r"depth=6 needs about .* GiB for 4000 points.* memory available"):
+        reconstruct_poisson(_cloud(points), depth=6, model=method)
+    monkeypatch.setattr(reconstruction, "_available_memory", lambda: None)  # unknown: only the other limits
+    assert len(reconstruct_poisson(_cloud(points[:160]), depth=10, model=method)[0].vertices) > 0
+
+
 def test_poisson_gives_the_same_mesh_on_every_run(sphere):
     points, _, method = sphere
     pcd = _cloud(points)

@@ -101,6 +101,13 @@ def test_a_camera_of_other_than_three_numbers_is_a_usage_error(sphere_file, tmp_
     assert run.returncode == 2 and "--camera" in run.stderr and "Traceback" not in run.stderr
 
 
+def test_reconstruct_refuses_a_poisson_depth_open3d_cannot_build(sphere_file, tmp_path):
+    run = _o3dvis("reconstruct", str(sphere_file), "-o", str(tmp_path / "mesh.ply"), "--depth", "30")
+    assert run.returncode == 2, run.stderr
+    assert "depth=30 is beyond 16" in run.stderr and "Traceback" not in run.stderr
+    assert not (tmp_path / "mesh.ply").exists()
+
+
 @pytest.mark.parametrize("case", ["missing file", "camera on a point"])
 def test_a_user_error_is_one_line_with_no_traceback_and_no_bar(sphere_file, tmp_path, case):
     """Also an error found after the command's progress bar has started (a camera on a point)."""

@@ -9,7 +9,7 @@ import torch
 
 import o3dvis
 from o3dvis.apps import render, shadows
-from o3dvis.nn import NetworkConfig, VisibilityNetwork
+from o3dvis.nn import NetworkConfig, VisibilityNetwork, native
 from o3dvis.pretrained import shared_pretrained
 
 from conftest import box_surface
@@ -152,6 +152,42 @@ def test_scene_model_answers_the_cameras_inside(room):
     np.testing.assert_array_equal(pt_map, np.flatnonzero(probs[0] > 0.5))
     with pytest.raises(ValueError, match="takes no normals"):
         o3dvis.NeuralVisibility(default, scene_network=VisibilityNetwork(NetworkConfig(use_normals=True)))
+
+
+@pytest.mark.skipif(not native.available(), reason="no C kernels here")
+@pytest.mark.parametrize("scene", [False, True], ids=["default model", "scene model"])
+def test_the_torch_ops_answer_the_cameras_inside_as_the_kernels(room, scene, monkeypatch):
+    """The C kernels are the reference: the torch ops (a GPU, autograd, no kernels built) find each
+    point's pixel as they do, from a mean view direction summed in double. From inside a room that
+    direction is short, and rounded as torch rounds it, points on the far side of the azimuthal
+    image changed pixels: answers 0.2 apart."""
+    points, _ = room
+    model = shared_pretrained() if scene else o3dvis.NeuralVisibility(shared_pretrained().network)
+    cameras = np.vstack([CAMERAS, [[0.3, 3.7, 2.8], [3.0, 0.2, 0.1]]])
+    kernels = model.encode(points).probabilities(cameras)
+    monkeypatch.setattr(native, "usable", lambda *tensors: False)
+    torch_ops = model.encode(points).probabilities(cameras)
+    assert float((kernels - torch_ops).abs().max()) < 1e-4
+    assert torch.equal(kernels > 0.5, torch_ops > 0.5)
+
+
+@pytest.mark.skipif(not native.available(), reason="no C kernels here")
+def test_the_torch_zbuffer_answers_the_cameras_inside_as_the_kernels():
+    """The surfel z-buffer in torch ops rounds as the kernels do (their arctangent, sums and tables of
+    rays): each disc in their pixels and the same front disc of every pixel, so the same answers.
+    Rounded as torch rounds, dozens of points of a view inside this box had another front disc."""
+    from o3dvis.nn import zbuffer
+    from o3dvis.nn.cues import point_surfels
+
+    rng = np.random.default_rng(1)
+    points = torch.tensor(box_surface((-0.9, -0.8, -0.7), (0.9, 0.8, 0.7), 30_000, rng), dtype=torch.float32)
+    surfels = point_surfels(points, areas=True)
+    for camera in torch.tensor(rng.uniform(-0.85, 0.85, (14, 3)), dtype=torch.float32):
+        rows = zbuffer.buffer_rows(points, surfels[:, 4], camera)
+        kernels = zbuffer.surfel_zbuffer(points, surfels, camera, rows)
+        torch_ops = zbuffer._surfel_zbuffer_torch(points, surfels, camera, rows)
+        assert torch.equal(kernels[:, 0], torch_ops[:, 0]), f"another front disc from {camera.tolist()}"
+        torch.testing.assert_close(torch_ops, kernels, rtol=1e-5, atol=1e-5)
 
 
 def test_stored_probabilities_are_the_probabilities_in_the_stored_order(room):

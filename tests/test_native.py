@@ -441,26 +441,48 @@ def test_gather_conv_skips_the_missing_neighbours_exactly(missing, variant):
         native.gather_conv(x, index, packed, taps, outputs, shift, entries=broken)
 
 
+@pytest.mark.parametrize("use_normals", [False, True])
+def test_the_unet_of_a_network_with_normals_is_one_call_of_the_kernels_too(monkeypatch, use_normals):
+    """The normals model's U-Net takes 11 channels: the kernels, which read them in pairs, take a 12th of
+    zeros (in the input and the weights) rather than leaving every layer to torch's bfloat16 products,
+    whose memory grows with each new count of rows. Only the plan of the call is checked, on any CPU."""
+    from o3dvis.nn.conv import products_in
+    from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
+
+    monkeypatch.setattr(native, "available", lambda: True)
+    monkeypatch.setattr(native, "has_gather_conv", lambda: True)
+    network = VisibilityNetwork(NetworkConfig(noise_cues=True, use_normals=use_normals)).eval()
+    channels = network.unet.skip_leaf.in_features
+    assert channels == (11 if use_normals else 8)
+    with torch.no_grad(), products_in(torch.bfloat16):
+        body = network.unet._steps(torch.zeros(10, channels))[-1]
+    assert body is not None, "the U-Net's layers left to torch ops"
+    assert int(body.table[0, 4]) == body.weights[0].channels == (12 if use_normals else 8)
+
+
 @pytest.mark.skipif(not native.has_gather_conv(), reason="no AVX-512 bfloat16 kernels here")
-def test_the_unet_of_gathered_convolutions_answers_as_the_torch_ops(monkeypatch):
+@pytest.mark.parametrize("use_normals", [False, True])
+def test_the_unet_of_gathered_convolutions_answers_as_the_torch_ops(monkeypatch, use_normals):
     """The encoding with every gathered convolution (3x3x3 and down-sampling) in one pass of C:
     the features of the torch ops, but for sums that oneDNN orders otherwise (its order is the
     tiles' on a CPU with AMX, not on every CPU with AVX-512 bfloat16 alone: there a product a
-    bfloat16 step apart in one layer moves every feature after it by a few such steps)."""
+    bfloat16 step apart in one layer moves every feature after it by a few such steps). With
+    normals, the input's odd channel count is padded with zeros for the kernels."""
     from o3dvis.nn.conv import products_in
     from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
 
     torch.manual_seed(0)
-    network = VisibilityNetwork(NetworkConfig(noise_cues=True)).eval()
+    network = VisibilityNetwork(NetworkConfig(noise_cues=True, use_normals=use_normals)).eval()
     points = _points(5000)
+    normals = torch.nn.functional.normalize(torch.randn_like(points), dim=1) if use_normals else None
     calls, unet = [], native.unet
     monkeypatch.setattr(native, "unet", lambda table, *args, **kw: calls.append(table[:, 0].tolist()) or unet(
         table, *args, **kw))
     with torch.no_grad(), products_in(torch.bfloat16):
-        fused = network.encode(points)
+        fused = network.encode(points, normals=normals)
         assert [kinds.count(0) for kinds in calls] == [23]  # in one call: 5 down-samplings, 9 residual blocks of 2
         monkeypatch.setattr(native, "has_gather_conv", lambda: False)
-        plain = network.encode(points)
+        plain = network.encode(points, normals=normals)
     assert float((fused - plain).abs().mean()) < 4e-3 * float(plain.abs().mean())
     torch.testing.assert_close(fused, plain, atol=1e-2 * float(plain.abs().max()), rtol=0)
 

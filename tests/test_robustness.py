@@ -442,6 +442,9 @@ PARAMETERS: dict[str, tuple[Callable, tuple, bool]] = {
     # Open3D's Poisson raises on an octree of fewer than 2 levels, then aborts the process at exit
     "reconstruct_poisson depth 1": (lambda vis: o3dvis.reconstruct_poisson(_PCD, 1, vis, num_views=6),
                                     (ValueError, "depth"), True),
+    # Open3D's Poisson crashes the process, or exhausts memory, on an octree this deep
+    "reconstruct_poisson depth 30": (lambda vis: o3dvis.reconstruct_poisson(_PCD, 30, vis, num_views=6),
+                                     (ValueError, "depth=30"), True),
     "reconstruct_poisson width of the cloud": (lambda vis: o3dvis.reconstruct_poisson(_PCD, 8, vis, num_views=6,
                                                                                       width=2.0),
                                                (ValueError, "width"), True),

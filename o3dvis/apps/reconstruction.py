@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+import os
+
 import numpy as np
 import open3d as o3d
 
@@ -12,6 +15,12 @@ from .normals import estimate_normals_neural
 from .triangulation import DEFAULT_EDGE_FACTOR, local_spacing, visible_triangles
 
 __all__ = ["reconstruct_view_dependent", "reconstruct_poisson"]
+
+POISSON_MAX_DEPTH = 16
+"""Open3D's Poisson octree addresses a cell by 16-bit offsets: from depth 17 its samples fall outside the tree
+(it reports them as bad sample nodes) and far deeper it crashes the process."""
+POISSON_BYTES_PER_POINT_LEVEL = 4096
+"""Memory of Open3D's Poisson per point and per octree level finer than the points fill (about 3.7 kB measured)."""
 
 
 @accepts_method_keyword
@@ -84,13 +93,15 @@ def reconstruct_poisson(pcd, depth: int = 8, model=None, *, num_views: int = 26,
     Raises:
         ValueError: an octree of fewer than 2 levels (``depth`` < 2, or a
             ``width`` near the cloud's size), on which Open3D fails and then
-            aborts the process at exit; ``scale`` <= 0.
+            aborts the process at exit; a ``depth`` beyond what the cloud and
+            the memory allow (see :func:`check_poisson_depth`); ``scale`` <= 0.
     """
     if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)) or depth < 2:
         raise ValueError(f"depth must be an int >= 2, got {depth!r}")
     if not (np.isfinite(width) and width >= 0 and np.isfinite(scale) and scale > 0):
         raise ValueError(f"width must be >= 0 and scale > 0, got width={width} and scale={scale}")
     cloud = o3d.geometry.PointCloud(legacy_cloud(pcd))
+    check_poisson_depth(int(depth), len(cloud.points))
     size = float(cloud.get_axis_aligned_bounding_box().get_extent().max()) if cloud.has_points() else 0.0
     if width > 0 and scale * size <= 2 * width:  # Open3D's depth from width: ceil(log2(scale size / width))
         raise ValueError(f"width={width} gives an octree of fewer than 2 levels over a cloud {size:g} "
@@ -102,3 +113,49 @@ def reconstruct_poisson(pcd, depth: int = 8, model=None, *, num_views: int = 26,
         cloud.translate(-center), depth=depth, width=width, scale=scale, linear_fit=linear_fit,
         n_threads=n_threads)
     return mesh.translate(center), densities
+
+
+def check_poisson_depth(depth: int, num_points: int) -> None:
+    """Refuses a Poisson octree depth that Open3D cannot build, the cloud cannot fill or memory cannot hold.
+
+    Three limits: :data:`POISSON_MAX_DEPTH`, Open3D's own; ``ceil(log2(n)) + 2`` for ``n`` points (at
+    least 8, Open3D's default), past which the finest cells are smaller than the points' spacing even
+    along a curve, so deeper levels fit nothing and only cost time; and the memory available now, against
+    :data:`POISSON_BYTES_PER_POINT_LEVEL` per point for each level finer than ``log4(n)`` (where the
+    cells of a surface outnumber its points).
+
+    Args:
+        depth: the requested octree depth.
+        num_points: the number of points of the cloud.
+
+    Raises:
+        ValueError: naming the depth, the limit it passes and why.
+    """
+    if depth > POISSON_MAX_DEPTH:
+        raise ValueError(f"depth={depth} is beyond {POISSON_MAX_DEPTH}, the deepest octree Open3D's Poisson "
+                         "addresses (deeper, it misplaces the samples or crashes)")
+    useful = max(8, math.ceil(math.log2(max(num_points, 1))) + 2)
+    if depth > useful:
+        raise ValueError(f"depth={depth} is beyond {useful}, the deepest octree {num_points} points fill "
+                         "(deeper cells are finer than the points' spacing); use a smaller depth")
+    levels = max(1.0, depth - math.log(max(num_points, 1), 4))
+    needed = POISSON_BYTES_PER_POINT_LEVEL * num_points * levels
+    available = _available_memory()
+    if available is not None and needed > available:
+        raise ValueError(f"depth={depth} needs about {needed / 2**30:.1f} GiB for {num_points} points, more than "
+                         f"the {available / 2**30:.1f} GiB of memory available; use a smaller depth")
+
+
+def _available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (Linux's MemAvailable, else the free pages), or None."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, AttributeError):
+        return None

@@ -53,7 +53,8 @@ def register(subparsers) -> None:
     p.add_argument("input", help="point cloud file readable by Open3D")
     p.add_argument("-o", "--output", required=True, help="output mesh file (.ply, .obj, ...)")
     add_vector(p, "--camera", "view-dependent mesh from this position")
-    p.add_argument("--depth", type=int, default=8, help="Poisson octree depth (default 8)")
+    p.add_argument("--depth", type=int, default=8,
+                   help="Poisson octree depth (default 8; at most 16, and what the cloud and memory allow)")
     p.add_argument("--trim", type=float, default=0.0,
                    help="drop Poisson vertices below this density quantile, e.g. 0.02 (default 0)")
     _add_view_flags(p)

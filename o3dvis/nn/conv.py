@@ -13,6 +13,7 @@ from collections.abc import Callable, Iterator
 from typing import NamedTuple
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..threads import torch_threads
@@ -21,7 +22,7 @@ from .octree import Octree
 from .state import Derived
 
 __all__ = ["OctreeConv", "OctreeDownsample", "OctreeUpsample", "ConvBnRelu", "ResBlock", "LayerStep", "NativeLayer",
-           "STEPS", "gather_rows", "products_in", "step_conditions"]
+           "STEPS", "gather_rows", "pad_channels", "products_in", "step_conditions"]
 
 _PRODUCTS = threading.local()
 
@@ -215,7 +216,7 @@ class ConvBnRelu(nn.Module):
         the layer's :meth:`~_GatherMatmul.product_dtype`) and a shift. One pass of C where the
         kernels take it: an up-sampling for the nodes that exist only (:func:`~o3dvis.nn.native.upsample`,
         the same float32 sums), a convolution in bfloat16 dot products (:func:`~o3dvis.nn.native.gather_conv`,
-        for an even number of input channels and outputs a multiple of 16, on a CPU with AVX-512
+        for outputs a multiple of 16, an odd number of inputs padded with zeros, on a CPU with AVX-512
         bfloat16, its rows shared out among the threads of :func:`~o3dvis.nn.native.kernel_threads`);
         torch ops elsewhere."""
         dtype = self.conv.product_dtype(x)
@@ -238,21 +239,23 @@ class ConvBnRelu(nn.Module):
                                        addend=None if addend is None else addend.contiguous())
             upsample.native = NativeLayer(1, weight, shift, conv.in_channels, 1, conv.out_channels // 8, relu)
             return upsample
-        if (weight.dtype != torch.bfloat16 or conv.in_channels % 2 or conv.out_channels % 16
-                or not native.has_gather_conv()):
+        if weight.dtype != torch.bfloat16 or conv.out_channels % 16 or not native.has_gather_conv():
             return None
         taps, outputs = len(weight) // conv.in_channels, conv.out_channels
-        packed, shift = native.pack_conv(weight, taps), shift.float().contiguous()
+        channels = conv.in_channels + conv.in_channels % 2
+        # the kernels take the channels in pairs: an odd count gets a channel of zeros, in the weight and the input
+        weight = F.pad(weight.view(taps, conv.in_channels, outputs), (0, 0, 0, channels - conv.in_channels))
+        packed, shift = native.pack_conv(weight.view(taps * channels, outputs), taps), shift.float().contiguous()
 
         def gathered(x: Tensor, octree: Octree, level: int, residual: Tensor | None = None,
                      addend: Tensor | None = None) -> Tensor:
             index = conv.index(octree, level).contiguous()
             entries = octree.derived(("conv entries", taps, level), lambda: native.conv_entries(index, len(x)))
-            out = native.gather_conv(x.contiguous(), index, packed, taps, outputs, shift,
+            out = native.gather_conv(pad_channels(x, channels), index, packed, taps, outputs, shift,
                                      None if residual is None else residual.contiguous(),
                                      relu=relu or residual is not None, entries=entries)
             return out if addend is None else out.add_(addend)
-        gathered.native = NativeLayer(0, packed, shift, conv.in_channels, taps, outputs, relu)
+        gathered.native = NativeLayer(0, packed, shift, channels, taps, outputs, relu)
         return gathered
 
     def _torch_step(self, weight: Tensor, shift: Tensor) -> LayerStep:
@@ -280,6 +283,11 @@ class ConvBnRelu(nn.Module):
         # an up-sampling's columns are (octant, channel): its scale repeats per octant
         folded = (weight * scale.repeat(weight.shape[1] // scale.shape[0])).to(dtype)
         return folded.detach(), shift.detach()
+
+
+def pad_channels(x: Tensor, channels: int) -> Tensor:
+    """``x`` (rows, C) contiguous, with columns of zeros up to ``channels`` (>= C)."""
+    return F.pad(x, (0, channels - x.shape[1])) if x.shape[1] < channels else x.contiguous()
 
 
 def step_conditions(conv: _GatherMatmul, x: Tensor) -> tuple:

@@ -13,6 +13,7 @@ points and has no parameter to tune.
 from __future__ import annotations
 
 import math
+import platform
 from collections.abc import Callable, Sequence
 
 import torch
@@ -22,7 +23,8 @@ from torch import Tensor
 from . import native
 from .octree import cell_keys
 
-__all__ = ["ViewProjection", "view_cues", "num_cues", "point_surfels", "DEFAULT_SCALES"]
+__all__ = ["ViewProjection", "view_cues", "num_cues", "point_surfels", "DEFAULT_SCALES", "atan2_pos", "dot3",
+           "rounded_sqrt"]
 
 DEFAULT_SCALES = (1, 2, 4, 8)
 
@@ -256,6 +258,83 @@ def _pixel_rays(forward: Tensor, right: Tensor, up: Tensor, half: Tensor, camera
     return rays
 
 
+def dot3(x: Tensor, y: Tensor) -> Tensor:
+    """The dot products of the rows of ``x`` (..., 3) with ``y`` (..., 3 or 3,), summed in the order of the
+    C kernels, each product rounded (they fuse no multiply-add there): the same rounding as theirs."""
+    return x[..., 0] * y[..., 0] + x[..., 1] * y[..., 1] + x[..., 2] * y[..., 2]
+
+
+def rounded_sqrt(x: Tensor) -> Tensor:
+    """``sqrt(x)`` correctly rounded to ``x``'s dtype, as C's ``sqrtf`` gives it (torch's float32 ``sqrt`` on
+    the CPU is an ulp off for about one value in seven; the double root rounded to float is exact)."""
+    return x.double().sqrt().to(x.dtype)
+
+
+def _madd(a: Tensor, b: Tensor, c: float, fused: bool) -> Tensor:
+    """``a * b + c`` in ``a``'s dtype, rounded once where ``fused`` (a fused multiply-add: the product of
+    two floats is exact in double, the sum is rounded there and again to float)."""
+    if not fused:
+        return a * b + c
+    return (a.double() * b.double() + float(torch.tensor(c, dtype=a.dtype))).to(a.dtype)
+
+
+def atan2_pos(s: Tensor, z: Tensor) -> Tensor:
+    """``atan2(s, z)`` for ``s >= 0`` as the C kernels compute it (``atan2_pos`` of ``kernels.c``: the
+    octant reduction, then Cephes' polynomial, its multiply-adds fused where the loaded kernels fuse
+    them: every variant but x86-64's base), so that the points fall into the kernels' pixels."""
+    fused = native.available() and (native.variant() != "base" or platform.machine().lower() in ("aarch64", "arm64"))
+    az = z.abs()
+    steep = s > az
+    t = torch.where(steep, az / s, torch.where(az > 0, s / az, torch.zeros_like(s)))
+    big = t > 0.414213562373095
+    x = torch.where(big, (t - 1) / (t + 1), t)
+    square = x * x
+    p = torch.full_like(x, 8.05374449538e-2)
+    for c in (-1.38776856032e-1, 1.99777106478e-1, -3.33329491539e-1):
+        p = _madd(p, square, c, fused)
+    r = x + x * square * p
+    r = torch.where(big, r + 0.785398163397448, r)
+    r = torch.where(steep, 1.57079632679490 - r, r)
+    return torch.where(z < 0, 3.14159265358979 - r, r)
+
+
+def _project(points: Tensor, camera: Tensor | None, direction: Tensor | None
+             ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None, tuple[Tensor, Tensor, Tensor]]:
+    """A view's image positions in torch ops, with the rounding of the C kernels' ``o3dvis_project``
+    (its sums in its order, its frame in double, its arctangent), so that each point falls into
+    the kernels' pixel: a camera inside a cloud sees points all around, whose mean direction is
+    short, and a point on the far side of its azimuthal image moves with any rounding of it.
+
+    Returns:
+        ``dirs`` (N, 3) unit vectors from the camera (the viewing direction for a ``direction``) and
+        ``depth`` (N,), differentiable; the image positions ``u``, ``v`` (N,) around the image's
+        centre and, for a camera, the stretch ``theta / sin(theta)`` (N,) of its azimuthal image,
+        detached; the unit ``forward``, ``right`` and ``up`` vectors of the image.
+    """
+    dtype = points.dtype
+    if direction is None:
+        offset = points - camera
+        depth = rounded_sqrt(dot3(offset, offset)).clamp_min(1e-12)
+        dirs = offset / depth[:, None]
+        total = dirs.detach().double().sum(dim=0)
+        forward = total / total.norm().clamp_min(1e-12 * len(points))
+    else:
+        forward = direction / direction.norm()
+        dirs = forward.expand_as(points)
+    right, up = _frame(forward.detach().double())
+    right, up = right.to(dtype), up.to(dtype)
+    if direction is not None:
+        u, v = dot3(points, right).detach(), dot3(points, up).detach()
+        return dirs, dot3(points, forward), u, v, None, (forward.detach(), right, up)
+    forward = forward.to(dtype)
+    with torch.no_grad():
+        seen = dirs.detach()
+        a, b, z = dot3(seen, right), dot3(seen, up), dot3(seen, forward)
+        s = rounded_sqrt(a * a + b * b + 1e-24)
+        k = atan2_pos(s, z) / s
+    return dirs, depth, a * k, b * k, k, (forward, right, up)
+
+
 class ViewProjection:
     """One viewpoint's projection of a cloud: view directions and multi-scale depth buffers.
 
@@ -298,35 +377,18 @@ class ViewProjection:
             if surfels is not None:
                 self._splat_native(points, camera, surfels, uv)
             return
-        if direction is None:
-            offset = points - camera
-            depth = offset.norm(dim=1).clamp_min(1e-12)
-            dirs = offset / depth[:, None]
-            mean_dir = dirs.detach().mean(dim=0)
-            forward = (mean_dir / mean_dir.norm().clamp_min(1e-12)).to(points.dtype)
-            right, up = _frame(forward)
-            a, b, z = dirs @ right, dirs @ up, dirs @ forward
-            s = torch.sqrt(a * a + b * b + 1e-24)
-            k = torch.atan2(s, z) / s
-            u, v = (a * k).detach(), (b * k).detach()
-            footprint = depth
-            stretch = k.detach()
-        else:
-            forward = direction / direction.norm()
-            right, up = _frame(forward)
-            dirs = forward.expand_as(points)
-            u, v, depth = (points @ right).detach(), (points @ up).detach(), points @ forward
-            footprint = torch.ones_like(depth)
-            stretch = None
+        dirs, depth, u, v, stretch, (forward, right, up) = _project(points, camera, direction)
+        footprint = depth if direction is None else torch.ones_like(depth)
         half = torch.maximum(u.abs().amax(), v.abs().amax()) * (1 + 1e-6) + 1e-12
         self.dirs, self.depth = dirs, depth
         u, v = u + half, v + half  # image positions from the corner, computed once for all scales
-        pixel_sizes, indices, zbufs = [], [], []
+        pixel_sizes, rpix, indices, zbufs = [], [], [], []
         for res in sides:
-            pixel = 2 * half / res
-            iu, iv = (u / pixel).long().clamp_(0, res - 1), (v / pixel).long().clamp_(0, res - 1)
+            scale = half.new_tensor(float(res)) / (2 * half)  # 1 / pixel size, as the kernels find the pixel
+            iu, iv = (u * scale).long().clamp_(0, res - 1), (v * scale).long().clamp_(0, res - 1)
             index = iu.mul_(res).add_(iv)
-            pixel_sizes.append(pixel)
+            pixel_sizes.append(1 / scale)
+            rpix.append(scale)
             indices.append(index)
             zbufs.append(depth.new_full((res * res,), float("inf")).scatter_reduce(0, index, depth, "amin"))
         if surfels is not None:  # the splatted buffers of the finer scales follow as scales of their own
@@ -338,7 +400,7 @@ class ViewProjection:
                                None if camera is None else camera.detach(), points.dtype)
             zbufs += [z.flatten() for z in _splat_footprints(grids, indices, pixel_sizes, depth.detach(), angular,
                                                              points.detach(), surfels[:, 1:], rays)]
-            sides, indices, pixel_sizes = sides + sides[:-1], indices + indices[:-1], pixel_sizes + pixel_sizes[:-1]
+            sides, indices, rpix = sides + sides[:-1], indices + indices[:-1], rpix + rpix[:-1]
         # the 3x3 neighbourhoods of the pixels of all buffers in one table, NaN where a pixel is
         # empty or off the image; row pixels[i, s] of it is point i's in buffer s
         self.patches = depth.new_empty(sum(res * res for res in sides), 9)
@@ -350,8 +412,8 @@ class ViewProjection:
                            self.patches[start:start + res * res].view(res, res, 9))
             torch.add(index, start, out=self.pixels[:, s])
             start += res * res
-        # -1 / (pixel size x footprint): the scale of a depth residual, (N, S, 1)
-        self.inv_footprint = (-1 / (footprint[:, None] * torch.stack(pixel_sizes)))[:, :, None]
+        # -1 / (pixel size x footprint), the scale of a depth residual, (N, S, 1), as the kernels compute it
+        self.inv_footprint = ((-1 / footprint)[:, None] * torch.stack(rpix))[:, :, None]
 
     def _splat_native(self, points: Tensor, camera: Tensor | None, surfels: Tensor, uv: Tensor) -> None:
         """Appends the splatted buffers (see :func:`_splat_footprints`; here the C kernel

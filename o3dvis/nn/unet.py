@@ -8,7 +8,8 @@ import torch
 from torch import Tensor, nn
 
 from . import native
-from .conv import STEPS, ConvBnRelu, NativeLayer, OctreeDownsample, OctreeUpsample, ResBlock, step_conditions
+from .conv import (STEPS, ConvBnRelu, NativeLayer, OctreeDownsample, OctreeUpsample, ResBlock, pad_channels,
+                   step_conditions)
 from .octree import Octree
 
 __all__ = ["OctreeUNet"]
@@ -155,4 +156,5 @@ class _NativeBody:
         table = self.table.clone()
         table[:, 10:] = torch.tensor(fields, dtype=torch.long).view(-1, 5)
         last = self.weights[-1]
-        return native.unet(table, signal.contiguous(), signal.new_empty(int(table[-1, 10]), last.outputs))
+        signal = pad_channels(signal, self.weights[0].channels)  # an odd count: a channel of zeros (see ConvBnRelu)
+        return native.unet(table, signal, signal.new_empty(int(table[-1, 10]), last.outputs))

@@ -23,6 +23,7 @@ import torch
 from torch import Tensor
 
 from . import native
+from .cues import atan2_pos, dot3, rounded_sqrt
 
 __all__ = ["NUM_ZBUFFER_FEATURES", "buffer_rows", "surfel_zbuffer"]
 
@@ -44,37 +45,41 @@ def buffer_rows(points: Tensor, spacing: Tensor, camera: Tensor) -> int:
     return int(min(max(PIXELS_PER_SPACING * math.pi / max(median, 1e-12), 16), MAX_ROWS))
 
 
-def _pixel_rays(row: Tensor, col: Tensor, rows: int) -> Tensor:
-    """Unit directions through the centres of the pixels ``(row, col)``."""
-    pixel = math.pi / rows
-    elevation = (row.to(torch.float32) + 0.5) * pixel - math.pi / 2
-    azimuth = (col.to(torch.float32) + 0.5) * pixel - math.pi
-    flat = elevation.cos()
-    return torch.stack([flat * azimuth.cos(), flat * azimuth.sin(), elevation.sin()], dim=1)
+def _pixel_rays(rows: int, pi: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The cosines and sines of the elevations of the pixels' centres (``rows``) and of their azimuths
+    (``2 rows``), as the kernels' tables hold them: angles in float, their cosines and sines rounded
+    from double."""
+    pixel = pi / rows
+    elevation = (torch.arange(rows, dtype=pi.dtype, device=pi.device) + 0.5) * pixel - pi / 2
+    azimuth = (torch.arange(2 * rows, dtype=pi.dtype, device=pi.device) + 0.5) * pixel - pi
+    return tuple(f(angle.double()).to(pi.dtype) for angle in (elevation, azimuth) for f in (torch.cos, torch.sin))
 
 
 def _surfel_zbuffer_torch(points: Tensor, surfels: Tensor, camera: Tensor, rows: int) -> Tensor:
-    cols, pixel, n = 2 * rows, math.pi / rows, len(points)
+    """:func:`surfel_zbuffer` in torch ops, rounded as ``o3dvis_surfel_zbuffer`` of ``kernels.c`` rounds
+    (its sums in its order, its arctangent, its tables of the pixels' rays): each point and disc in
+    the kernels' pixels, the same front disc of every pixel."""
+    cols, n, device = 2 * rows, len(points), points.device
+    pi = torch.tensor(math.pi, dtype=points.dtype, device=device)
+    pixel = pi / rows
     offset = points - camera
-    dist = offset.norm(dim=1)
-    sine = torch.where(dist > 0, offset[:, 2] / dist, torch.zeros_like(dist)).clamp(-1, 1)
-    row_f = (sine.asin() + math.pi / 2) * rows / math.pi
-    col_f = (torch.atan2(offset[:, 1], offset[:, 0]) + math.pi) * rows / math.pi
+    x, y, z = offset.unbind(1)
+    h, dist = rounded_sqrt(x * x + y * y), rounded_sqrt(dot3(offset, offset))
+    row_f = atan2_pos(h, -z) * rows / pi  # elevation + pi / 2 and azimuth + pi, in pixels
+    col_f = torch.where(y >= 0, pi + atan2_pos(y, x), pi - atan2_pos(-y, x)) * rows / pi
     own_row, own_col = row_f.long().clamp_max(rows - 1), col_f.long()
     own = own_row * cols + own_col % cols
     # the pixels whose centres the disc may cover (see kernels.c): its reach along the meridian, in
     # rows, and along the parallel, in columns
     radius, normals = surfels[:, 4], surfels[:, 1:4]
     reach = torch.where(radius < dist, radius / (dist - radius) / pixel, torch.full_like(dist, _MAX_HALF))
-    h = offset[:, :2].norm(dim=1)
     flat_side = h > 0
-    ez = torch.where(flat_side, offset[:, 2] / (h * dist), torch.zeros_like(h))
-    along_v = torch.where(flat_side, -ez * (offset[:, 0] * normals[:, 0] + offset[:, 1] * normals[:, 1])
-                          + h / dist * normals[:, 2], normals[:, 0])
-    along_h = torch.where(flat_side, (offset[:, 0] * normals[:, 1] - offset[:, 1] * normals[:, 0]) / h,
-                          normals[:, 1])
-    half_h = (reach * ((1 - along_v.square()).clamp_min(0).sqrt() + 0.15).clamp_max(1)).clamp_max(_MAX_HALF)
-    half_a = (reach * ((1 - along_h.square()).clamp_min(0).sqrt() + 0.15).clamp_max(1)).clamp_max(_MAX_HALF)
+    ez = torch.where(flat_side, z / (h * dist), torch.zeros_like(h))
+    along_v = torch.where(flat_side, -ez * (x * normals[:, 0] + y * normals[:, 1]) + h / dist * normals[:, 2],
+                          normals[:, 0])
+    along_h = torch.where(flat_side, (x * normals[:, 1] - y * normals[:, 0]) / h, normals[:, 1])
+    half_h = (reach * (rounded_sqrt((1 - along_v * along_v).clamp_min(0)) + 0.15).clamp_max(1)).clamp_max(_MAX_HALF)
+    half_a = (reach * (rounded_sqrt((1 - along_h * along_h).clamp_min(0)) + 0.15).clamp_max(1)).clamp_max(_MAX_HALF)
     flat = torch.where(dist > 0, h / dist, torch.ones_like(dist))  # cos(elevation)
     half_w = (half_a / flat.clamp_min(1e-3)).clamp_max(min((cols - 1) / 2, _MAX_WIDE))  # each pixel once
     r0 = torch.minimum((row_f - half_h - 0.5).ceil().long(), own_row).clamp_min(0)
@@ -83,30 +88,32 @@ def _surfel_zbuffer_torch(points: Tensor, surfels: Tensor, camera: Tensor, rows:
     k1 = torch.maximum((col_f + half_w - 0.5).floor().long(), own_col)
     height, width = r1 - r0 + 1, k1 - k0 + 1
     size = height * width
-    owner = torch.repeat_interleave(torch.arange(n, device=points.device), size)
-    local = torch.arange(len(owner), device=points.device) - torch.repeat_interleave(size.cumsum(0) - size, size)
+    owner = torch.repeat_interleave(torch.arange(n, device=device), size)
+    local = torch.arange(len(owner), device=device) - torch.repeat_interleave(size.cumsum(0) - size, size)
     r, k = r0[owner] + local // width[owner], k0[owner] + local % width[owner]
     c = k % cols
-    ray, normal, off = _pixel_rays(r, c, rows), normals[owner], offset[owner]
-    depth = (off * normal).sum(dim=1) / (ray * normal).sum(dim=1)
+    row_cos, row_sin, col_cos, col_sin = _pixel_rays(rows, pi)
+    ray = torch.stack([row_cos[r] * col_cos[c], row_cos[r] * col_sin[c], row_sin[r]], dim=1)
+    depth = dot3(offset, normals)[owner] / dot3(ray, normals[owner])
     valid = (depth > 0) & (depth < math.inf)
-    hit = valid & ((ray * depth[:, None] - off).square().sum(dim=1) <= radius[owner].square())
+    miss = ray * depth[:, None] - offset[owner]
+    hit = valid & (dot3(miss, miss) <= (radius * radius)[owner])
     hit |= (r == own_row[owner]) & (k == own_col[owner])  # a disc always covers its own pixel
     pixels = r * cols + c
     depth = torch.where(valid, depth, dist[owner])
     owner, pixels, depth = owner[hit], pixels[hit], depth[hit]
     nearest = depth.new_full((rows * cols,), math.inf).scatter_reduce(0, pixels, depth, "amin")
     first = depth == nearest[pixels]
-    front = torch.full((rows * cols,), n, dtype=torch.long, device=points.device).scatter_reduce(
+    front = torch.full((rows * cols,), n, dtype=torch.long, device=device).scatter_reduce(
         0, pixels[first], owner[first], "amin")[own]
     normal = normals[front]
-    facing = (offset * normal).sum(dim=1) / dist
-    along = (offset[front] * normal).sum(dim=1) / facing
+    facing = dot3(offset, normal) / dist
+    along = dot3(offset[front], normal) / facing
     along = torch.where(torch.isnan(along), math.inf, along)
     along = torch.minimum(torch.maximum(along, dist[front] - 3 * radius[front]), dist[front] + 3 * radius[front])
     beyond = ((dist - along) / radius).nan_to_num(0.0).clamp(-_CLIP, _CLIP)
-    is_own = (front == torch.arange(n, device=points.device)).to(points.dtype)
-    cosine = ((offset * normals).sum(dim=1) / dist).nan_to_num(0.0).abs()
+    is_own = (front == torch.arange(n, device=device)).to(points.dtype)
+    cosine = (dot3(offset, normals) / dist).nan_to_num(0.0).abs()
     return torch.stack([is_own, beyond, radius / dist / pixel, cosine], dim=1)
 
 

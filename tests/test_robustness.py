@@ -41,6 +41,8 @@ from scipy.spatial import cKDTree
 import o3dvis
 from o3dvis.apps import fibonacci_sphere
 
+from conftest import lzf_literal
+
 SPHERE = fibonacci_sphere(160)
 CAMERA = np.array([0.4, -0.3, 3.0])
 OFFSET = np.array([1e6, -1e6, 1e6])
@@ -627,12 +629,6 @@ def _pcd(data: str, points: int, body: bytes, fields: str = "x y z", sizes: str 
             f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {points}\nDATA {data}\n").encode() + body
 
 
-def _lzf(data: bytes) -> bytes:
-    """``data`` LZF-compressed as runs of literal bytes only, with the sizes a compressed PCD puts before it."""
-    runs = b"".join(bytes([len(data[i:i + 32]) - 1]) + data[i:i + 32] for i in range(0, len(data), 32))
-    return np.array([len(runs), len(data)], dtype="<u4").tobytes() + runs
-
-
 _XYZ = "".join(f"{x} {y} {z}\n" for x, y, z in SPHERE[:10]).encode()
 _FLOATS = SPHERE[:10].astype(np.float32).tobytes()
 _FLOAT_PROPS = "".join(f"property float {name}\n" for name in ("x", "y", "z", "nx", "red", "green", "blue"))
@@ -707,10 +703,10 @@ CRASH_CASES: dict[str, tuple[str, bytes, str]] = {
         "normal_binary.pcd", _pcd("binary", 1, np.float32([1, 2, 3, 4]).tobytes(), **_NORMAL_X),
         "lacks normal_y, normal_z"),
     "compressed PCD with normal_x but no normal_y, normal_z": (
-        "normal_compressed.pcd", _pcd("binary_compressed", 1, _lzf(np.float32([1, 2, 3, 4]).tobytes()), **_NORMAL_X),
+        "normal_compressed.pcd", _pcd("binary_compressed", 1, lzf_literal(np.float32([1, 2, 3, 4]).tobytes()), **_NORMAL_X),
         "lacks normal_y, normal_z"),
     "compressed PCD with one corrupted header byte (normal_Y)": (
-        "corrupted.pcd", _pcd("binary_compressed", 1, _lzf(np.float32([1, 2, 3, 0, 0, 1]).tobytes()), **_NORMALS
+        "corrupted.pcd", _pcd("binary_compressed", 1, lzf_literal(np.float32([1, 2, 3, 0, 0, 1]).tobytes()), **_NORMALS
                               ).replace(b"normal_y", b"normal_Y"), "lacks normal_y"),
 }
 """PCD files Open3D's reader crashes the process on (SIGSEGV): refused by the command in a child process."""

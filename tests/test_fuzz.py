@@ -485,7 +485,8 @@ def _corrupted_file(data, folder) -> tuple[object, np.ndarray]:
     assert o3d.io.write_point_cloud(str(path), pcd, **options)
     written = np.asarray(o3d.io.read_point_cloud(str(path)).points)
     content = path.read_bytes()
-    end = content.index(b"end_header\n") + 11 if suffix == ".ply" else content.index(b"\n", content.index(b"\nDATA ") + 1)
+    end = (content.index(b"end_header\n") + 11 if suffix == ".ply"
+           else content.index(b"\n", content.index(b"\nDATA ") + 1))
     at = data.draw(st.integers(0, end - 1))
     path.write_bytes(content[:at] + bytes([data.draw(st.integers(0, 255))]) + content[at + 1:])
     return path, written

@@ -631,7 +631,7 @@ def _pcd(data: str, points: int, body: bytes, fields: str = "x y z", sizes: str 
 
 _XYZ = "".join(f"{x} {y} {z}\n" for x, y, z in SPHERE[:10]).encode()
 _FLOATS = SPHERE[:10].astype(np.float32).tobytes()
-_FLOAT_PROPS = "".join(f"property float {name}\n" for name in ("x", "y", "z", "nx", "red", "green", "blue"))
+_XYZ_PROPS = "property float x\nproperty float y\nproperty float z\n"
 
 FILE_CASES: dict[str, tuple[str, bytes | None, str]] = {
     # name: (file name, content (None: the folder itself), the error's message)
@@ -655,11 +655,11 @@ FILE_CASES: dict[str, tuple[str, bytes | None, str]] = {
         b"\x01" + row.tobytes() for row in SPHERE[:10].astype(np.float32)), "property list uchar float x\n"
         "property float y\nproperty float z\n"), "'x' is a list"),
     "PLY vertex with nx but no ny, nz": ("nx.ply", _ply("binary_little_endian", 10, np.c_[
-        SPHERE[:10], SPHERE[:10, :1]].astype(np.float32).tobytes(), _FLOAT_PROPS[:_FLOAT_PROPS.index("property float red")]),
+        SPHERE[:10], SPHERE[:10, :1]].astype(np.float32).tobytes(), _XYZ_PROPS + "property float nx\n"),
         "lacks ny, nz"),
     "PLY vertex with red but no green, blue": ("red.ply", _ply("binary_little_endian", 10, b"".join(
-        row.tobytes() + b"\x80" for row in SPHERE[:10].astype(np.float32)),
-        "property float x\nproperty float y\nproperty float z\nproperty uchar red\n"), "lacks green, blue"),
+        row.tobytes() + b"\x80" for row in SPHERE[:10].astype(np.float32)), _XYZ_PROPS + "property uchar red\n"),
+        "lacks green, blue"),
     "PLY vertex declaring z before y": ("xzy.ply", _ply("binary_little_endian", 10, _FLOATS,
                                                        "property float x\nproperty float z\nproperty float y\n"),
                                         "'z' before x, y"),
@@ -672,7 +672,8 @@ FILE_CASES: dict[str, tuple[str, bytes | None, str]] = {
                                     "'x' is TYPE F SIZE 8.*binary"),
     "PCD with x of COUNT 2": ("count.pcd", _pcd("binary", 10, np.c_[SPHERE[:10, :1], SPHERE[:10]].astype(
         np.float32).tobytes(), counts="2 1 1"), "'x' is TYPE F SIZE 4 COUNT 2"),
-    "PCD with a TYPE letter not F, I or U": ("type.pcd", _pcd("binary", 10, _FLOATS, types="F F Q"), "unknown TYPE 'Q'"),
+    "PCD with a TYPE letter not F, I or U": ("type.pcd", _pcd("binary", 10, _FLOATS, types="F F Q"),
+                                             "unknown TYPE 'Q'"),
     "PCD with 2 TYPE letters for 3 fields": ("types.pcd", _pcd("binary", 10, _FLOATS, types="F F"),
                                              "TYPE line has 2 values for 3 fields"),
     "PCD with COUNT before SIZE": ("order.pcd", _pcd("binary", 10, _FLOATS).replace(b"SIZE 4 4 4\n", b"").replace(
@@ -703,8 +704,8 @@ CRASH_CASES: dict[str, tuple[str, bytes, str]] = {
         "normal_binary.pcd", _pcd("binary", 1, np.float32([1, 2, 3, 4]).tobytes(), **_NORMAL_X),
         "lacks normal_y, normal_z"),
     "compressed PCD with normal_x but no normal_y, normal_z": (
-        "normal_compressed.pcd", _pcd("binary_compressed", 1, lzf_literal(np.float32([1, 2, 3, 4]).tobytes()), **_NORMAL_X),
-        "lacks normal_y, normal_z"),
+        "normal_compressed.pcd", _pcd("binary_compressed", 1, lzf_literal(np.float32([1, 2, 3, 4]).tobytes()),
+                                      **_NORMAL_X), "lacks normal_y, normal_z"),
     "compressed PCD with one corrupted header byte (normal_Y)": (
         "corrupted.pcd", _pcd("binary_compressed", 1, lzf_literal(np.float32([1, 2, 3, 0, 0, 1]).tobytes()), **_NORMALS
                               ).replace(b"normal_y", b"normal_Y"), "lacks normal_y"),

@@ -92,9 +92,9 @@ def _header(f, path: Path, end: bytes, kind: str, max_line: int = _MAX_HEADER) -
     leaves ``f`` at the first byte after it.
 
     Raises:
-        ValueError: no such line, a line longer than ``max_line`` bytes, or a byte that is neither
-            printable ASCII nor a tab (a corrupted header, which Open3D's reader would split
-            otherwise than this check).
+        ValueError: no such line, a line longer than ``max_line`` bytes, or a control byte other
+            than a tab (a corrupted header: Open3D's readers split lines at some of them, words
+            at others, not as this check does).
     """
     lines: list[str] = []
     while f.tell() < _MAX_HEADER:
@@ -102,13 +102,14 @@ def _header(f, path: Path, end: bytes, kind: str, max_line: int = _MAX_HEADER) -
         if not raw:
             break
         body = raw.rstrip(b"\r\n")
-        odd = np.flatnonzero((np.frombuffer(body, dtype=np.uint8) - 32 > 94) & (np.frombuffer(body, np.uint8) != 9))
+        byte = np.frombuffer(body, dtype=np.uint8)
+        odd = np.flatnonzero(((byte < 32) & (byte != 9)) | (byte == 127))
         if len(odd):
-            raise ValueError(f"{path}: byte {body[odd[0]]:#04x} in line {len(lines) + 1} of the {kind} header is not "
-                             f"text; a corrupted {kind} file")
+            raise ValueError(f"{path}: control byte {body[odd[0]]:#04x} in line {len(lines) + 1} of the {kind} header; "
+                             f"a corrupted {kind} file")
         if len(raw) > max_line:
             raise ValueError(f"{path}: line {len(lines) + 1} of the {kind} header is longer than {max_line} bytes")
-        text = body.decode("ascii").strip()
+        text = body.decode("ascii", "replace").strip()
         lines.append(text)
         if text.split()[:1] == [end.decode()]:
             return lines
@@ -229,13 +230,16 @@ def _check_ply(path: Path, f, size: int) -> tuple[int, np.ndarray]:
 
 def _text_points(path: Path, f, skip: int, count: int, columns: int, xyz: list[int], what: str) -> np.ndarray:
     """The x, y, z (at the columns ``xyz``) of ``count`` lines of ``columns`` numbers after ``skip`` lines."""
+    if not count:
+        return np.zeros((0, 3))
     try:
         rows = np.loadtxt(f, comments=None, skiprows=skip, max_rows=count, ndmin=2)
     except ValueError as error:
         raise ValueError(f"{path}: the {what} are not lines of {columns} numbers ({error})") from None
-    if count and rows.shape != (count, columns):
-        raise ValueError(f"{path}: the {what} hold {rows.shape[1]} numbers a line where the header declares {columns}")
-    return rows.reshape(-1, columns)[:, xyz]
+    if rows.shape != (count, columns):
+        raise ValueError(f"{path}: the {what} are {rows.shape[0]} lines of {rows.shape[1]} numbers where the header "
+                         f"declares {count} of {columns}")
+    return rows[:, xyz]
 
 
 def _declared(elements: list[_Element]) -> str:

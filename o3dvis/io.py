@@ -15,7 +15,7 @@ file and the problem instead.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -153,7 +153,7 @@ class _Element:
 
     name: str
     count: int
-    properties: list[tuple[str, str, bool]] = field(default_factory=list)
+    properties: list[tuple[str, str, bool]]
 
     @property
     def row(self) -> int:
@@ -175,7 +175,7 @@ def _ply_header(path: Path, f) -> tuple[str, list[_Element]]:
         if words[:1] == ["format"] and len(words) >= 2:
             fmt = words[1]
         elif words[:1] == ["element"] and len(words) == 3:
-            elements.append(_Element(words[1], _count(path, f"count of '{words[1]}'", words[2])))
+            elements.append(_Element(words[1], _count(path, f"count of '{words[1]}'", words[2]), []))
         elif words[:1] == ["property"] and elements:
             is_list = words[1:2] == ["list"]
             kind = words[2:3] if is_list else words[1:2]  # a list: its length's type
@@ -244,6 +244,7 @@ def _text_points(path: Path, f, skip: int, count: int, columns: int, xyz: list[i
 
 def _declared(elements: list[_Element]) -> str:
     return ", ".join(f"'element {element.name} {element.count}'" for element in elements)
+
 
 def _pcd_header(path: Path, f) -> dict[str, list[str]]:
     """A PCD header's values by keyword, each keyword once, with SIZE, TYPE and COUNT after FIELDS and

@@ -406,20 +406,22 @@ def drawn_headers(draw) -> tuple[str, bytes, dict[str, np.ndarray], bool]:
     colour = ("uchar" if ply else ("U", 4))
     declared = [_declare(name, fmt, colour if name in ("red", "green", "blue", "rgb") else (
         "double" if ply else ("F", 4))) for name in names]
-    clean = True
-    if draw(st.booleans()):  # drop some
+    original = [dict(vars(d)) for d in declared]
+    changes = draw(st.sampled_from(["retype", "shuffle", "drop", "repeat", "list or count", "all", "none"]))
+    if changes in ("drop", "all"):
         keep = draw(st.lists(st.booleans(), min_size=len(declared), max_size=len(declared)))
-        clean, declared = all(keep), [d for d, k in zip(declared, keep) if k] or declared[:1]
-    if draw(st.booleans()):  # repeat one, shuffle, retype, make lists or counts
+        declared = [d for d, k in zip(declared, keep) if k] or declared[:1]
+    if changes in ("repeat", "all"):
         declared.append(_Declared(**vars(draw(st.sampled_from(declared)))))
+    if changes in ("shuffle", "all"):
         declared = draw(st.permutations(declared))
-        for d in declared:
-            if draw(st.integers(0, 3)) == 0:
-                kind = draw(st.sampled_from(sorted(_PLY_VALUES) if ply else _PCD_VALUES))
-                d.header, d.dtype = _declare(d.name, fmt, kind).header, _declare(d.name, fmt, kind).dtype
-            if draw(st.integers(0, 5)) == 0:
-                d.count = 0 if ply else 2
-        clean = False
+    for d in declared:
+        if changes in ("retype", "all") and draw(st.booleans()):
+            kind = draw(st.sampled_from(sorted(_PLY_VALUES) if ply else _PCD_VALUES))
+            d.header, d.dtype = _declare(d.name, fmt, kind).header, _declare(d.name, fmt, kind).dtype
+    if changes in ("list or count", "all"):
+        draw(st.sampled_from(declared)).count = 0 if ply else 2  # a PLY list, a PCD COUNT 2
+    clean = [vars(d) for d in declared] == original
     columns = [_cast(values[d.name], d.dtype) for d in declared]
     content = _header_and_body(fmt, declared, columns, len(units))
     written = {}

@@ -44,6 +44,8 @@ from hypothesis.extra.numpy import arrays
 import o3dvis
 from o3dvis.nn import NetworkConfig, VisibilityNetwork
 
+from conftest import lzf_literal
+
 SCALE = float(os.environ.get("O3DVIS_FUZZ_SCALE", "1"))
 RANDOM = os.environ.get("O3DVIS_FUZZ_RANDOM") == "1"
 COUNTS: Counter = Counter()
@@ -324,8 +326,8 @@ _HEADER_FORMATS = ("ply-binary", "ply-ascii", "pcd-binary", "pcd-ascii", "pcd-co
 
 @dataclass
 class _Declared:
-    """A PLY property or PCD field as a drawn header declares it: the numpy type of its values, and for a PLY
-    list (``count`` 0) its length's type or for a PCD field its COUNT."""
+    """A PLY property or PCD field as a drawn header declares it: its type as the header spells it, the numpy
+    type of its values, and a PCD field's COUNT or 0 for a PLY list (of one value, after its uchar length)."""
 
     name: str
     header: str
@@ -363,27 +365,27 @@ def _header_and_body(fmt: str, declared: list[_Declared], columns: list[np.ndarr
         kind = "ascii" if fmt == "ply-ascii" else "binary_little_endian"
         head = f"ply\nformat {kind} 1.0\nelement vertex {n}\n{props}end_header\n"
     else:
-        line = lambda values: " ".join(values)  # noqa: E731
         kind = {"pcd-ascii": "ascii", "pcd-binary": "binary", "pcd-compressed": "binary_compressed"}[fmt]
-        head = (f"VERSION 0.7\nFIELDS {line(d.name for d in declared)}\nSIZE {line(d.header[2:] for d in declared)}\n"
-                f"TYPE {line(d.header[0] for d in declared)}\nCOUNT {line(str(w) for w in widths)}\nWIDTH {n}\n"
-                f"HEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA {kind}\n")
+        head = (f"VERSION 0.7\nFIELDS {' '.join(d.name for d in declared)}\n"
+                f"SIZE {' '.join(d.header[2:] for d in declared)}\nTYPE {' '.join(d.header[0] for d in declared)}\n"
+                f"COUNT {' '.join(str(w) for w in widths)}\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
+                f"POINTS {n}\nDATA {kind}\n")
     if fmt.endswith("ascii"):
         rows = [" ".join(("1 " if d.count == 0 else "") + " ".join([_text(c[i])] * w)
                          for d, c, w in zip(declared, columns, widths)) for i in range(n)]
         return (head + "".join(row + "\n" for row in rows)).encode()
     if fmt == "pcd-compressed":
-        from conftest import lzf_literal
-
         return head.encode() + lzf_literal(b"".join(np.repeat(c[:, None], w, axis=1).tobytes()
                                                     for c, w in zip(columns, widths)))
-    parts = [np.ones((n, 1), "u1") if d.count == 0 else None for d in declared]
-    table = np.zeros(n, [(f"{i}{part}", dtype, (width,)) for i, (d, width) in enumerate(zip(declared, widths))
-                         for part, dtype in (("n", "u1"), ("v", d.dtype)) if part == "v" or parts[i] is not None])
-    for i, (c, width) in enumerate(zip(columns, widths)):
-        table[f"{i}v"] = np.repeat(c[:, None], width, axis=1)
-        if parts[i] is not None:
-            table[f"{i}n"] = parts[i]
+    layout = []
+    for i, (d, width) in enumerate(zip(declared, widths)):
+        layout += [(f"length{i}", "u1")] if d.count == 0 else []
+        layout.append((f"value{i}", d.dtype, (width,)))
+    table = np.zeros(n, layout)
+    for i, (d, column, width) in enumerate(zip(declared, columns, widths)):
+        table[f"value{i}"] = np.repeat(column[:, None], width, axis=1)
+        if d.count == 0:
+            table[f"length{i}"] = 1
     return head.encode() + table.tobytes()
 
 

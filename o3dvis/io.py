@@ -3,10 +3,14 @@
 Open3D's ``read_point_cloud`` only warns when a file is shorter than its header
 says: a binary PLY that declares 100 000 vertices and holds 30 floats comes back
 as 100 000 points, most of them zeros, and a PCD or PTS header that overstates
-its count gives points made of whatever memory held. :func:`read_point_cloud`
-checks the file before Open3D reads it (its header, its size, the numbers on
-each line) and what Open3D read after, and raises a ``ValueError`` that names
-the file and the problem instead.
+its count gives points made of whatever memory held. Headers mislead it too: a
+PLY vertex without ``z`` or with ``x`` as a list, or a PCD field of ``TYPE F
+SIZE 2``, gives unset memory or zeros as points, and a PCD with ``normal_x``
+but no ``normal_y`` crashes the process. :func:`read_point_cloud` checks the
+file before Open3D reads it (its header, its size, the numbers on each line, a
+compressed PCD's compressed data) and what Open3D read after (the points,
+against the file's own decoded here), and raises a ``ValueError`` that names the
+file and the problem instead.
 """
 
 from __future__ import annotations
@@ -21,8 +25,19 @@ __all__ = ["read_point_cloud", "SUFFIXES"]
 # the formats Open3D reads point clouds from, and the numbers on each data line of the text ones
 SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")
 _LINE_NUMBERS = {".xyz": 3, ".xyzn": 6, ".xyzrgb": 6, ".pts": 3}
-_PLY_TYPES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
-              "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+_PLY_TYPES = {"char": "i1", "uchar": "u1", "int8": "i1", "uint8": "u1", "short": "i2", "ushort": "u2", "int16": "i2",
+              "uint16": "u2", "int": "i4", "uint": "u4", "int32": "i4", "uint32": "u4", "float": "f4", "float32": "f4",
+              "double": "f8", "float64": "f8"}
+# the sets of properties (PLY) or fields (PCD) Open3D reads: a point's, needed, and a normal's and a colour's, each
+# whole or absent (Open3D fills a partial set from unset memory, or crashes on it)
+_PLY_SETS = {"point": ("x", "y", "z"), "normal": ("nx", "ny", "nz"), "colour": ("red", "green", "blue")}
+_PCD_SETS = {"point": ("x", "y", "z"), "normal": ("normal_x", "normal_y", "normal_z")}
+# the PCD (TYPE, SIZE) pairs Open3D 0.20 reads as numbers from binary data, with their numpy types: it reads any
+# other pair as 0; from ASCII data it parses the text, so a double (F 8) is read there too
+_PCD_NUMBERS = {("F", 4): "<f4", ("I", 1): "i1", ("I", 2): "<i2", ("I", 4): "<i4", ("U", 1): "u1", ("U", 2): "<u2",
+                ("U", 4): "<u4"}
+_PCD_KEYWORDS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
+_PCD_LINE = 1023  # bytes of a PCD line Open3D reads at once: a longer line is read as several
 _MAX_HEADER = 1 << 20  # bytes searched for the end of a PLY or PCD header
 _CHUNK = 1 << 24  # bytes of a text file scanned at once
 
@@ -72,15 +87,29 @@ def _line(path: Path, number: int) -> str:
     return ""
 
 
-def _header(f, path: Path, end: bytes, kind: str) -> list[str]:
+def _header(f, path: Path, end: bytes, kind: str, max_line: int = _MAX_HEADER) -> list[str]:
     """The header lines of a PLY or PCD file up to and including the one starting with ``end``;
-    leaves ``f`` at the first byte after it."""
+    leaves ``f`` at the first byte after it.
+
+    Raises:
+        ValueError: no such line, a line longer than ``max_line`` bytes, or a control byte other
+            than a tab (a corrupted header: Open3D's readers split lines at some of them, words
+            at others, not as this check does).
+    """
     lines: list[str] = []
     while f.tell() < _MAX_HEADER:
         raw = f.readline(_MAX_HEADER)
         if not raw:
             break
-        text = raw.decode("ascii", "replace").strip()
+        body = raw.rstrip(b"\r\n")
+        byte = np.frombuffer(body, dtype=np.uint8)
+        odd = np.flatnonzero(((byte < 32) & (byte != 9)) | (byte == 127))
+        if len(odd):
+            raise ValueError(f"{path}: control byte {body[odd[0]]:#04x} in line {len(lines) + 1} of the {kind} header; "
+                             f"a corrupted {kind} file")
+        if len(raw) > max_line:
+            raise ValueError(f"{path}: line {len(lines) + 1} of the {kind} header is longer than {max_line} bytes")
+        text = body.decode("ascii", "replace").strip()
         lines.append(text)
         if text.split()[:1] == [end.decode()]:
             return lines
@@ -97,84 +126,273 @@ def _count(path: Path, word: str, text: str) -> int:
     return value
 
 
-def _check_ply(path: Path, f, size: int) -> int:
-    """Checks a PLY file's data against its header; returns its number of vertices."""
+def _check_sets(path: Path, names: list[str], sets: dict[str, tuple[str, ...]], kind: str, ordered: bool) -> None:
+    """Checks the names of a PLY vertex's properties or a PCD's fields: each once, a point's whole,
+    a normal's and a colour's whole or absent, and with ``ordered`` each set's last name after the
+    others (Open3D's PLY reader moves to the next point, normal or colour at it).
+
+    Raises:
+        ValueError: a name twice, or a set partial or out of order.
+    """
+    twice = sorted({name for name in names if names.count(name) > 1})
+    if twice:
+        raise ValueError(f"{path}: the {kind} declares {twice[0]!r} twice")
+    for what, group in sets.items():
+        missing = [name for name in group if name not in names]
+        if missing and (what == "point" or len(missing) < len(group)):
+            raise ValueError(f"{path}: the {kind} lacks {', '.join(missing)} (a {what} needs {', '.join(group)})")
+        if ordered and not missing and names.index(group[-1]) < max(names.index(name) for name in group[:-1]):
+            raise ValueError(f"{path}: the {kind} declares {group[-1]!r} before {', '.join(group[:-1])}; a {what}'s "
+                             f"{group[-1]!r} must follow them for Open3D to read it")
+
+
+@dataclass
+class _Element:
+    """A PLY element: its name, its count, and its properties as (name, numpy type of the value or
+    of a list's length, whether it is a list)."""
+
+    name: str
+    count: int
+    properties: list[tuple[str, str, bool]]
+
+    @property
+    def row(self) -> int:
+        """Bytes of a row in binary, at least (a list's length only)."""
+        return sum(np.dtype(kind).itemsize for _, kind, _ in self.properties)
+
+    @property
+    def lists(self) -> list[str]:
+        return [name for name, _, is_list in self.properties if is_list]
+
+
+def _ply_header(path: Path, f) -> tuple[str, list[_Element]]:
+    """A PLY file's format and elements; leaves ``f`` at the first byte of its data."""
     if f.readline().strip() != b"ply":
         raise ValueError(f"{path}: not a PLY file (it does not start with 'ply')")
-    lines = _header(f, path, b"end_header", "PLY")
-    data = size - f.tell()
-    fmt, elements = None, []  # elements: [name, count, fixed bytes per row, tokens per row]
-    for text in lines[:-1]:
+    fmt, elements = None, []
+    for text in _header(f, path, b"end_header", "PLY")[:-1]:
         words = text.split()
         if words[:1] == ["format"] and len(words) >= 2:
             fmt = words[1]
         elif words[:1] == ["element"] and len(words) == 3:
-            elements.append([words[1], _count(path, f"count of '{words[1]}'", words[2]), 0, 0])
+            elements.append(_Element(words[1], _count(path, f"count of '{words[1]}'", words[2]), []))
         elif words[:1] == ["property"] and elements:
-            types = words[2:4] if words[1:2] == ["list"] else words[1:2]  # a list: its length's type
-            if len(types) < 1 or types[0] not in _PLY_TYPES:
+            is_list = words[1:2] == ["list"]
+            kind = words[2:3] if is_list else words[1:2]  # a list: its length's type
+            if len(words) != (5 if is_list else 3) or kind[0] not in _PLY_TYPES or (
+                    is_list and words[3] not in _PLY_TYPES):
                 raise ValueError(f"{path}: bad property line {text!r} in the header")
-            elements[-1][2] += _PLY_TYPES[types[0]]
-            elements[-1][3] += 1
+            elements[-1].properties.append((words[-1], _PLY_TYPES[kind[0]], is_list))
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise ValueError(f"{path}: unknown PLY format {fmt!r}")
-    vertices = next((count for name, count, _, _ in elements if name == "vertex"), None)
-    if vertices is None:
+    return fmt, elements
+
+
+def _check_ply(path: Path, f, size: int) -> tuple[int, np.ndarray]:
+    """Checks a PLY file's header and data; returns its number of vertices and their x, y, z as the file declares
+    them (decoded here, to compare with what Open3D reads)."""
+    fmt, elements = _ply_header(path, f)
+    at = next((i for i, element in enumerate(elements) if element.name == "vertex"), None)
+    if at is None:
         raise ValueError(f"{path}: the PLY header declares no vertex element")
+    vertex = elements[at]
+    _check_sets(path, [name for name, _, _ in vertex.properties], _PLY_SETS, "PLY vertex element", ordered=True)
+    if vertex.lists:
+        raise ValueError(f"{path}: the PLY vertex property {vertex.lists[0]!r} is a list; Open3D reads a vertex's "
+                         "properties as single numbers")
+    fixed = not any(element.lists for element in elements)  # then the data's size is known exactly
+    start = f.tell()
     if fmt == "ascii":
-        need = sum(count * tokens for _, count, _, tokens in elements)
+        need = sum(element.count * len(element.properties) for element in elements)
         have = _scan_text(f, 0, 0).tokens
-        if have < need:
-            raise ValueError(f"{path}: truncated PLY file: its header declares {_declared(elements)} "
-                             f"({need} numbers at least) but it holds {have} numbers")
-    else:
-        need = sum(count * row for _, count, row, _ in elements)
-        if data < need:
-            raise ValueError(f"{path}: truncated PLY file: its header declares {_declared(elements)} "
-                             f"({need} bytes at least) but it holds {data} bytes of data")
-    return vertices
+        if have < need or (fixed and have > need):
+            raise ValueError(f"{path}: {'truncated PLY file: ' if have < need else ''}its header declares "
+                             f"{_declared(elements)} ({need} numbers{'' if fixed else ' at least'}) but it holds "
+                             f"{have} numbers")
+        f.seek(start)
+        names = [name for name, _, _ in vertex.properties]
+        return vertex.count, _text_points(path, f, sum(element.count for element in elements[:at]), vertex.count,
+                                          len(names), [names.index(name) for name in "xyz"], "PLY vertex rows")
+    need = sum(element.count * element.row for element in elements)
+    if size - start < need or (fixed and size - start > need):
+        raise ValueError(f"{path}: {'truncated PLY file: ' if size - start < need else ''}its header declares "
+                         f"{_declared(elements)} ({need} bytes{'' if fixed else ' at least'}) but it holds "
+                         f"{size - start} bytes of data")
+    before = next((element.name for element in elements[:at] if element.lists), None)
+    if before is not None:
+        raise ValueError(f"{path}: its vertex element follows {before!r}, an element with list properties; only "
+                         "vertices after elements of fixed size are read")
+    f.seek(start + sum(element.count * element.row for element in elements[:at]))
+    order = "<" if fmt == "binary_little_endian" else ">"
+    rows = np.fromfile(f, np.dtype([(name, order + kind) for name, kind, _ in vertex.properties]), vertex.count)
+    return vertex.count, np.stack([rows[name] for name in "xyz"], axis=1).astype(np.float64)
 
 
-def _declared(elements: list) -> str:
-    return ", ".join(f"'element {name} {count}'" for name, count, _, _ in elements)
+def _text_points(path: Path, f, skip: int, count: int, columns: int, xyz: list[int], what: str) -> np.ndarray:
+    """The x, y, z (at the columns ``xyz``) of ``count`` lines of ``columns`` numbers after ``skip`` lines."""
+    if not count:
+        return np.zeros((0, 3))
+    try:
+        rows = np.loadtxt(f, comments=None, skiprows=skip, max_rows=count, ndmin=2)
+    except ValueError as error:
+        raise ValueError(f"{path}: the {what} are not lines of {columns} numbers ({error})") from None
+    if rows.shape != (count, columns):
+        raise ValueError(f"{path}: the {what} are {rows.shape[0]} lines of {rows.shape[1]} numbers where the header "
+                         f"declares {count} of {columns}")
+    return rows[:, xyz]
 
 
-def _check_pcd(path: Path, f, size: int) -> int:
-    """Checks a PCD file's data against its header; returns its number of points."""
-    fields = {}
-    for text in _header(f, path, b"DATA", "PCD"):
+def _declared(elements: list[_Element]) -> str:
+    return ", ".join(f"'element {element.name} {element.count}'" for element in elements)
+
+
+def _pcd_header(path: Path, f) -> dict[str, list[str]]:
+    """A PCD header's values by keyword, each keyword once, with SIZE, TYPE and COUNT after FIELDS and
+    COUNT after SIZE (Open3D's reader recomputes the fields' offsets at each of them, dropping the
+    counts at a SIZE after them); leaves ``f`` at the first byte of the data."""
+    values: dict[str, list[str]] = {}
+    for text in _header(f, path, b"DATA", "PCD", max_line=_PCD_LINE):
         words = text.split()
-        if words and not words[0].startswith("#"):
-            fields[words[0].upper()] = words[1:]
-    sizes = fields.get("SIZE", [])
-    counts = fields.get("COUNT", ["1"] * len(sizes))
-    if "POINTS" in fields:
-        points = _count(path, "POINTS", " ".join(fields["POINTS"]))
+        if not words or words[0].startswith("#"):
+            continue
+        key = "FIELDS" if words[0] == "COLUMNS" else words[0]
+        if key not in _PCD_KEYWORDS:
+            raise ValueError(f"{path}: unknown line {text!r} in the PCD header")
+        if key in values:
+            raise ValueError(f"{path}: the PCD header has two {key} lines")
+        late = "FIELDS" if key in ("SIZE", "TYPE", "COUNT") and "FIELDS" not in values else (
+            "COUNT" if key == "SIZE" and "COUNT" in values else None)
+        if late:
+            raise ValueError(f"{path}: the PCD header's {key} line comes before its {late} line")
+        values[key] = words[1:]
+    return values
+
+
+@dataclass
+class _Field:
+    """A PCD field: its name, TYPE letter, SIZE, COUNT and first number in a row (``column``) and first byte
+    in a binary row (``offset``)."""
+
+    name: str
+    kind: str
+    size: int
+    count: int
+    column: int
+    offset: int
+
+
+def _pcd_fields(path: Path, values: dict[str, list[str]]) -> list[_Field]:
+    """The fields of a PCD header, checked: FIELDS, SIZE, TYPE and COUNT of one length, known TYPE letters,
+    positive sizes and counts, a point's fields whole and a normal's whole or absent, each field once.
+
+    Raises:
+        ValueError: any of these broken.
+    """
+    names = values.get("FIELDS", [])
+    if not names or "SIZE" not in values:
+        raise ValueError(f"{path}: the PCD header needs a FIELDS and a SIZE line")
+    columns = {key: values.get(key, [default] * len(names)) for key, default in (("SIZE", ""), ("TYPE", "F"),
+                                                                                 ("COUNT", "1"))}
+    for key, given in columns.items():
+        if len(given) != len(names):
+            raise ValueError(f"{path}: the PCD header's {key} line has {len(given)} values for {len(names)} fields")
+    unknown = [kind for kind in columns["TYPE"] if kind not in ("F", "I", "U")]
+    if unknown:
+        raise ValueError(f"{path}: unknown TYPE {unknown[0]!r} in the PCD header (F, I or U)")
+    fields, column, offset = [], 0, 0
+    for name, size, kind, count in zip(names, columns["SIZE"], columns["TYPE"], columns["COUNT"]):
+        size, count = _count(path, "SIZE", size), _count(path, "COUNT", count)
+        if not size or not count:
+            raise ValueError(f"{path}: the PCD field {name!r} has SIZE {size} and COUNT {count}; both must be positive")
+        fields.append(_Field(name, kind, size, count, column, offset))
+        column, offset = column + count, offset + size * count
+    _check_sets(path, names, _PCD_SETS, "PCD header", ordered=False)
+    return fields
+
+
+def _check_pcd_numbers(path: Path, fields: list[_Field], data: str) -> None:
+    """Checks that Open3D reads a PCD's coordinates and normals as the header declares them: single numbers of a
+    (TYPE, SIZE) it reads from ``data`` (see ``_PCD_NUMBERS``), and colours as one 4-byte rgb or rgba.
+
+    Raises:
+        ValueError: another TYPE, SIZE or COUNT of these fields, or both rgb and rgba.
+    """
+    readable = set(_PCD_NUMBERS) | ({("F", 8)} if data == "ascii" else set())
+    allowed = ", ".join(f"{kind} {size}" for kind, size in sorted(readable))
+    colours = [field for field in fields if field.name in ("rgb", "rgba")]
+    for field in fields:
+        if field.name in _PCD_SETS["point"] + _PCD_SETS["normal"] and (
+                (field.kind, field.size) not in readable or field.count != 1):
+            raise ValueError(f"{path}: the PCD field {field.name!r} is TYPE {field.kind} SIZE {field.size} COUNT "
+                             f"{field.count}; from {data} data Open3D reads x, y, z and normals as COUNT 1 of TYPE "
+                             f"and SIZE {allowed} only")
+    if len(colours) > 1 or any(field.size != 4 or field.count != 1 for field in colours):
+        raise ValueError(f"{path}: the PCD colours must be one field, rgb or rgba, of SIZE 4 COUNT 1")
+
+
+def _check_pcd(path: Path, f, size: int) -> tuple[int, np.ndarray | None]:
+    """Checks a PCD file's header and data; returns its number of points and, unless compressed, their x, y, z as
+    the file declares them (decoded here, to compare with what Open3D reads)."""
+    values = _pcd_header(path, f)
+    fields = _pcd_fields(path, values)
+    if "POINTS" in values:
+        points = _count(path, "POINTS", " ".join(values["POINTS"]))
     else:
-        points = (_count(path, "WIDTH", " ".join(fields.get("WIDTH", [])))
-                  * _count(path, "HEIGHT", " ".join(fields.get("HEIGHT", ["1"]))))
-    if not sizes or len(counts) != len(sizes):
-        raise ValueError(f"{path}: the PCD header needs SIZE and COUNT for every field")
-    row = sum(_count(path, "SIZE", s) * _count(path, "COUNT", c) for s, c in zip(sizes, counts))
-    kind, data = fields["DATA"][0].lower() if fields["DATA"] else "", size - f.tell()
-    if kind == "ascii":
-        need = points * sum(_count(path, "COUNT", c) for c in counts)
-        have = _scan_text(f, 0, 0).tokens
-        if have < need:
-            raise ValueError(f"{path}: truncated PCD file: its header declares {points} points "
-                             f"({need} numbers) but it holds {have} numbers")
-    elif kind == "binary":
-        if data < points * row:
-            raise ValueError(f"{path}: truncated PCD file: its header declares {points} points "
-                             f"({points * row} bytes) but it holds {data} bytes of data")
-    elif kind == "binary_compressed":
-        sizes = np.frombuffer(f.read(8), dtype="<u4")
-        if len(sizes) < 2 or sizes[0] > data - 8 or sizes[1] != points * row:
-            raise ValueError(f"{path}: truncated or corrupted compressed PCD file ({data} bytes of data "
-                             f"for {points} points)")
-    else:
+        points = (_count(path, "WIDTH", " ".join(values.get("WIDTH", [])))
+                  * _count(path, "HEIGHT", " ".join(values.get("HEIGHT", ["1"]))))
+    kind, start = (values["DATA"] or [""])[0], f.tell()
+    if kind not in ("ascii", "binary", "binary_compressed"):
         raise ValueError(f"{path}: unknown PCD data kind {kind!r}")
-    return points
+    _check_pcd_numbers(path, fields, kind)
+    xyz = [next(field for field in fields if field.name == name) for name in "xyz"]
+    row = sum(field.size * field.count for field in fields)
+    if kind == "ascii":
+        numbers = sum(field.count for field in fields)
+        stats = _scan_text(f, numbers, 1)
+        if stats.first_short:
+            raise ValueError(f"{path}: line {stats.first_short} of its data is not a point of {numbers} numbers")
+        if stats.lines != points:
+            raise ValueError(f"{path}: {'truncated PCD file: ' if stats.lines < points else ''}its header declares "
+                             f"{points} points ({points * numbers} numbers) but it holds {stats.lines} lines of data")
+        f.seek(start)
+        return points, _text_points(path, f, 0, points, numbers, [field.column for field in xyz], "PCD data lines")
+    data = size - start
+    if kind == "binary":
+        if data != points * row:
+            raise ValueError(f"{path}: {'truncated PCD file: ' if data < points * row else ''}its header declares "
+                             f"{points} points ({points * row} bytes) but it holds {data} bytes of data")
+        rows = np.fromfile(f, np.dtype({"names": list("xyz"), "offsets": [field.offset for field in xyz],
+                                        "formats": [_PCD_NUMBERS[field.kind, field.size] for field in xyz],
+                                        "itemsize": row}), points)
+        return points, np.stack([rows[name] for name in "xyz"], axis=1).astype(np.float64)
+    sizes = np.frombuffer(f.read(8), dtype="<u4")
+    if len(sizes) < 2 or sizes[0] > data - 8 or sizes[1] != points * row or not _lzf_complete(
+            f.read(int(sizes[0])), int(sizes[1])):
+        raise ValueError(f"{path}: truncated or corrupted compressed PCD file ({data} bytes of data "
+                         f"for {points} points)")
+    return points, None
+
+
+def _lzf_complete(data: bytes, size: int) -> bool:
+    """Whether LZF decompresses ``data`` into exactly ``size`` bytes: walks its runs and back-references as
+    liblzf's ``lzf_decompress`` does, with its checks, without copying."""
+    i = out = 0
+    while i < len(data):
+        ctrl = data[i]
+        if ctrl < 32:  # a run of ctrl + 1 literal bytes
+            i, out = i + ctrl + 2, out + ctrl + 1
+            if i > len(data):
+                return False
+        else:  # a back-reference: its length in the top 3 bits (7: plus the next byte), then its distance
+            if ctrl >= 224:
+                i += 1
+            if i + 1 >= len(data) or ((ctrl & 31) << 8) + data[i + 1] >= out:
+                return False
+            out += (ctrl >> 5) + 2 + (data[i] if ctrl >= 224 else 0)
+            i += 2
+        if out > size:
+            return False
+    return out == size
 
 
 def _check_text(path: Path, f, suffix: str) -> int:
@@ -222,9 +440,13 @@ def read_point_cloud(path: str | Path):
     Raises:
         FileNotFoundError: no such file.
         ValueError: a folder, an unknown suffix, a file shorter than its
-            header declares or with a line that is not a point, fewer or more
-            points read than the file declares, no point, or NaN or infinite
-            coordinates.
+            header declares or with a line that is not a point, a PLY or PCD
+            header Open3D would misread (a partial set of coordinates, normals
+            or colours, a list or a type it does not read as a number, a
+            corrupted line), fewer or more points read than the file declares,
+            points other than the file's (compared in full, except in a
+            compressed PCD, whose compressed data is checked instead), no
+            point, or NaN or infinite coordinates.
     """
     import open3d as o3d
 
@@ -236,12 +458,12 @@ def read_point_cloud(path: str | Path):
     suffix = path.suffix.lower()
     if suffix not in SUFFIXES:
         raise ValueError(f"{path}: unknown point cloud format {path.suffix!r}; use one of {', '.join(SUFFIXES)}")
-    size = path.stat().st_size
+    size, declared = path.stat().st_size, None
     with open(path, "rb") as f:
         if suffix == ".ply":
-            expected = _check_ply(path, f, size)
+            expected, declared = _check_ply(path, f, size)
         elif suffix == ".pcd":
-            expected = _check_pcd(path, f, size)
+            expected, declared = _check_pcd(path, f, size)
         else:
             expected = _check_text(path, f, suffix)
     pcd = o3d.io.read_point_cloud(str(path), format="auto")
@@ -251,6 +473,11 @@ def read_point_cloud(path: str | Path):
         raise ValueError(f"{path}: {len(points)} points could be read where the file holds {expected}{detail}")
     if len(points) == 0:
         raise ValueError(f"no points could be read from {path}")
+    if declared is not None and not np.array_equal(points, declared, equal_nan=True):
+        wrong = np.flatnonzero(~((points == declared) | (np.isnan(points) & np.isnan(declared))).all(axis=1))
+        raise ValueError(f"{path}: Open3D read {len(wrong)} of {len(points)} points otherwise than the file declares "
+                         f"them (point {wrong[0]}: {points[wrong[0]].tolist()} for {declared[wrong[0]].tolist()}); "
+                         "a corrupted file")
     bad = int((~np.isfinite(points).all(axis=1)).sum())
     if bad:
         raise ValueError(f"{path}: {bad} of {len(points)} points have NaN or infinite coordinates")

@@ -41,3 +41,10 @@ def vis():
     torch.set_num_threads(1)
     yield o3dvis.NeuralVisibility.pretrained()
     torch.set_num_threads(threads)
+
+
+def lzf_literal(data: bytes) -> bytes:
+    """``data`` LZF-compressed as runs of literal bytes only, after the two sizes a compressed PCD puts
+    before its data (any LZF reader decompresses it)."""
+    runs = b"".join(bytes([len(data[i:i + 32]) - 1]) + data[i:i + 32] for i in range(0, len(data), 32))
+    return np.array([len(runs), len(data)], dtype="<u4").tobytes() + runs

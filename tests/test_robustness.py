@@ -12,8 +12,9 @@ answer checked against an independent truth:
 * ``pairs``: a cloud listed twice gives both copies of a point the same answer.
 
 The command line's readers get their own matrix: crafted point cloud files (cut short, counts
-overstated, not points, folders) through every command that reads a cloud, and bad checkpoints through
-``calibrate`` and ``publish``: exit code != 0 and one line naming the problem, nothing created.
+overstated, not points, folders, headers Open3D's reader misreads) through every command that reads a
+cloud, and bad checkpoints through ``calibrate`` and ``publish``: exit code != 0 and one line naming
+the problem, nothing created. PCD files that crash Open3D's reader go through a command in a child.
 
 Open3D and qhull calls (HPR baselines, triangulations, Poisson, ray casting) run in one child
 process, so a segfault or an abort fails the cell it happened in instead of killing pytest. Cells
@@ -39,6 +40,8 @@ from scipy.spatial import cKDTree
 
 import o3dvis
 from o3dvis.apps import fibonacci_sphere
+
+from conftest import lzf_literal
 
 SPHERE = fibonacci_sphere(160)
 CAMERA = np.array([0.4, -0.3, 3.0])
@@ -632,13 +635,15 @@ def _ply(fmt: str, count: int, body: bytes, props: str = "property float x\nprop
     return (f"ply\nformat {fmt} 1.0\nelement vertex {count}\n{props}end_header\n").encode() + body
 
 
-def _pcd(data: str, points: int, body: bytes) -> bytes:
-    return (f"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {points}\nHEIGHT 1\n"
+def _pcd(data: str, points: int, body: bytes, fields: str = "x y z", sizes: str = "4 4 4", types: str = "F F F",
+         counts: str = "1 1 1") -> bytes:
+    return (f"VERSION 0.7\nFIELDS {fields}\nSIZE {sizes}\nTYPE {types}\nCOUNT {counts}\nWIDTH {points}\nHEIGHT 1\n"
             f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {points}\nDATA {data}\n").encode() + body
 
 
 _XYZ = "".join(f"{x} {y} {z}\n" for x, y, z in SPHERE[:10]).encode()
 _FLOATS = SPHERE[:10].astype(np.float32).tobytes()
+_XYZ_PROPS = "property float x\nproperty float y\nproperty float z\n"
 
 FILE_CASES: dict[str, tuple[str, bytes | None, str]] = {
     # name: (file name, content (None: the folder itself), the error's message)
@@ -656,6 +661,39 @@ FILE_CASES: dict[str, tuple[str, bytes | None, str]] = {
     "ASCII PCD declaring 1000 points, holding 10": ("lie.pcd", _pcd("ascii", 1000, _XYZ), "truncated PCD.*1000"),
     "compressed PCD cut short": ("cut_compressed.pcd", _pcd("binary_compressed", 10, b"\x40\0\0\0\x78\0\0\0"),
                                  "compressed PCD"),
+    "PLY vertex without z": ("xy.ply", _ply("binary_little_endian", 10, SPHERE[:10, :2].astype(np.float32).tobytes(),
+                                            "property float x\nproperty float y\n"), "lacks z"),
+    "PLY vertex with x as a list": ("list.ply", _ply("binary_little_endian", 10, b"".join(
+        b"\x01" + row.tobytes() for row in SPHERE[:10].astype(np.float32)), "property list uchar float x\n"
+        "property float y\nproperty float z\n"), "'x' is a list"),
+    "PLY vertex with nx but no ny, nz": ("nx.ply", _ply("binary_little_endian", 10, np.c_[
+        SPHERE[:10], SPHERE[:10, :1]].astype(np.float32).tobytes(), _XYZ_PROPS + "property float nx\n"),
+        "lacks ny, nz"),
+    "PLY vertex with red but no green, blue": ("red.ply", _ply("binary_little_endian", 10, b"".join(
+        row.tobytes() + b"\x80" for row in SPHERE[:10].astype(np.float32)), _XYZ_PROPS + "property uchar red\n"),
+        "lacks green, blue"),
+    "PLY vertex declaring z before y": ("xzy.ply", _ply("binary_little_endian", 10, _FLOATS,
+                                                       "property float x\nproperty float z\nproperty float y\n"),
+                                        "'z' before x, y"),
+    "ASCII PLY with a word for a number": ("word.ply", _ply("ascii", 10, b"abc" + _XYZ[_XYZ.index(b" "):]),
+                                           "not lines of 3 numbers.*'abc'"),
+    "PCD of TYPE F SIZE 2": ("half.pcd", _pcd("binary", 10, SPHERE[:10].astype(np.float16).tobytes(), sizes="2 2 2"),
+                             "'x' is TYPE F SIZE 2"),
+    "PCD of TYPE F SIZE 1": ("byte.pcd", _pcd("binary", 10, bytes(30), sizes="1 1 1"), "'x' is TYPE F SIZE 1"),
+    "binary PCD of TYPE F SIZE 8": ("double.pcd", _pcd("binary", 10, SPHERE[:10].tobytes(), sizes="8 8 8"),
+                                    "'x' is TYPE F SIZE 8.*binary"),
+    "PCD with x of COUNT 2": ("count.pcd", _pcd("binary", 10, np.c_[SPHERE[:10, :1], SPHERE[:10]].astype(
+        np.float32).tobytes(), counts="2 1 1"), "'x' is TYPE F SIZE 4 COUNT 2"),
+    "PCD with a TYPE letter not F, I or U": ("type.pcd", _pcd("binary", 10, _FLOATS, types="F F Q"),
+                                             "unknown TYPE 'Q'"),
+    "PCD with 2 TYPE letters for 3 fields": ("types.pcd", _pcd("binary", 10, _FLOATS, types="F F"),
+                                             "TYPE line has 2 values for 3 fields"),
+    "PCD with COUNT before SIZE": ("order.pcd", _pcd("binary", 10, _FLOATS).replace(b"SIZE 4 4 4\n", b"").replace(
+        b"COUNT 1 1 1\n", b"COUNT 1 1 1\nSIZE 4 4 4\n"), "SIZE line comes before its COUNT"),
+    "PCD with DATA in upper case": ("upper.pcd", _pcd("BINARY", 10, _FLOATS), "unknown PCD data kind 'BINARY'"),
+    "ASCII PCD with a line of 2 numbers": ("short.pcd", _pcd("ascii", 2, b"1 2\n3 4 5 6\n"), "line 1 of its data"),
+    "compressed PCD with corrupted compressed data": ("lzf.pcd", _pcd("binary_compressed", 10, np.array(
+        [124, 120], dtype="<u4").tobytes() + b"\x20\x00" + bytes(122)), "corrupted compressed PCD"),
     "PTS declaring 100 points, holding 10": ("lie.pts", b"100\n" + _XYZ, "declares 100 points but 10"),
     "XYZ with a line of two numbers": ("short.xyz", _XYZ + b"1.5 2.5\n", "line 11 .* not a point"),
     "XYZ with a line of words": ("words.xyz", b"x y z\n" + _XYZ, "line 1 .* not a point"),
@@ -667,6 +705,24 @@ FILE_CASES: dict[str, tuple[str, bytes | None, str]] = {
     "a missing file": ("missing.ply", b"", "not found"),
 }
 """Point cloud files the CLI must refuse: each command that reads a cloud prints one line naming the problem."""
+
+_NORMAL_X = {"fields": "x y z normal_x", "sizes": "4 4 4 4", "types": "F F F F", "counts": "1 1 1 1"}
+_NORMALS = {"fields": "x y z normal_x normal_y normal_z", "sizes": "4 4 4 4 4 4", "types": "F F F F F F",
+            "counts": "1 1 1 1 1 1"}
+CRASH_CASES: dict[str, tuple[str, bytes, str]] = {
+    "ASCII PCD with normal_x but no normal_y, normal_z": (
+        "normal_ascii.pcd", _pcd("ascii", 1, b"1 2 3 4\n", **_NORMAL_X), "lacks normal_y, normal_z"),
+    "binary PCD with normal_x but no normal_y, normal_z": (
+        "normal_binary.pcd", _pcd("binary", 1, np.float32([1, 2, 3, 4]).tobytes(), **_NORMAL_X),
+        "lacks normal_y, normal_z"),
+    "compressed PCD with normal_x but no normal_y, normal_z": (
+        "normal_compressed.pcd", _pcd("binary_compressed", 1, lzf_literal(np.float32([1, 2, 3, 4]).tobytes()),
+                                      **_NORMAL_X), "lacks normal_y, normal_z"),
+    "compressed PCD with one corrupted header byte (normal_Y)": (
+        "corrupted.pcd", _pcd("binary_compressed", 1, lzf_literal(np.float32([1, 2, 3, 0, 0, 1]).tobytes()), **_NORMALS
+                              ).replace(b"normal_y", b"normal_Y"), "lacks normal_y"),
+}
+"""PCD files Open3D's reader crashes the process on (SIGSEGV): refused by the command in a child process."""
 
 CLI_READERS = {
     "visible": ["--camera", "0,0,3", "-o", "{out}.ply"],
@@ -708,6 +764,21 @@ def test_cli_refuses_a_bad_point_cloud_file(tmp_path, capsys, command, case):
     assert line.startswith(f"o3dvis {command}: error: ")
     assert __import__("re").search(FILE_CASES[case][2], line), line
     assert sorted(p.name for p in tmp_path.iterdir()) == ([] if case == "a missing file" else [path.name])
+
+
+@pytest.mark.parametrize("case", CRASH_CASES)
+def test_cli_refuses_a_pcd_that_crashes_open3d_in_a_child_process(tmp_path, case):
+    file_name, content, message = CRASH_CASES[case]
+    path = tmp_path / file_name
+    path.write_bytes(content)
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    run = subprocess.run([sys.executable, "-m", "o3dvis", "visible", str(path), "--camera", "0,0,3", "-o",
+                          str(tmp_path / "out.ply")], capture_output=True, text=True, env=env, timeout=_CHILD_TIMEOUT)
+    assert run.returncode > 0, f"exit code {run.returncode}: {run.stderr[-2000:]}"  # < 0: killed by a signal
+    err = run.stderr.strip().splitlines()
+    assert err and "Traceback" not in run.stderr, run.stderr[-2000:]
+    assert err[-1].startswith("o3dvis visible: error: ") and __import__("re").search(message, err[-1]), err[-1]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [file_name]
 
 
 @pytest.mark.parametrize("suffix, options", [(".ply", {}), (".ply", {"write_ascii": True}), (".pcd", {}),

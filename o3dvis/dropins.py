@@ -75,7 +75,8 @@ def hidden_point_removal_neural(pcd, camera_location, radius: float | None = Non
     in the image plane without the triangles whose edges are much longer than
     the local point spacing, ordered counter-clockwise as seen from the camera
     (none when fewer than 3 points are visible or they project onto a line). Unlike Open3D, ``pt_map`` is sorted.
-    With the shipped models, point normals are used when the cloud has them;
+    With the shipped models, point normals are used when the cloud has them
+    and they face out (unoriented ones are estimated anew, with a warning);
     ``normals="estimate"`` estimates oriented normals in a first pass instead
     (more accurate on dense, clean clouds; see :meth:`NeuralVisibility.encode`).
     Called again with the same, unchanged cloud (another camera), it reuses the
@@ -96,7 +97,7 @@ def hidden_point_removal_neural(pcd, camera_location, radius: float | None = Non
             considered (as a LiDAR's range): the others are not visible and hide
             nothing; None: all points.
         normals: as in :meth:`NeuralVisibility.encode`: None (default) uses
-            the cloud's normals if it has them; ``"estimate"`` estimates
+            the cloud's normals if it has them and they face out; ``"estimate"`` estimates
             oriented normals in a first pass where that is more accurate;
             False ignores normals.
 

@@ -29,7 +29,7 @@ from .nn.octree import cell_keys, morton_decode, normalize_points
 from .threads import plan_threads, threaded_map
 
 __all__ = ["voted_normals", "oriented_planes", "nearest_neighbours", "NeighbourSearch", "fit_planes",
-           "smallest_eigenvectors", "vote", "visibility_affinity", "layer_sides", "surface_variation", "orient_by_vote",
+           "smallest_eigenvectors", "vote", "facing_away", "visibility_affinity", "layer_sides", "surface_variation", "orient_by_vote",
            "complete_orientation", "row_chunks"]
 
 _GRAPH_NEIGHBOURS = 10  # neighbours of a point in the graph that propagates orientation
@@ -302,6 +302,18 @@ def vote(points: np.ndarray, normals: np.ndarray, cameras: np.ndarray, visibilit
     that sees a point barely, as both sides of a thin wall are seen, votes little, and one more
     likely not to see it than to see it does not vote."""
     return _votes(points, normals, cameras, visibility)[0]
+
+
+def facing_away(points: np.ndarray, normals: np.ndarray, cameras: np.ndarray, visibility: np.ndarray) -> float:
+    """How much of the cameras' vote (:func:`vote`) on the points' normals is against them: the sum of
+    the negative votes' magnitudes over that of all votes, in [0, 1] (0 where none votes).
+
+    Oriented normals face the cameras that see their points: near 0. Normals that point either way
+    (as ``estimate_normals`` leaves them) or face one sensor split the vote: near 0.5.
+    """
+    votes = vote(points, normals, cameras, visibility)
+    total = float(np.abs(votes).sum())
+    return float(np.clip(-votes, 0, None).sum()) / total if total > 0 else 0.0
 
 
 def _votes(points: np.ndarray, normals: np.ndarray, cameras: np.ndarray, visibility: np.ndarray

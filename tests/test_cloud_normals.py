@@ -1,0 +1,93 @@
+"""A cloud's own normals reach the normals model only where they face out: normals that point either
+way (``estimate_normals``), flipped at random or facing one sensor are estimated anew, with a warning;
+oriented ones, and normals the caller vouches for (``normals=True`` or an array), are used as given."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import open3d as o3d
+import pytest
+import torch
+
+import o3dvis
+
+CAMERA = np.array([0.4, -0.3, 3.5])
+
+
+@pytest.fixture(scope="module")
+def torus() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A torus's points, their outward normals and which of them ``CAMERA`` sees (ray casting)."""
+    mesh = o3d.geometry.TriangleMesh.create_torus(torus_radius=1.0, tube_radius=0.3)
+    mesh.compute_triangle_normals()
+    o3d.utility.random.seed(0)
+    pcd = mesh.sample_points_uniformly(6000, use_triangle_normal=True)
+    points = np.asarray(pcd.points)
+    return points, np.asarray(pcd.normals), o3dvis.visibility_from_mesh(mesh, points, CAMERA)[0]
+
+
+def _cloud(points: np.ndarray, normals: np.ndarray | None) -> o3d.geometry.PointCloud:
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    if normals is not None:
+        pcd.normals = o3d.utility.Vector3dVector(normals)
+    return pcd
+
+
+def _encode(vis, pcd, normals=None):
+    """The field and the warnings the encode gave."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        field = vis.encode(pcd, normals=normals)
+    return field, [str(w.message) for w in caught if "unoriented" in str(w.message)]
+
+
+def _unoriented(torus, kind: str) -> np.ndarray:
+    points, normals, _ = torus
+    rng = np.random.default_rng(1)
+    if kind == "estimate_normals":
+        pcd = _cloud(points, None)
+        pcd.estimate_normals()
+        return np.asarray(pcd.normals)
+    if kind == "random signs":
+        return normals * rng.choice([-1.0, 1.0], size=(len(normals), 1))
+    sensor = np.array([2.0, 1.0, 0.5])  # normals facing a sensor beside the torus, into it on the far side
+    return np.where(np.einsum("ij,ij->i", sensor - points, normals)[:, None] < 0, -normals, normals)
+
+
+@pytest.mark.parametrize("kind", ["estimate_normals", "random signs", "facing a sensor"])
+def test_unoriented_normals_are_estimated_anew_with_a_warning(vis, torus, kind):
+    points, _, truth = torus
+    field, said = _encode(vis, _cloud(points, _unoriented(torus, kind)))
+    assert len(said) == 1, said
+    estimated = vis.encode(points, normals="estimate")
+    assert torch.equal(field.probabilities(CAMERA), estimated.probabilities(CAMERA))
+    alone = vis.encode(points, normals=False).query(CAMERA)[0]
+    assert (field.query(CAMERA)[0] == truth).mean() >= (alone == truth).mean()
+
+
+def test_oriented_normals_are_used_as_given(vis, torus):
+    points, normals, _ = torus
+    field, said = _encode(vis, _cloud(points, normals))
+    assert not said
+    assert torch.equal(field.probabilities(CAMERA), vis.encode(points, normals=normals).probabilities(CAMERA))
+
+
+@pytest.mark.parametrize("vouched", [True, "array"])
+def test_normals_the_caller_vouches_for_are_not_checked(vis, torus, vouched):
+    points, _, _ = torus
+    unoriented = _unoriented(torus, "random signs")
+    pcd = _cloud(points, unoriented)
+    field, said = _encode(vis, pcd, True if vouched is True else unoriented)
+    assert not said
+    assert torch.equal(field.probabilities(CAMERA), vis.encode(points, normals=unoriented).probabilities(CAMERA))
+
+
+def test_the_drop_in_warns_and_answers_as_the_estimate(vis, torus):
+    points, _, _ = torus
+    pcd = _cloud(points, _unoriented(torus, "estimate_normals"))
+    o3dvis.encodings.clear()
+    with pytest.warns(UserWarning, match="unoriented"):
+        _, index = o3dvis.hidden_point_removal_neural(pcd, CAMERA, model=vis)
+    expected = np.flatnonzero(vis.encode(points, normals="estimate").query(CAMERA)[0])
+    assert np.array_equal(np.asarray(index), expected)

@@ -1,0 +1,35 @@
+"""What an install without a C compiler gives: a pure-Python wheel that carries the licence and the
+typing marker, and a package that says at import that it runs without its C code."""
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import o3dvis
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_a_package_installed_without_its_libraries_warns_at_import(tmp_path):
+    """The warning comes with ``import o3dvis``, which still loads neither torch nor Open3D."""
+    shutil.copytree(ROOT / "o3dvis", tmp_path / "o3dvis", ignore=shutil.ignore_patterns("*.so", "__pycache__"))
+    code = "import sys, o3dvis; print('torch' in sys.modules, 'open3d' in sys.modules)"
+    env = {**os.environ, "PYTHONPATH": str(tmp_path), "O3DVIS_NATIVE": "1"}
+    run = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, env=env)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["False", "False"]
+    assert run.stderr.count("RuntimeWarning") == 1, run.stderr
+    assert "not built: o3dvis.nn._kernels, o3dvis.apps._delaunay" in run.stderr, run.stderr
+    assert "--no-cache-dir" in run.stderr
+
+
+def test_a_package_with_its_libraries_imports_without_a_warning(tmp_path):
+    if not all(o3dvis.clib.built_variants(module) for module in o3dvis.clib.LIBRARIES):
+        pytest.skip("this tree's C libraries are not built")
+    run = subprocess.run([sys.executable, "-W", "error", "-c", "import o3dvis"], cwd=ROOT, capture_output=True,
+                         text=True, env={**os.environ, "O3DVIS_NATIVE": "1"})
+    assert run.returncode == 0 and not run.stderr, run.stderr

@@ -5,6 +5,7 @@ import os
 import shutil
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -12,6 +13,25 @@ import pytest
 import o3dvis
 
 ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_a_wheel_built_without_a_compiler_is_pure_python_and_carries_the_licence(tmp_path):
+    """pip caches the wheels it builds: one built with no compiler must not be tagged as compiled
+    code for this platform."""
+    run = subprocess.run([sys.executable, "setup.py", "-q", "egg_info", "--egg-base", str(tmp_path),
+                          "build", "--build-base", str(tmp_path / "build"),
+                          "bdist_wheel", "--bdist-dir", str(tmp_path / "bdist"), "--dist-dir", str(tmp_path / "dist")],
+                         cwd=ROOT, capture_output=True, text=True, env={**os.environ, "CC": "/nonexistent/cc"},
+                         timeout=300)
+    assert run.returncode == 0, run.stderr
+    (wheel,) = (tmp_path / "dist").iterdir()
+    assert wheel.name == f"o3dvis-{o3dvis.__version__}-py3-none-any.whl"
+    names = zipfile.ZipFile(wheel).namelist()
+    info = f"o3dvis-{o3dvis.__version__}.dist-info"
+    tags = zipfile.ZipFile(wheel).read(f"{info}/WHEEL").decode().splitlines()
+    assert "Root-Is-Purelib: true" in tags and "Tag: py3-none-any" in tags, tags
+    assert not [name for name in names if name.endswith((".so", ".pyd"))]
+    assert {f"{info}/licenses/LICENSE", "o3dvis/py.typed", "o3dvis/weights/default.safetensors"} <= set(names)
 
 
 def test_a_package_installed_without_its_libraries_warns_at_import(tmp_path):

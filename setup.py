@@ -15,6 +15,7 @@ from pathlib import Path
 
 from setuptools import Extension, setup
 from setuptools.command.bdist_wheel import bdist_wheel
+from setuptools.command.build_ext import build_ext
 
 _HERE = Path(__file__).resolve().parent
 _CLIB = runpy.run_path(str(_HERE / "o3dvis" / "clib.py"))
@@ -40,6 +41,19 @@ def _extensions() -> list[Extension]:
             for module, (source, flags, built) in _LIBRARIES.items() for name in built if name in variants]
 
 
+class _BuildExt(build_ext):
+    """build_ext that, building in place, removes each library's files under other suffixes: an
+    interpreter-specific name, which the import system finds before the abi3 one."""
+
+    def copy_extensions_to_source(self) -> None:
+        super().copy_extensions_to_source()
+        for ext in self.extensions:
+            built = Path(self.get_ext_fullpath(ext.name))  # in place, as self.inplace is set again
+            for other in built.parent.glob(f"{built.name.partition('.')[0]}.*") if built.is_file() else ():
+                if other != built and other.suffix in (".so", ".pyd"):
+                    other.unlink()
+
+
 class _Wheel(bdist_wheel):
     """A wheel tagged by what its build made: pure Python where none of the optional libraries
     was built, else for this platform (abi3 where the interpreter has a stable ABI)."""
@@ -51,5 +65,5 @@ class _Wheel(bdist_wheel):
         return super().get_tag()
 
 
-setup(ext_modules=_extensions(), cmdclass={"bdist_wheel": _Wheel},
+setup(ext_modules=_extensions(), cmdclass={"build_ext": _BuildExt, "bdist_wheel": _Wheel},
       options={"bdist_wheel": {"py_limited_api": "cp310"} if _ABI3 else {}})

@@ -1,5 +1,6 @@
-"""What an install without a C compiler gives: a pure-Python wheel that carries the licence and the
-typing marker, and a package that says at import that it runs without its C code."""
+"""How the package is built: a wheel with no C library is pure Python and carries the licence and
+the typing marker, a package installed without its C libraries says so at import, and an in-place
+build leaves one file a library. ``.ci/wheel`` checks the native, manylinux wheel."""
 
 import os
 import shutil
@@ -53,3 +54,22 @@ def test_a_package_with_its_libraries_imports_without_a_warning(tmp_path):
     run = subprocess.run([sys.executable, "-W", "error", "-c", "import o3dvis"], cwd=ROOT, capture_output=True,
                          text=True, env={**os.environ, "O3DVIS_NATIVE": "1"})
     assert run.returncode == 0 and not run.stderr, run.stderr
+
+
+def test_an_in_place_build_removes_a_librarys_files_under_other_names(tmp_path):
+    """An interpreter-specific file left from an older build would be loaded before the abi3 one."""
+    for name in ("setup.py", "pyproject.toml", "README.md", "LICENSE"):
+        shutil.copy(ROOT / name, tmp_path)
+    shutil.copytree(ROOT / "o3dvis", tmp_path / "o3dvis", ignore=shutil.ignore_patterns("*.so", "__pycache__"))
+    stale = tmp_path / "o3dvis" / "nn" / "_kernels_base.cpython-311-x86_64-linux-gnu.so"
+    stale.touch()
+    for module in o3dvis.clib.LIBRARIES:  # built already: newer than their sources, nothing compiles
+        for variant in o3dvis.clib.VARIANTS:
+            library = tmp_path / "lib" / f"{module.replace('.', '/')}_{variant}.abi3.so"
+            library.parent.mkdir(parents=True, exist_ok=True)
+            library.touch()
+    run = subprocess.run([sys.executable, "setup.py", "-q", "build_ext", "--inplace", "--build-lib",
+                          str(tmp_path / "lib"), "--build-temp", str(tmp_path / "tmp")], cwd=tmp_path,
+                         capture_output=True, text=True, env={**os.environ, "CC": "/nonexistent/cc"}, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert not stale.exists() and (stale.parent / "_kernels_base.abi3.so").is_file()

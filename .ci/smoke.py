@@ -5,6 +5,7 @@ answers right (a sphere's visible points against ray casting and against the tor
 demo through the console script)."""
 
 import importlib.metadata
+import platform
 import shutil
 import subprocess
 import sys
@@ -13,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+import torch
 
 import o3dvis
 from o3dvis import clib
@@ -50,7 +52,8 @@ assert agreement < 0.001, agreement
 with tempfile.TemporaryDirectory() as out:
     demo = subprocess.run(["o3dvis", "demo", "--out", out, "--points", "5000"], capture_output=True, text=True)
     assert demo.returncode == 0 and (Path(out) / "demo.png").is_file(), demo.stderr
-print(f"wheel smoke test: o3dvis {o3dvis.__version__} ({', '.join(tags)}) from {package}; "
-      f"C kernels {native._LIBRARY.variant}, Delaunay {delaunay._LIBRARY.variant}; "
-      f"sphere of {len(truth)} points from {camera.tolist()}: {mask.sum()} visible, ray casting {truth.sum()}, "
-      f"accuracy {100 * accuracy:.2f} %, {100 * agreement:.3f} % of points answered otherwise by the torch path; demo ran")
+print(f"wheel smoke test: o3dvis {o3dvis.__version__} ({', '.join(tags)}) from {package} on Python "
+      f"{platform.python_version()}, torch {torch.__version__}, Open3D {o3d.__version__}, numpy {np.__version__}; "
+      f"C kernels {native._LIBRARY.variant}, Delaunay {delaunay._LIBRARY.variant}; sphere of {len(truth)} points "
+      f"from {camera.tolist()}: {mask.sum()} visible, ray casting {truth.sum()}, accuracy {100 * accuracy:.2f} %, "
+      f"{100 * agreement:.3f} % of points answered otherwise by the torch path; demo ran")

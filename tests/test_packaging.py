@@ -6,6 +6,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 import zipfile
 from pathlib import Path
 
@@ -73,3 +74,19 @@ def test_an_in_place_build_removes_a_librarys_files_under_other_names(tmp_path):
                          capture_output=True, text=True, env={**os.environ, "CC": "/nonexistent/cc"}, timeout=300)
     assert run.returncode == 0, run.stderr
     assert not stale.exists() and (stale.parent / "_kernels_base.abi3.so").is_file()
+
+
+def test_torch_comes_from_the_configured_index_within_seconds_where_pytorchs_is_not_reached():
+    """An index that does not answer (a documentation-only address, never routed) costs seconds,
+    not a hang; the script says which torch the environment has (here the one installed already,
+    which pip keeps)."""
+    import torch
+
+    start = time.perf_counter()
+    env = {**os.environ, "O3DVIS_TORCH_INDEX": "http://192.0.2.1/whl"}
+    run = subprocess.run(["bash", str(ROOT / ".ci" / "torch"), sys.executable, f"torch=={torch.__version__}"],
+                         capture_output=True, text=True, env=env, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert time.perf_counter() - start < 90  # the probe gives up at 10 s; pip's own retries would take minutes
+    assert "http://192.0.2.1/whl not reached" in run.stderr
+    assert run.stdout.startswith(f"torch {torch.__version__} (")

@@ -4,7 +4,7 @@
 # supported Python, in a fresh virtual environment, smoke-tested by .ci/smoke.py. Then, for each
 # further interpreter given, that the wheel installs there and its C libraries are found and load.
 # Not part of .ci/run: where PyTorch's CPU index is not reached, that torch comes from PyPI as the
-# CUDA build, about 3 GB to download and a 5 GB environment (6 to 7 minutes on 2 cores).
+# CUDA build, about 3 GB to download and a 6 GB environment (8 to 9 minutes on 2 busy cores).
 # Usage: bash .ci/wheel dist && bash tools/check_bounds.sh dist/o3dvis-*.whl PYTHON3.10 [PYTHON...]
 set -euo pipefail
 cd "$(dirname "$0")/.."

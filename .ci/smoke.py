@@ -1,8 +1,11 @@
 """Checks an installed o3dvis from outside the source tree, with no C compiler on PATH: the package
-and its C libraries come from the install, the widest variant this CPU runs is active, and it
+and its C libraries come from the install, a wheel tagged for every CPython 3.10+ on manylinux
+that carries the licence and the typing marker, the widest variant this CPU runs is active, and it
 answers right (a sphere's visible points against ray casting and against the torch path; the
 demo through the console script)."""
 
+import importlib.metadata
+import platform
 import shutil
 import subprocess
 import sys
@@ -11,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+import torch
 
 import o3dvis
 from o3dvis import clib
@@ -24,6 +28,11 @@ assert native.available() and delaunay.available(), "the C libraries are not act
 assert native._LIBRARY.variant == clib.runnable_variants()[-1], native._LIBRARY.variant
 for library, folder in ((native._LIBRARY, "nn"), (delaunay._LIBRARY, "apps")):
     assert Path(library._name).resolve().parent == package / folder, library._name
+distribution = importlib.metadata.distribution("o3dvis")
+tags = [line.partition(": ")[2] for line in distribution.read_text("WHEEL").splitlines() if line.startswith("Tag: ")]
+assert tags and all(tag.startswith("cp310-abi3-manylinux") for tag in tags), tags
+files = {file.name for file in distribution.files}
+assert {"LICENSE", "py.typed"} <= files, sorted(files)
 
 mesh = o3d.geometry.TriangleMesh.create_sphere(1.0, resolution=60)
 o3d.utility.random.seed(0)
@@ -43,7 +52,8 @@ assert agreement < 0.001, agreement
 with tempfile.TemporaryDirectory() as out:
     demo = subprocess.run(["o3dvis", "demo", "--out", out, "--points", "5000"], capture_output=True, text=True)
     assert demo.returncode == 0 and (Path(out) / "demo.png").is_file(), demo.stderr
-print(f"wheel smoke test: o3dvis {o3dvis.__version__} from {package}; C kernels {native._LIBRARY.variant}, "
-      f"Delaunay {delaunay._LIBRARY.variant}; sphere of {len(truth)} points from {camera.tolist()}: "
-      f"{mask.sum()} visible, ray casting {truth.sum()}, accuracy {100 * accuracy:.2f} %, "
+print(f"wheel smoke test: o3dvis {o3dvis.__version__} ({', '.join(tags)}) from {package} on Python "
+      f"{platform.python_version()}, torch {torch.__version__}, Open3D {o3d.__version__}, numpy {np.__version__}; "
+      f"C kernels {native._LIBRARY.variant}, Delaunay {delaunay._LIBRARY.variant}; sphere of {len(truth)} points "
+      f"from {camera.tolist()}: {mask.sum()} visible, ray casting {truth.sum()}, accuracy {100 * accuracy:.2f} %, "
       f"{100 * agreement:.3f} % of points answered otherwise by the torch path; demo ran")

@@ -20,6 +20,8 @@ takes the source of visibility as ``model=`` (default: the shipped network).
 import importlib
 import importlib.util
 
+from . import clib
+
 __version__ = "0.1.0"
 
 # each public name and the module that defines it, imported on first use: ``import o3dvis`` (and
@@ -35,6 +37,7 @@ _EXPORTS = {
                      "render_points", "depth_image"], "apps"),
 }
 __all__ = list(_EXPORTS)
+clib.warn_unbuilt()
 
 
 def __getattr__(name: str):

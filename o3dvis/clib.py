@@ -6,7 +6,8 @@ x86-64 one for AVX2 with FMA, one for AVX-512 with bfloat16 dot products and one
 tiles. At import the widest variant built that this CPU runs is loaded; nothing is compiled at run
 time and nothing outside the package is loaded. ``O3DVIS_NATIVE=0`` in the environment turns the
 libraries off and ``O3DVIS_NATIVE=<variant>`` picks one. Where none is loaded (no C compiler at install time), the
-callers run their Python fallbacks, with one warning a process.
+callers run their Python fallbacks, with one warning a process: at ``import o3dvis`` (:func:`warn_unbuilt`) where
+the package was installed without them.
 
 This module imports nothing of the package: ``setup.py`` reads :data:`VARIANTS` from it.
 """
@@ -14,6 +15,7 @@ This module imports nothing of the package: ``setup.py`` reads :data:`VARIANTS` 
 from __future__ import annotations
 
 import ctypes
+import importlib.machinery
 import importlib.util
 import os
 import platform
@@ -21,7 +23,8 @@ import threading
 import warnings
 from dataclasses import dataclass
 
-__all__ = ["VARIANTS", "X86_64_ARGS", "Variant", "cpu_flags", "cpu_name", "is_x86", "load", "runnable_variants"]
+__all__ = ["LIBRARIES", "VARIANTS", "X86_64_ARGS", "Variant", "built_variants", "cpu_flags", "cpu_name", "is_x86",
+           "load", "runnable_variants", "warn_unbuilt"]
 
 
 @dataclass(frozen=True)
@@ -48,6 +51,8 @@ VARIANTS: dict[str, Variant] = {
                    frozenset({"avx2", "fma", "avx512f", "avx512_bf16", "amx_tile", "amx_bf16"})),
 }
 X86_64_ARGS = ("-march=x86-64", "-mtune=generic")
+# the libraries the package's build makes, as modules without their variant
+LIBRARIES = ("o3dvis.nn._kernels", "o3dvis.apps._delaunay")
 # what torch's CPU capability implies, where /proc/cpuinfo is not there to ask
 _CAPABILITY_FLAGS = {"AVX2": {"avx2", "fma"}, "AVX512": {"avx2", "fma", "avx512f"}}
 
@@ -89,6 +94,17 @@ def runnable_variants() -> list[str]:
     return [name for name, v in VARIANTS.items() if (name == "base" or is_x86()) and v.cpu_flags <= flags]
 
 
+def built_variants(module: str) -> list[str]:
+    """The variants of the library ``module`` (e.g. ``"o3dvis.nn._kernels"``) that the package's
+    build made, narrowest first; found as files, without importing the module's package."""
+    package, _, name = module.rpartition(".")
+    spec = importlib.util.find_spec(package)
+    folders = (spec.submodule_search_locations or []) if spec is not None else []
+    return [variant for variant in VARIANTS
+            if any(os.path.isfile(os.path.join(folder, f"{name}_{variant}{suffix}"))
+                   for folder in folders for suffix in importlib.machinery.EXTENSION_SUFFIXES)]
+
+
 _warned = threading.Lock()
 
 
@@ -97,6 +113,21 @@ def _warn(reason: str) -> None:
     if _warned.acquire(blocking=False):
         warnings.warn(f"o3dvis runs without its C code ({reason}): queries run their per-view steps as torch "
                       "ops and triangulations on scipy's Qhull, which is slower", RuntimeWarning, stacklevel=3)
+
+
+def _unbuilt(modules: list[str]) -> str:
+    """The reason to warn with where ``modules`` were not built."""
+    return (f"not built: {', '.join(modules)}; the package was installed without a C compiler; reinstall it where "
+            "there is one, bypassing pip's cache of the wheel built without one (pip install --no-cache-dir "
+            "--force-reinstall o3dvis)")
+
+
+def warn_unbuilt() -> None:
+    """Warns, once a process, where the package was installed without some of its libraries (unless
+    ``O3DVIS_NATIVE=0`` turns them off): ``import o3dvis`` calls it, which loads none of them."""
+    missing = [module for module in LIBRARIES if not built_variants(module)]
+    if missing and os.environ.get("O3DVIS_NATIVE", "") != "0":
+        _warn(_unbuilt(missing))
 
 
 def load(module: str, signatures: dict[str, tuple[list, object]], variant: str | None = None) -> ctypes.CDLL | None:
@@ -139,6 +170,5 @@ def load(module: str, signatures: dict[str, tuple[list, object]], variant: str |
             return None
         library.variant = name
         return library
-    _warn(f"{module} was not built: the package was installed without a C compiler; reinstall it where there "
-          "is one")
+    _warn(_unbuilt([module]))
     return None

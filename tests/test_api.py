@@ -242,6 +242,27 @@ def test_the_drop_in_refuses_a_radius_that_is_not_a_number(vis, pcd, points):
             o3dvis.hidden_point_removal_neural(pcd, _camera(points), bad, model=vis)
 
 
+def test_a_field_answers_in_either_array_type_on_request(vis, points):
+    field = vis.encode(points)
+    cameras = np.stack([_camera(points, d) for d in ((0, 0, 1), (1, 0, 0))])
+    probs, masks = field.probabilities(cameras), field.query(cameras)
+    assert isinstance(probs, torch.Tensor) and isinstance(masks, np.ndarray) and masks.dtype == bool
+    as_numpy = field.probabilities(cameras, as_numpy=True)
+    assert isinstance(as_numpy, np.ndarray) and as_numpy.shape == (2, len(points))
+    np.testing.assert_array_equal(as_numpy, probs.numpy())
+    as_tensor = field.query(cameras, as_numpy=False)
+    assert isinstance(as_tensor, torch.Tensor) and as_tensor.dtype == torch.bool
+    assert as_tensor.device == field.device
+    np.testing.assert_array_equal(as_tensor.numpy(), masks)
+    np.testing.assert_array_equal(field.query(cameras, as_numpy=False, indices=[3, 1]).numpy(), masks[:, [3, 1]])
+    camera = torch.tensor(cameras[0], requires_grad=True)
+    with pytest.raises(ValueError, match="as_numpy=True drops the gradient"):
+        field.probabilities(camera, as_numpy=True)
+    with torch.no_grad():  # no gradient asked for: numpy is fine
+        np.testing.assert_array_equal(field.probabilities(camera, as_numpy=True),
+                                      field.probabilities(cameras[0]).numpy())
+
+
 def test_indices_answer_for_those_points_only(network, points):
     rng = np.random.default_rng(4)
     cameras = np.stack([_camera(points, d) for d in rng.normal(size=(3, 3))])

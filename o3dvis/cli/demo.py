@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from ._common import add_vector, floats
+from ._common import add_vector, check_folder, floats
 
 __all__ = ["register", "run"]
 
@@ -47,6 +47,7 @@ def run(args: argparse.Namespace) -> int:
     """
     from ..training.demo import IMAGES, run_demo
 
+    check_folder(args.out, "--out")
     result = run_demo(args.out, args.points, args.camera, model=args.model, device=args.device,
                       hpr_k=args.hpr_k)
     camera = ", ".join(f"{x:.3g}" for x in result.camera)

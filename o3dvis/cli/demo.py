@@ -60,4 +60,6 @@ def run(args: argparse.Namespace) -> int:
     captions = {**IMAGES, "demo": "all of the above in one figure"}
     for name, path in result.images.items():
         print(f"  {path}  {captions[name]}")
+    if result.figure_missing:
+        print(f"  {result.figure_missing}")
     return 0

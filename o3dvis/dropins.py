@@ -169,6 +169,13 @@ def hidden_point_removal_neural(pcd, camera_location=None, radius: float | None 
     _checked_radius(radius)
     views = _one_view(camera_location, direction, frustum)
     index = _visible_indices(pcd, views, None, threshold, model, device, normals, max_range=max_range)
+    return _hpr_result(pcd, index, views if triangulate else None)
+
+
+def _hpr_result(pcd, index: np.ndarray, views: Views | None):
+    """What Open3D's ``hidden_point_removal`` returns for the visible points ``index`` of ``pcd``,
+    with the triangles of :func:`_surface_triangles` for ``views`` (None: no triangles)."""
+    triangulate = views is not None
     if isinstance(pcd, o3d.geometry.PointCloud):
         vertices = np.asarray(pcd.points)[index]
         mesh = o3d.geometry.TriangleMesh()

@@ -85,7 +85,8 @@ def test_every_command_has_help_with_no_path_of_the_development_tree():
 
 # (command line, what the error names): OUT stands for the test's folder
 _UNWRITABLE = [
-    (["visible", "in.ply", "--camera", "0", "0", "5", "-o", "OUT/v.xyzq"], "extension .xyzq names no point cloud format"),
+    (["visible", "in.ply", "--camera", "0", "0", "5", "-o", "OUT/v.xyzq"],
+     "extension .xyzq names no point cloud format"),
     (["visible", "in.ply", "--camera", "0", "0", "5", "-o", "OUT/none/v.ply"], "no folder"),
     (["visible", "in.ply", "--camera", "0", "0", "5", "-o", "OUT"], "is a folder"),
     (["normals", "in.ply", "-o", "OUT/n.obj"], "extension .obj names no point cloud format"),

@@ -12,14 +12,31 @@ import open3d as o3d
 import torch
 
 from . import encodings
-from .cameras import as_camera_location, as_views
+from .cameras import Views, as_views
 from .clouds import cloud_arrays, cloud_device
 from .field import checked_range
-from .geometry import lengths
+from .geometry import diagonal, lengths
 from .models import torch_device
 from .pretrained import resolve_model
 
-__all__ = ["hidden_point_removal_neural", "select_visible", "register"]
+__all__ = ["hidden_point_removal_neural", "select_visible", "register", "RadiusError"]
+
+_FAR = 1e6  # an orthographic view's triangulating camera, in extents of the visible points
+
+
+class RadiusError(ValueError, RuntimeError):
+    """A radius Open3D's ``hidden_point_removal`` refuses: a ``ValueError``, as this package's
+    bad values raise, and a ``RuntimeError``, as Open3D raises it, so either ``except`` catches it."""
+
+
+def _one_view(camera_location, direction, frustum: bool) -> Views:
+    """The one view of a drop-in's camera, in any form :func:`~o3dvis.cameras.as_views` takes."""
+    views = as_views(camera_location, direction, frustum=frustum)
+    if len(views) != 1:
+        raise ValueError(f"give one camera, got {len(views)}: the drop-ins answer one view, as Open3D's "
+                         f"signature does; NeuralVisibility.encode(pcd).query(cameras) answers a batch "
+                         f"from one encoding")
+    return views
 
 
 def _visible_indices(pcd, cameras, direction, threshold: float, model, device, normals,
@@ -28,9 +45,7 @@ def _visible_indices(pcd, cameras, direction, threshold: float, model, device, n
 
     With ``max_range``, only the points within it of the camera are encoded and
     answered (the octree's cells then fit the crop, not the whole cloud)."""
-    views = as_views(cameras, direction, frustum=frustum)
-    if len(views) != 1:
-        raise ValueError(f"give one camera, got {len(views)}")
+    views = _one_view(cameras, direction, frustum)
     max_range = checked_range(max_range)
     device = torch_device(device) if device is not None else cloud_device(pcd)
     model = resolve_model(model, device)
@@ -52,17 +67,40 @@ def _visible_indices(pcd, cameras, direction, threshold: float, model, device, n
     return near.cpu().numpy()[np.flatnonzero(field.query(views, threshold=threshold)[0])].astype(np.int64)
 
 
-def _surface_triangles(vertices: np.ndarray, camera: np.ndarray) -> np.ndarray:
-    """Triangles over ``vertices`` as the camera sees them, facing it (see :mod:`.apps.triangulation`)."""
+def _surface_triangles(vertices: np.ndarray, views: Views) -> np.ndarray:
+    """Triangles over ``vertices`` as the one view sees them, facing it (see :mod:`.apps.triangulation`).
+
+    An orthographic view is triangulated from a camera ``_FAR`` times the vertices' extent away
+    along its direction, whose perspective differs from the parallel projection by about its inverse."""
     from .apps.triangulation import DEFAULT_EDGE_FACTOR, local_spacing, visible_triangles
 
+    if views.positions is not None:
+        camera = views.positions[0].detach().cpu().numpy()
+    elif len(vertices) < 3:  # no triangle
+        return np.zeros((0, 3), dtype=np.int64)
+    else:  # a zero extent (coincident points) has no triangle either: any distance will do
+        extent = diagonal(vertices) or 1.0
+        camera = vertices.mean(axis=0) - _FAR * extent * views.directions[0].detach().cpu().numpy()
     return visible_triangles(vertices, camera, np.arange(len(vertices)),
                              DEFAULT_EDGE_FACTOR * local_spacing(vertices))
 
 
-def hidden_point_removal_neural(pcd, camera_location, radius: float | None = None, *,
-                                threshold: float = 0.5, model=None, device=None, triangulate: bool = False,
-                                max_range: float | None = None, normals=None):
+def _checked_radius(radius) -> None:
+    """Refuses what Open3D's ``hidden_point_removal`` refuses: a radius that is not a positive,
+    finite number (None: not given)."""
+    if radius is None:
+        return
+    if isinstance(radius, bool) or not isinstance(radius, (int, float, np.integer, np.floating)):
+        raise TypeError(f"radius must be a number, got {type(radius).__name__}")
+    if not 0 < radius < np.inf:
+        raise RadiusError(f"radius must be larger than zero and finite, as Open3D's hidden_point_removal "
+                          f"requires, got {radius}")
+
+
+def hidden_point_removal_neural(pcd, camera_location=None, radius: float | None = None, *,
+                                direction=None, threshold: float = 0.5, model=None, device=None,
+                                triangulate: bool = False, max_range: float | None = None, normals=None,
+                                frustum: bool = True):
     """Removes hidden points with the neural network: a drop-in for ``hidden_point_removal``.
 
     Returns what Open3D's ``PointCloud.hidden_point_removal`` returns, so
@@ -82,12 +120,23 @@ def hidden_point_removal_neural(pcd, camera_location, radius: float | None = Non
     Called again with the same, unchanged cloud (another camera), it reuses the
     cloud's encoding (see :mod:`o3dvis.encodings`) and costs a query only.
 
+    The camera takes the forms :func:`select_visible` and :meth:`VisibilityField.query`
+    take, but one view only: Open3D's signature returns one ``(mesh, pt_map)``, and a
+    list of them for a batch would change the result's type with the input's shape.
+    For several cameras, ``NeuralVisibility.encode(pcd).query(cameras)`` answers them
+    all from one encoding (a loop over this function also encodes once).
+
     Args:
         pcd: ``o3d.geometry.PointCloud`` or ``o3d.t.geometry.PointCloud``.
-        camera_location: (3,) camera position (list, tuple, numpy, torch or
-            ``o3d.core.Tensor``), anywhere but on a point of the cloud: outside
-            it, or inside a room, a street or a scan.
-        radius: unused; accepted so that existing calls work unchanged.
+        camera_location: one camera position, (3,) or (1, 3) (list, tuple, numpy,
+            torch or ``o3d.core.Tensor``), anywhere but on a point of the cloud:
+            outside it, or inside a room, a street or a scan; or one
+            ``o3d.camera.PinholeCameraParameters`` (with an image size, the
+            points outside the image are dropped too). None with ``direction``.
+        radius: unused; accepted so that existing calls work unchanged. As in
+            Open3D, it must be positive and finite when given.
+        direction: instead of ``camera_location``, the (3,) viewing direction of
+            an orthographic view; its triangles face that direction.
         threshold: a point is visible when its probability exceeds this.
         model: None (the shipped default), a model name or checkpoint path, a
             :class:`NeuralVisibility` or a ``VisibilityNetwork``.
@@ -100,6 +149,7 @@ def hidden_point_removal_neural(pcd, camera_location, radius: float | None = Non
             the cloud's normals if it has them and they face out; ``"estimate"`` estimates
             oriented normals in a first pass where that is more accurate;
             False ignores normals.
+        frustum: False ignores the image bounds of a pinhole camera.
 
     Returns:
         ``(mesh, pt_map)``: for a legacy cloud an ``o3d.geometry.TriangleMesh``
@@ -108,27 +158,38 @@ def hidden_point_removal_neural(pcd, camera_location, radius: float | None = Non
 
     Raises:
         ValueError: an empty cloud, NaN/Inf, a camera on a point of the cloud,
-            a camera that is not one position, a max_range that is not positive.
+            more than one camera, both or neither of a camera and a direction,
+            a max_range that is not positive.
+        RadiusError: a radius that is not positive and finite (a ``ValueError``
+            and, as Open3D raises, a ``RuntimeError``).
         TypeError: ``pcd`` is not an Open3D PointCloud, or bad dtypes.
         FileNotFoundError: no installed model and no ``model`` given.
     """
     if not isinstance(pcd, (o3d.geometry.PointCloud, o3d.t.geometry.PointCloud)):
         raise TypeError(f"pcd must be an Open3D PointCloud (legacy or tensor), got {type(pcd).__name__}")
-    eye = as_camera_location(camera_location)
-    index = _visible_indices(pcd, eye, None, threshold, model, device, normals, max_range=max_range)
+    _checked_radius(radius)
+    views = _one_view(camera_location, direction, frustum)
+    index = _visible_indices(pcd, views, None, threshold, model, device, normals, max_range=max_range)
+    return _hpr_result(pcd, index, views if triangulate else None)
+
+
+def _hpr_result(pcd, index: np.ndarray, views: Views | None):
+    """What Open3D's ``hidden_point_removal`` returns for the visible points ``index`` of ``pcd``,
+    with the triangles of :func:`_surface_triangles` for ``views`` (None: no triangles)."""
+    triangulate = views is not None
     if isinstance(pcd, o3d.geometry.PointCloud):
         vertices = np.asarray(pcd.points)[index]
         mesh = o3d.geometry.TriangleMesh()
         mesh.vertices = o3d.utility.Vector3dVector(vertices)
         if triangulate:
-            mesh.triangles = o3d.utility.Vector3iVector(_surface_triangles(vertices, eye))
+            mesh.triangles = o3d.utility.Vector3iVector(_surface_triangles(vertices, views))
         return mesh, index.tolist()
     positions = pcd.point.positions
     pt_map = o3d.core.Tensor(index, dtype=o3d.core.Dtype.Int64, device=positions.device)
     mesh = o3d.t.geometry.TriangleMesh(positions.device)
     mesh.vertex.positions = positions[pt_map]
     if triangulate:
-        triangles = _surface_triangles(mesh.vertex.positions.cpu().numpy().astype(np.float64), eye)
+        triangles = _surface_triangles(mesh.vertex.positions.cpu().numpy().astype(np.float64), views)
         mesh.triangle.indices = o3d.core.Tensor(triangles, dtype=o3d.core.Dtype.Int64,
                                                 device=positions.device)
     return mesh, pt_map

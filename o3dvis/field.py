@@ -517,12 +517,14 @@ class VisibilityField:
             return out
 
     def probabilities(self, cameras=None, direction=None, *, frustum: bool = True,
-                      indices=None, max_range: float | None = None) -> Tensor:
+                      indices=None, max_range: float | None = None, as_numpy: bool = False) -> Tensor | np.ndarray:
         """Probability that each point is visible from each view.
 
         Differentiable with respect to camera positions (or directions) given
         as a torch tensor with ``requires_grad``; the point features are fixed.
         Without such a tensor the computation runs under ``torch.inference_mode``.
+        A torch tensor by default, since gradients flow through it; ``as_numpy=True``
+        gives the numpy array :meth:`query` gives by default.
 
         Args:
             cameras: camera positions, (3,) or (V, 3), as list, tuple, numpy,
@@ -537,14 +539,17 @@ class VisibilityField:
             max_range: only the points within this distance of a camera are seen
                 by it: the others get probability 0 and hide nothing (a range crop,
                 as a LiDAR's); None: no limit. Camera positions only.
+            as_numpy: return a float numpy array (on the CPU, no gradient) instead.
 
         Returns:
-            (V, N) float tensor on the field's device, (V, len(indices)) with ``indices``.
+            (V, N) float tensor on the field's device, (V, len(indices)) with ``indices``;
+            a numpy array with ``as_numpy``.
 
         Raises:
             ValueError: a camera on a point of the cloud, NaN/Inf, bad shapes,
                 both or neither of cameras and direction, a max_range that is not
-                positive or given with directions.
+                positive or given with directions, ``as_numpy`` with cameras that
+                require a gradient (numpy would drop it).
             TypeError: cameras that are not real numbers, or indices that are not integers.
             IndexError: an index out of range.
         """
@@ -552,17 +557,22 @@ class VisibilityField:
         rows, max_range = self._checked_indices(indices), checked_range(max_range)
         given = views.positions if views.positions is not None else views.directions
         grad = torch.is_grad_enabled() and given.requires_grad
+        if grad and as_numpy:
+            raise ValueError("as_numpy=True drops the gradient the cameras require; leave it False")
         with contextlib.nullcontext() if grad else torch.inference_mode():
             parts = list(self._answers(views, rows, max_range))
             probs = torch.cat([p for _, p in parts])
-            if all(isinstance(index, slice) for index, _ in parts):  # in the views' order already
-                return probs
-            order = np.concatenate([np.arange(len(views))[index] for index, _ in parts])
-            return probs[torch.from_numpy(np.argsort(order)).to(probs.device)]
+            if not all(isinstance(index, slice) for index, _ in parts):  # back to the views' order
+                order = np.concatenate([np.arange(len(views))[index] for index, _ in parts])
+                probs = probs[torch.from_numpy(np.argsort(order)).to(probs.device)]
+            return probs.cpu().numpy() if as_numpy else probs
 
-    def query(self, cameras=None, direction=None, threshold: float = 0.5, *,
-              frustum: bool = True, indices=None, max_range: float | None = None) -> np.ndarray:
+    def query(self, cameras=None, direction=None, threshold: float = 0.5, *, frustum: bool = True,
+              indices=None, max_range: float | None = None, as_numpy: bool = True) -> np.ndarray | Tensor:
         """Which points each view sees.
+
+        A numpy array by default, as Open3D's ``select_by_index`` and numpy masks take it;
+        ``as_numpy=False`` gives the torch tensor :meth:`probabilities` gives by default.
 
         Args:
             cameras: camera positions or pinhole cameras, as in :meth:`probabilities`.
@@ -572,9 +582,11 @@ class VisibilityField:
             indices: answer only for these points, as in :meth:`probabilities`.
             max_range: points farther from a camera are not visible from it and
                 hide nothing, as in :meth:`probabilities`.
+            as_numpy: False returns a bool torch tensor on the field's device instead.
 
         Returns:
-            (V, N) bool numpy array, (V, len(indices)) with ``indices``.
+            (V, N) bool numpy array, (V, len(indices)) with ``indices``; a torch tensor
+            without ``as_numpy``.
 
         Raises:
             ValueError: as :meth:`probabilities`, or a threshold outside [0, 1].
@@ -592,4 +604,4 @@ class VisibilityField:
             # the caller's OpenMP threads, which then spin for a while on the cores the workers use
             for batch, visible in self._answers(views, rows, max_range, lambda probs: (probs > threshold).cpu()):
                 out[batch] = visible.numpy()
-        return out
+        return out if as_numpy else torch.from_numpy(out).to(self.device)

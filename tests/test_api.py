@@ -195,6 +195,74 @@ def test_each_camera_form_gives_the_same_answer(vis, points):
                                atol=1e-6, rtol=1e-6)
 
 
+def test_the_drop_in_takes_every_camera_form_of_one_view(vis, pcd, points):
+    field = vis.encode(points)
+    eye = _camera(points)
+    params = _pinhole(eye, points.mean(0), width=40, height=30, focal=60.0)
+    threshold = _median_threshold(vis, points, eye)
+
+    def pt_map(camera=None, **kwargs):
+        return o3dvis.hidden_point_removal_neural(pcd, camera, threshold=threshold, model=vis, **kwargs)[1]
+
+    culled = np.flatnonzero(field.query(params, threshold=threshold)[0])
+    assert pt_map(params) == pt_map([params]) == culled.tolist()
+    assert pt_map(params, frustum=False) == pt_map(eye) == pt_map(eye[None])
+    assert 0 < len(culled) < len(pt_map(eye))
+    selected = o3dvis.select_visible(pcd, params, threshold=threshold, model=vis)
+    np.testing.assert_array_equal(np.asarray(selected.points), points[culled])
+    direction = np.array([0.2, -0.3, -1.0])
+    expected = np.flatnonzero(field.query(direction=direction, threshold=threshold)[0])
+    mesh, ortho = o3dvis.hidden_point_removal_neural(pcd, direction=direction, threshold=threshold, model=vis,
+                                                     triangulate=True)
+    assert ortho == expected.tolist()
+    v, triangles = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    assert len(triangles) > 0
+    normals = np.cross(v[triangles[:, 1]] - v[triangles[:, 0]], v[triangles[:, 2]] - v[triangles[:, 0]])
+    assert (normals @ -direction >= 0).all()  # facing the orthographic camera
+    for batch in ([eye, -eye], [params, params]):
+        with pytest.raises(ValueError, match=r"got 2: .*query\(cameras\)"):
+            pt_map(batch)
+    with pytest.raises(ValueError, match="exactly one"):
+        pt_map(eye, direction=direction)
+
+
+@pytest.mark.parametrize("radius", [-1.0, 0, float("nan"), float("inf")])
+def test_the_drop_in_refuses_the_radius_open3d_refuses(vis, pcd, points, radius):
+    camera = _camera(points)
+    with pytest.raises(RuntimeError):
+        pcd.hidden_point_removal(camera, radius)
+    with pytest.raises(o3dvis.dropins.RadiusError, match="radius must be larger than zero") as error:
+        o3dvis.hidden_point_removal_neural(pcd, camera, radius, model=vis)
+    assert isinstance(error.value, RuntimeError) and isinstance(error.value, ValueError)
+
+
+def test_the_drop_in_refuses_a_radius_that_is_not_a_number(vis, pcd, points):
+    for bad in ("1", True, [1.0]):
+        with pytest.raises(TypeError, match="radius must be a number"):
+            o3dvis.hidden_point_removal_neural(pcd, _camera(points), bad, model=vis)
+
+
+def test_a_field_answers_in_either_array_type_on_request(vis, points):
+    field = vis.encode(points)
+    cameras = np.stack([_camera(points, d) for d in ((0, 0, 1), (1, 0, 0))])
+    probs, masks = field.probabilities(cameras), field.query(cameras)
+    assert isinstance(probs, torch.Tensor) and isinstance(masks, np.ndarray) and masks.dtype == bool
+    as_numpy = field.probabilities(cameras, as_numpy=True)
+    assert isinstance(as_numpy, np.ndarray) and as_numpy.shape == (2, len(points))
+    np.testing.assert_array_equal(as_numpy, probs.numpy())
+    as_tensor = field.query(cameras, as_numpy=False)
+    assert isinstance(as_tensor, torch.Tensor) and as_tensor.dtype == torch.bool
+    assert as_tensor.device == field.device
+    np.testing.assert_array_equal(as_tensor.numpy(), masks)
+    np.testing.assert_array_equal(field.query(cameras, as_numpy=False, indices=[3, 1]).numpy(), masks[:, [3, 1]])
+    camera = torch.tensor(cameras[0], requires_grad=True)
+    with pytest.raises(ValueError, match="as_numpy=True drops the gradient"):
+        field.probabilities(camera, as_numpy=True)
+    with torch.no_grad():  # no gradient asked for: numpy is fine
+        np.testing.assert_array_equal(field.probabilities(camera, as_numpy=True),
+                                      field.probabilities(cameras[0]).numpy())
+
+
 def test_indices_answer_for_those_points_only(network, points):
     rng = np.random.default_rng(4)
     cameras = np.stack([_camera(points, d) for d in rng.normal(size=(3, 3))])
@@ -478,7 +546,7 @@ def test_other_bad_arguments(vis, pcd, points):
         field.query(camera, threshold=1.5)
     with pytest.raises(TypeError, match="threshold"):
         field.query(camera, threshold="high")
-    with pytest.raises(ValueError, match="one position"):
+    with pytest.raises(ValueError, match="give one camera, got 2"):
         o3dvis.hidden_point_removal_neural(pcd, [camera, camera], model=vis)
     with pytest.raises(TypeError, match="PointCloud"):
         o3dvis.hidden_point_removal_neural(points, camera, model=vis)

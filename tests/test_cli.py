@@ -76,10 +76,53 @@ def test_version():
     assert run.returncode == 0 and run.stdout.strip() == f"o3dvis {o3dvis.__version__}"
 
 
-def test_every_command_has_help():
+def test_every_command_has_help_with_no_path_of_the_development_tree():
     for command in _USER_COMMANDS + _TRAINING_COMMANDS:
         run = _o3dvis(command, "--help")
         assert run.returncode == 0 and f"usage: o3dvis {command}" in run.stdout, command
+        assert "../" not in run.stdout and "shared/" not in run.stdout, command
+
+
+# (command line, what the error names): OUT stands for the test's folder
+_UNWRITABLE = [
+    (["visible", "in.ply", "--camera", "0", "0", "5", "-o", "OUT/v.xyzq"],
+     "extension .xyzq names no point cloud format"),
+    (["visible", "in.ply", "--camera", "0", "0", "5", "-o", "OUT/none/v.ply"], "no folder"),
+    (["visible", "in.ply", "--camera", "0", "0", "5", "-o", "OUT"], "is a folder"),
+    (["normals", "in.ply", "-o", "OUT/n.obj"], "extension .obj names no point cloud format"),
+    (["reconstruct", "in.ply", "-o", "OUT/m.pcd"], "extension .pcd names no mesh format"),
+    (["shadow", "in.ply", "--light", "0", "0", "5", "--camera", "0", "5", "0", "-o", "OUT/s.bmp"],
+     "extension .bmp names no image format"),
+    (["shadow", "in.ply", "--light", "0", "0", "5", "--camera", "0", "5", "0", "-o", "OUT/s.png",
+      "--shadow-map", "OUT/s.txt"], "--shadow-map"),
+    (["render", "in.ply", "--camera", "0", "0", "5", "-o", "OUT/r"], "extension (none) names no image format"),
+    (["render", "in.ply", "--camera", "0", "0", "5", "-o", "OUT/r.png", "--depth-output", "OUT/none/d.npy"],
+     "--depth-output"),
+    (["best-view", "in.ply", "-o", "OUT/b.tif"], "extension .tif names no image format"),
+    (["best-view", "in.ply", "--plot", "OUT/loss.xyz"], "--plot"),
+    (["demo", "--out", "OUT/file.txt/demo"], "is a file, not a folder"),
+    (["eval", "--data", "OUT", "--out", "OUT/none/val.json"], "no folder"),
+    (["bench", "--out", "OUT/none/bench.json"], "no folder"),
+    (["shapes", "OUT/file.txt"], "is a file, not a folder"),
+    (["train", "OUT", "-o", "OUT/file.txt/run"], "is a file, not a folder"),
+    (["calibrate", "c.safetensors", "OUT", "-o", "OUT/none/c.safetensors"], "no folder"),
+]
+
+
+@pytest.mark.parametrize("argv, error", _UNWRITABLE, ids=[" ".join(a[:1] + a[-2:]) for a, _ in _UNWRITABLE])
+def test_an_output_that_cannot_be_written_is_refused_before_any_work(tmp_path, capsys, argv, error):
+    """The input (in.ply) does not exist: only a check of the output before any reading says the output."""
+    from o3dvis.cli import main
+    from o3dvis.training import demo
+
+    (tmp_path / "file.txt").write_text("")
+    argv = [a.replace("OUT", str(tmp_path)) for a in argv]
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(demo, "run_demo", lambda *a, **k: pytest.fail("the demo ran"))
+        assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"o3dvis {argv[0]}: error: ") and error in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file.txt"]
 
 
 def test_a_camera_is_three_numbers_negative_ones_too(sphere_file, tmp_path):

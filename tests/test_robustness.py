@@ -326,7 +326,7 @@ FUNCS: dict[str, Func] = {
         lambda r, p, o: {"visible": _selected(r, len(p))}, method=False),
     "hidden_point_removal_neural": Func(
         "pcd", lambda c, cam, vis: _hpr_neural(c, cam, vis), lambda r, p, o: _index_answer(r, len(p)),
-        method=False, risky=True, errors={"two cameras": (ValueError, "one position")}),
+        method=False, risky=True),
     "NeuralVisibility.encode/VisibilityField.query": Func(
         "any", lambda c, cam, vis: vis.encode(c).query(cam), lambda r, p, o: _mask_answer(r, len(p)),
         method=False, skip=_TEST_API | {"two cameras"}),

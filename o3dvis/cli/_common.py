@@ -7,9 +7,11 @@ Nothing heavy is imported here at module level: ``o3dvis --help`` builds every p
 from __future__ import annotations
 
 import argparse
+import os
+from pathlib import Path
 
-__all__ = ["VECTOR_OPTIONS", "add_vector", "add_precision_flag", "add_method_flags", "split_vectors",
-           "visibility_method", "write_image", "stages", "positive_ints", "floats"]
+__all__ = ["VECTOR_OPTIONS", "OUTPUTS", "add_vector", "add_precision_flag", "add_method_flags", "split_vectors",
+           "visibility_method", "write_image", "check_output", "check_folder", "stages", "positive_ints", "floats"]
 
 # the options that take a point or a direction, X Y Z
 VECTOR_OPTIONS = ("--camera", "--direction", "--light")
@@ -85,6 +87,62 @@ def visibility_method(args: argparse.Namespace):
     if len(mesh.triangles) == 0:
         raise ValueError(f"no triangles could be read from {args.mesh}")
     return ground_truth_method(mesh)
+
+
+OUTPUTS = {
+    "point cloud": (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts"),
+    "mesh": (".ply", ".obj", ".off", ".stl", ".gltf", ".glb"),
+    "image": (".png", ".jpg", ".jpeg"),
+    "array": (".npy",),
+}
+"""The extensions Open3D (numpy for an array) writes each kind of output to."""
+
+
+def check_output(path: str | Path | None, option: str, kind: str | None = None,
+                 suffixes: tuple[str, ...] | None = None) -> None:
+    """Refuses, before any work, an output file that could not be written: an extension that
+    does not name a format of its kind, a folder that does not exist or takes no files, a folder
+    in the file's place (None: no output asked for).
+
+    Args:
+        path: the file the command will write.
+        option: the option that names it, for the message.
+        kind: a key of :data:`OUTPUTS`, or what ``suffixes`` are extensions of; None: any extension.
+        suffixes: the extensions allowed, instead of ``kind``'s in :data:`OUTPUTS`.
+
+    Raises:
+        ValueError: an extension of no such format.
+        FileNotFoundError, PermissionError, IsADirectoryError: a folder that cannot take the file.
+    """
+    if path is None:
+        return
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{option} {path} is a folder; give a file name")
+    allowed = suffixes if suffixes is not None else OUTPUTS[kind] if kind is not None else None
+    if allowed is not None and path.suffix.lower() not in allowed:
+        raise ValueError(f"{option} {path}: the extension {path.suffix or '(none)'} names no {kind or 'known'} "
+                         f"format; use {', '.join(allowed)}")
+    folder = path.parent
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{option} {path}: no folder {folder} to write it in; create it first")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise PermissionError(f"{option} {path}: the folder {folder} is not writable")
+
+
+def check_folder(path: str | Path, option: str) -> None:
+    """Refuses, before any work, an output folder that could not be made or written to: a file in
+    its place, or a nearest existing folder above it that is not writable.
+
+    Raises:
+        NotADirectoryError, PermissionError: as described.
+    """
+    path = Path(path).absolute()
+    existing = next(p for p in (path, *path.parents) if p.exists())
+    if not existing.is_dir():
+        raise NotADirectoryError(f"{option} {path}: {existing} is a file, not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise PermissionError(f"{option} {path}: the folder {existing} is not writable")
 
 
 def write_image(path: str, image) -> None:

@@ -5,11 +5,13 @@ from __future__ import annotations
 import argparse
 
 from .._optional import figure_class
-from ._common import add_method_flags, add_vector, stages, visibility_method, write_image
+from ._common import add_method_flags, add_vector, check_output, stages, visibility_method, write_image
 
 __all__ = ["register"]
 
 _EPILOG = "example:\n  "
+# o3dvis.apps.views.SEARCHES (a test checks they agree), kept here so that the parser imports no torch
+_SEARCHES = ("candidates", "gradient")
 
 
 def _add_view_flags(parser: argparse.ArgumentParser) -> None:
@@ -77,13 +79,21 @@ def register(subparsers) -> None:
     p.set_defaults(func=_shadow)
 
     p = _parser(subparsers, "best-view", "find the camera position that sees the most points",
-                "Gradient descent on the network's soft visibility over camera positions on the "
-                "sphere of radius = bbox diagonal; prints the position X Y Z.",
-                "o3dvis best-view scan.ply --steps 300 -o best.png")
+                "Scores --candidates views spread on the sphere of radius = bbox diagonal from one encoding "
+                "of the cloud, refines the best by a compass search (or, with --search gradient, runs "
+                "gradient descent on the network's soft visibility); prints the position X Y Z.",
+                "o3dvis best-view scan.ply -o best.png")
     p.add_argument("input", help="point cloud file readable by Open3D")
     p.add_argument("--worst", action="store_true", help="find the view that sees the fewest points")
-    p.add_argument("--steps", type=int, default=300, help="optimisation steps (default 300)")
-    p.add_argument("--starts", type=int, default=8, help="starting directions (default 8)")
+    p.add_argument("--search", choices=_SEARCHES, default=_SEARCHES[0],
+                   help="candidates (default): a scored lattice refined by compass search; gradient: "
+                        "Adam on the soft visibility (much slower)")
+    p.add_argument("--candidates", type=int, default=200, help="views scored first (default 200)")
+    p.add_argument("--steps", type=int, default=None,
+                   help="refinement rounds (default 10), or optimisation steps with --search gradient "
+                        "(default 300)")
+    p.add_argument("--starts", type=int, default=None,
+                   help="views refined (default 4), or starting directions with --search gradient (default 8)")
     p.add_argument("-o", "--output", default=None, help="also render the view to this image")
     p.add_argument("--plot", default=None, help="save the loss curve to this image (matplotlib)")
     add_method_flags(p, choices=("neural",))
@@ -111,6 +121,7 @@ def _normals(args: argparse.Namespace) -> int:
     from ..apps.normals import estimate_normals_neural, orient_normals_neural
     from ..io import read_point_cloud
 
+    check_output(args.output, "-o", "point cloud")
     pcd = read_point_cloud(args.input)
     method = visibility_method(args)
     if args.orient_only:
@@ -133,6 +144,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
     from ..apps.reconstruction import reconstruct_poisson, reconstruct_view_dependent
     from ..io import read_point_cloud
 
+    check_output(args.output, "-o", "mesh")
     pcd = read_point_cloud(args.input)
     method = visibility_method(args)
     if args.camera is not None:
@@ -160,6 +172,8 @@ def _shadow(args: argparse.Namespace) -> int:
     from ..apps.shadows import points_in_shadow, render_with_shadows, shadow_map
     from ..io import read_point_cloud
 
+    check_output(args.output, "-o", "image")
+    check_output(args.shadow_map, "--shadow-map", "array")
     pcd = read_point_cloud(args.input)
     method = visibility_method(args)
     with stages(3 if args.shadow_map else 2, "shadow") as bar:
@@ -180,11 +194,15 @@ def _best_view(args: argparse.Namespace) -> int:
     from ..apps.views import best_view
     from ..io import read_point_cloud
 
+    figure = figure_class("--plot") if args.plot else None
+    check_output(args.output, "-o", "image")
+    if figure is not None:
+        plots = tuple(f".{s}" for s in figure().canvas.get_supported_filetypes())
+        check_output(args.plot, "--plot", "plot", plots)
     pcd = read_point_cloud(args.input)
     method = visibility_method(args)
-    figure = figure_class("--plot") if args.plot else None
-    camera, losses = best_view(pcd, maximize=not args.worst, steps=args.steps, model=method,
-                               starts=args.starts, progress=True)
+    camera, losses = best_view(pcd, maximize=not args.worst, steps=args.steps, model=method, starts=args.starts,
+                               candidates=args.candidates, search=args.search)
     fraction = -losses.min() if not args.worst else losses.min()
     print(f"{'worst' if args.worst else 'best'} view: {camera[0]:.6g} {camera[1]:.6g} {camera[2]:.6g} "
           f"(sees {100 * fraction:.1f}% of the points, soft count)")
@@ -194,7 +212,7 @@ def _best_view(args: argparse.Namespace) -> int:
         fig = figure(figsize=(5, 3))
         ax = fig.subplots()
         ax.plot(losses)
-        ax.set_xlabel("step")
+        ax.set_xlabel("step" if args.search == "gradient" else "round (0: the best candidate)")
         ax.set_ylabel("loss (- visible fraction)" if not args.worst else "loss (visible fraction)")
         fig.tight_layout()
         fig.savefig(args.plot)
@@ -207,6 +225,8 @@ def _render(args: argparse.Namespace) -> int:
     from ..apps.render import depth_image, render_points
     from ..io import read_point_cloud
 
+    check_output(args.output, "-o", "image")
+    check_output(args.depth_output, "--depth-output", "array")
     pcd = read_point_cloud(args.input)
     method = None if args.all else visibility_method(args)
     with stages(2 if args.depth_output else 1, "render") as bar:

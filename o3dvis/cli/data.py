@@ -7,7 +7,7 @@ import argparse
 import json
 import time
 
-from ._common import positive_ints
+from ._common import check_folder, check_output, positive_ints
 
 
 def _shapes(args) -> int:
@@ -20,6 +20,7 @@ def _shapes(args) -> int:
     if not set(names) <= set(PRIMITIVES):
         raise ValueError(f"--primitives: unknown {', '.join(sorted(set(names) - set(PRIMITIVES)))}; "
                          f"choose from {', '.join(PRIMITIVES)}")
+    check_folder(args.out_dir, "OUT_DIR")
     paths = write_shapes(args.out_dir, args.count, args.seed, names, args.enclosed)
     print(f"wrote {len(paths)} meshes to {args.out_dir}")
     return 0
@@ -28,6 +29,7 @@ def _shapes(args) -> int:
 def _prepare(args) -> int:
     from ..training.data.prepare import prepare, prepare_scenes
 
+    check_folder(args.out_dir, "OUT_DIR")
     t = time.time()
     if args.scenes is None:
         result, what = prepare(args.mesh_dir, args.out_dir, args.points, args.views, args.workers,
@@ -46,6 +48,7 @@ def _train(args) -> int:
 
     from ..training.train import TrainConfig, train
 
+    check_folder(args.out, "-o")
     if args.threads:
         torch.set_num_threads(args.threads)
     network = {"use_normals": args.normals, "noise_cues": args.noise_cues, "footprints": args.footprints}
@@ -73,6 +76,7 @@ def _calibrate(args) -> int:
     from ..training.calibrate import calibrate
     from ..training.data.dataset import Augmentation
 
+    check_output(args.out, "-o")
     if args.threads:
         torch.set_num_threads(args.threads)
     summary = calibrate(args.checkpoint, args.data, args.out, args.clouds, args.keep, args.seed,
@@ -87,6 +91,7 @@ def _fuse(args) -> int:
 
     from ..training.fuse import fuse
 
+    check_output(args.out, "-o")
     if args.threads:
         torch.set_num_threads(args.threads)
     summary = fuse(args.checkpoint, args.data, args.out, args.clouds, args.keep, args.seed, args.min_points,
@@ -136,8 +141,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "label N procedural scenes instead (furnished rooms, streets; metres),\n"
                                    "with furniture and objects drawn from MESH_DIR, cameras inside (3/4)\n"
                                    "and outside (1/4): one file {kind}-{sampling}__{index}.npz per sampling.\n\n"
-                                   "examples:\n  o3dvis prepare ../shared/meshes/train data/train --workers 2\n"
-                                   "  o3dvis prepare ../shared/meshes/train data/scenes --scenes 400 --points 200000")
+                                   "examples:\n  o3dvis prepare meshes/train data/train --workers 2\n"
+                                   "  o3dvis prepare meshes/train data/scenes --scenes 400 --points 200000")
     p.add_argument("mesh_dir", metavar="MESH_DIR", help="folder of meshes (searched recursively)")
     p.add_argument("out_dir", metavar="OUT_DIR", help="folder for one .npz per mesh or scene (created)")
     p.add_argument("--scenes", type=int, metavar="N", help="label N procedural scenes (see above)")
@@ -226,7 +231,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Copy a checkpoint into o3dvis/weights/ and write its model-card entry\n"
                                    "(architecture, data licences, steps, validation, sha256).\n\n"
                                    "example:\n  o3dvis publish runs/default/best.safetensors --name default "
-                                   "--run runs/default --manifest ../shared/meshes/MANIFEST.csv")
+                                   "--run runs/default --manifest meshes/MANIFEST.csv")
     p.add_argument("checkpoint", metavar="CHECKPOINT", help=".safetensors file written by o3dvis train")
     p.add_argument("--name", required=True, help="model name, e.g. default or normals")
     p.add_argument("--run", help="the training run folder (config.json, log.jsonl)")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from ._common import add_vector, floats
+from ._common import add_vector, check_folder, floats
 
 __all__ = ["register", "run"]
 
@@ -47,6 +47,7 @@ def run(args: argparse.Namespace) -> int:
     """
     from ..training.demo import IMAGES, run_demo
 
+    check_folder(args.out, "--out")
     result = run_demo(args.out, args.points, args.camera, model=args.model, device=args.device,
                       hpr_k=args.hpr_k)
     camera = ", ".join(f"{x:.3g}" for x in result.camera)
@@ -59,4 +60,6 @@ def run(args: argparse.Namespace) -> int:
     captions = {**IMAGES, "demo": "all of the above in one figure"}
     for name, path in result.images.items():
         print(f"  {path}  {captions[name]}")
+    if result.figure_missing:
+        print(f"  {result.figure_missing}")
     return 0

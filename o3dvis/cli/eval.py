@@ -8,7 +8,7 @@ import sys
 from collections import Counter
 from pathlib import Path
 
-from ._common import floats, positive_ints
+from ._common import check_output, floats, positive_ints
 
 __all__ = ["register", "run_eval", "run_bench", "main"]
 
@@ -102,12 +102,6 @@ def register(subparsers) -> None:
     p.set_defaults(func=run_bench)
 
 
-def _check_out(out: Path | None) -> None:
-    """Refuses, before any work, an output whose folder does not exist (none is created)."""
-    if out is not None and not out.parent.is_dir():
-        raise FileNotFoundError(f"no folder {out.parent} to write {out.name} in; create it first")
-
-
 def _write(out: Path | None, report: dict, markdown: str) -> None:
     print(markdown)
     if out is not None:
@@ -145,7 +139,7 @@ def run_eval(args) -> int:
 
     if args.views is not None and args.views < 1:
         raise ValueError("--views must be >= 1")
-    _check_out(args.out)
+    check_output(args.out, "--out")
     hpr_k = args.hpr_k or (list(_SCENE_HPR_K) if args.scenes else None)
     methods, absent = _methods(args, {"hpr": hpr_k, "hpr-exp": args.gamma, "zbuffer": args.splat})
     files = list_samples(args.data, args.limit)
@@ -207,7 +201,7 @@ def run_bench(args) -> int:
     from ..threads import usable_cores
     from ..training.speed import benchmark, markdown_table
 
-    _check_out(args.out)
+    check_output(args.out, "--out")
     # one setting per baseline: Open3D's usual radius (k = 2) and a mid-grid kernel exponent
     methods, absent = _methods(args, {"hpr": [2.0], "hpr-exp": [-0.01]})
     single = {name: next(iter(sweep.values())) for name, sweep in methods.items()}

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ._common import add_precision_flag, add_vector, stages
+from ._common import add_precision_flag, add_vector, check_output, stages
 
 __all__ = ["register", "run"]
 
@@ -43,6 +43,7 @@ def run(args: argparse.Namespace) -> int:
     Returns:
         0 when the visible points were written, 1 when no point is visible.
     """
+    check_output(args.output, "-o", "point cloud")
     import open3d as o3d
 
     from ..dropins import select_visible

@@ -121,6 +121,8 @@ class DemoResult:
     truth: np.ndarray
     methods: list[MethodResult]
     images: dict[str, Path] = field(default_factory=dict)
+    figure_missing: str = ""
+    """Why ``demo.png`` was not drawn (matplotlib, the ``demo`` extra, is not installed); empty when it was."""
 
     def table(self) -> str:
         """A plain-text table: accuracy, false positives/negatives and time of each method."""
@@ -177,7 +179,7 @@ def _hpr(cloud: EvalCloud, exponents) -> MethodResult:
 
 
 def _pictures(out: Path, pcd: o3d.geometry.PointCloud, mesh: o3d.geometry.TriangleMesh,
-              result: DemoResult, width: int, height: int) -> dict[str, Path]:
+              result: DemoResult, width: int, height: int, figure: type | None) -> dict[str, Path]:
     points = np.asarray(pcd.points)
     observer = observer_location(points, result.camera)
     view = make_view(points, observer, width, height)
@@ -199,8 +201,9 @@ def _pictures(out: Path, pcd: o3d.geometry.PointCloud, mesh: o3d.geometry.Triang
         paths[name] = out / f"{name}.png"
         if not o3d.io.write_image(str(paths[name]), o3d.geometry.Image(image)):
             raise RuntimeError(f"could not write {paths[name]}")
-    paths["demo"] = out / "demo.png"
-    _montage(paths["demo"], images, result, _camera_arrow(view, _frame(points)[0], result.camera))
+    if figure is not None:
+        paths["demo"] = out / "demo.png"
+        _montage(figure, paths["demo"], images, result, _camera_arrow(view, _frame(points)[0], result.camera))
     return paths
 
 
@@ -214,7 +217,7 @@ def _camera_arrow(view: View, centre: np.ndarray, camera: np.ndarray) -> tuple[n
     return tail, middle + direction * 0.3 * min(view.width, view.height)
 
 
-def _montage(path: Path, images: dict[str, np.ndarray], result: DemoResult,
+def _montage(figure: type, path: Path, images: dict[str, np.ndarray], result: DemoResult,
              arrow: tuple[np.ndarray, np.ndarray]) -> None:
     neural, hpr = result.methods
     titles = {
@@ -226,7 +229,7 @@ def _montage(path: Path, images: dict[str, np.ndarray], result: DemoResult,
         "errors_hpr": f"HPR errors: {hpr.counts.fp:,} FP, {hpr.counts.fn:,} FN",
     }
     order = ["input", "ground_truth", "errors_neural", "neural", "hpr", "errors_hpr"]
-    fig = figure_class("the demo's figure")(figsize=(12, 7.2))
+    fig = figure(figsize=(12, 7.2))
     axes = fig.subplots(2, 3)
     tail, head = arrow
     for ax, name in zip(axes.ravel(), order):
@@ -259,14 +262,15 @@ def run_demo(out_dir: str | Path = "o3dvis-demo", num_points: int = 20_000, came
 
     Returns:
         A :class:`DemoResult`; ``images`` maps each name of :data:`IMAGES` and
-        ``"demo"`` (all pictures in one figure) to its file.
-
-    Raises:
-        ImportError: where matplotlib (the ``demo`` extra) is not installed, before any work.
+        ``"demo"`` (all pictures in one figure) to its file. Without matplotlib (the
+        ``demo`` extra) there is no ``"demo"``, and ``figure_missing`` says why.
     """
     from tqdm import tqdm
 
-    figure_class("the demo's figure")
+    try:
+        figure, missing = figure_class("the demo's figure (demo.png)"), ""
+    except ImportError as e:
+        figure, missing = None, str(e)
     pcd, mesh = demo_sample(num_points)
     points = np.asarray(pcd.points)
     camera = default_camera(points) if camera is None else as_camera_location(camera, "camera")
@@ -288,7 +292,7 @@ def run_demo(out_dir: str | Path = "o3dvis-demo", num_points: int = 20_000, came
         bar.update()
         hpr = _hpr(cloud, exponents)
         bar.update()
-        result = DemoResult(len(points), camera, truth[0], [neural, hpr])
-        result.images = _pictures(out, pcd, mesh, result, width, height)
+        result = DemoResult(len(points), camera, truth[0], [neural, hpr], figure_missing=missing)
+        result.images = _pictures(out, pcd, mesh, result, width, height, figure)
         bar.update()
     return result

@@ -63,15 +63,6 @@ class NeuralMethod:
                                       normals=np.asarray(normals, dtype=np.float64) if self.needs_normals
                                       else "estimate" if self.estimate else False)
 
-    def build_octree(self, points: np.ndarray):
-        """The octree that encoding builds for ``points`` (timed alone by the bench)."""
-        import torch
-
-        from ..nn import normalize_points
-
-        points = torch.as_tensor(points, dtype=torch.float64, device=self.visibility.device)
-        return self.visibility.network.octree(normalize_points(points)[0].float())
-
     def __call__(self, points: np.ndarray, cameras: np.ndarray, normals: np.ndarray | None = None) -> np.ndarray:
         return self.encode(points, normals).query(np.atleast_2d(np.asarray(cameras, dtype=np.float64)))
 

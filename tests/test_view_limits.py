@@ -177,3 +177,16 @@ def test_a_focal_length_that_is_not_positive_is_refused_everywhere(vis, fx, fy):
         with pytest.raises(ValueError, match="focal lengths must be positive"):
             call()
     assert vis.encode(points).query(_pinhole(60.0, 60.0)).shape == (1, 300)
+
+
+@pytest.mark.parametrize("scale", [1e-170, 1e160])
+def test_best_view_of_a_cloud_scaled_is_the_view_scaled(scale):
+    """best_view's distance is the box's diagonal computed without squares: below 1e-154 or above
+    1e154 units the squares underflow or overflow."""
+    o3d.utility.random.seed(0)
+    points = np.asarray(o3d.geometry.TriangleMesh.create_sphere(1.0, 20).sample_points_uniformly(1500).points)
+    unit, curve = o3dvis.best_view(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)), progress=False)
+    scaled, scaled_curve = o3dvis.best_view(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points * scale)),
+                                            progress=False)
+    assert np.allclose(np.asarray(scaled) / scale, unit, rtol=1e-6)
+    assert np.allclose(scaled_curve, curve)

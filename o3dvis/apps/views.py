@@ -16,7 +16,7 @@ import torch
 
 from ..cameras import fibonacci_sphere
 from ..clouds import cloud_points
-from ..geometry import bounds
+from ..geometry import bounds, box_diagonal
 from ..methods import accepts_method_keyword, resolve_soft_method
 
 __all__ = ["best_view", "SEARCHES"]
@@ -83,7 +83,7 @@ def best_view(pcd, maximize: bool = True, steps: int | None = None, model=None, 
     points = cloud_points(pcd)
     soft = resolve_soft_method(model, points)
     lo, hi = bounds(points)
-    radius = float(np.linalg.norm(hi - lo)) if distance is None else float(distance)
+    radius = box_diagonal(lo, hi) if distance is None else float(distance)
     if not radius > 0:
         raise ValueError("the camera distance must be positive (the points span no volume)")
     # float64: a float32 camera far from the origin (georeferenced clouds) is off by its ulp

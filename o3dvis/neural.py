@@ -69,10 +69,13 @@ _VARIATION_SAMPLE = 4096
 # validation meshes at 2-32 k points that vote was 0.35-0.72 for normals from estimate_normals(),
 # 0.48-0.53 for randomly flipped ones and 0.41-0.65 for ones facing a sensor, and at most 0.44 for
 # oriented ones (0-0.05 on closed surfaces; bowls, cups, chairs and vases, whose thin walls the
-# points-only network answers worst, reach 0.35-0.44)
+# points-only network answers worst, reach 0.35-0.44). Those the check doubts are kept after all
+# where, in the two passes that follow, at least _MIN_SAME_SIDE of them lie on the side of the
+# estimated normals: 0.64-1 for oriented normals there, at most 0.53 for the others (2 k and 8 k points)
 _CHECK_POINTS = 4096
 _CHECK_VIEWS = 14
 _MAX_FACING_AWAY = 0.35
+_MIN_SAME_SIDE = 0.6
 
 
 def _flat_hull(points: Tensor, diagonal: Tensor) -> tuple[Tensor, Tensor] | None:
@@ -424,7 +427,7 @@ class NeuralVisibility:
         """:meth:`_encode` of checked points and unit normals (or None) with ``network``; ``estimate``:
         normals estimated in a first pass where that pays (see :meth:`encode`); ``check``: ``unit``
         are the cloud's own normals, estimated instead where they look unoriented
-        (:meth:`_unoriented`)."""
+        (:meth:`_facing_away`) and the estimates do not side with them."""
         normalized, keys, center, scale, (lo, hi), hull = _unit_frame(points.to(self.device))
         keys, order, rank = morton_sort(normalized, keys=keys)
         normalized = normalized.index_select(0, order)
@@ -435,8 +438,11 @@ class NeuralVisibility:
             if camera is not None and inside_box(camera.to(lo)[None], (lo, hi))[0]:
                 return self._field(self.scene_network, None, *frame)
             scene = functools.partial(self._field, self.scene_network, None, *frame)
-        if check and hull is None and self._unoriented(points.index_select(0, order.to(points.device)), unit):
-            network, unit, estimate = self._points_network(len(points)), None, True
+        doubted, share = None, 0.0  # the cloud's own normals where they look unoriented, and why
+        if check and hull is None:
+            share = self._facing_away(points.index_select(0, order.to(points.device)), unit)
+            if share > _MAX_FACING_AWAY:
+                doubted, network, unit, estimate = unit, self._points_network(len(points)), None, True
         # a flat cloud hides nothing from off its plane: one pass is exact there
         two_pass = estimate and hull is None and len(normalized) >= _ESTIMATE_MIN_POINTS
         shared = {"keys": keys}
@@ -447,27 +453,28 @@ class NeuralVisibility:
                 normals = first_pass_normals(field, stored, stored=True)
             if normals is not None:
                 unit = torch.from_numpy(normals).to(self.device).float()
+                if doubted is not None and float(((doubted * unit).sum(dim=1) > 0).float().mean()) >= _MIN_SAME_SIDE:
+                    unit, doubted = doubted, None  # on the estimates' side: oriented, with walls the check misjudged
                 field = self._field(self.normals_network, unit, *frame, scene=scene, shared=shared)
+        if doubted is not None:
+            warnings.warn(f"o3dvis: the cloud's normals look unoriented ({100 * share:.0f} % of the vote of cameras "
+                          "around it is against them) and are ignored, as with normals='estimate'; orient them "
+                          "first (o3dvis.orient_normals_neural) or pass normals=True to use them as they are",
+                          stacklevel=4)
         return field
 
-    def _unoriented(self, points: Tensor, normals: Tensor) -> bool:
-        """Whether a cloud's normals look unoriented, warning if so: how much of the vote of cameras
-        around the cloud (:func:`~o3dvis.orientation.facing_away`) on the normals of
-        :data:`_CHECK_POINTS` of its points, evenly spread along ``points``' order, is against them,
-        with the cameras' answers from the points-only network's encoding of those points alone."""
+    def _facing_away(self, points: Tensor, normals: Tensor) -> float:
+        """How much of the vote of cameras around a cloud (:func:`~o3dvis.orientation.facing_away`)
+        on the normals of :data:`_CHECK_POINTS` of its points, evenly spread along ``points``' order,
+        is against them, with the cameras' answers from the points-only network's encoding of those
+        points alone."""
         rows = torch.arange(0, len(points), max(1, len(points) // _CHECK_POINTS), device=points.device)
         sample = points.index_select(0, rows)
         field = self._encode_points(self._points_network(len(rows)), None, sample, None)
         sample = sample.detach().cpu().double().numpy()
         cameras = viewpoints_around(sample, _CHECK_VIEWS)
-        share = facing_away(sample, normals.index_select(0, rows).detach().cpu().double().numpy(), cameras,
-                            field.probabilities(cameras).cpu().numpy())
-        if share > _MAX_FACING_AWAY:
-            warnings.warn(f"o3dvis: the cloud's normals look unoriented ({100 * share:.0f} % of the vote of cameras "
-                          "around it is against them): estimating oriented normals instead; orient them first "
-                          "(o3dvis.orient_normals_neural) or pass normals=True to use them as they are",
-                          stacklevel=5)
-        return share > _MAX_FACING_AWAY
+        return facing_away(sample, normals.index_select(0, rows).detach().cpu().double().numpy(), cameras,
+                           field.probabilities(cameras).cpu().numpy())
 
     def _field(self, network: VisibilityNetwork, unit: Tensor | None, normalized: Tensor, center: Tensor,
                scale: Tensor, bounds: tuple[Tensor, Tensor], hull: tuple[Tensor, Tensor] | None, rank: Tensor,

@@ -91,3 +91,18 @@ def test_the_drop_in_warns_and_answers_as_the_estimate(vis, torus):
         _, index = o3dvis.hidden_point_removal_neural(pcd, CAMERA, model=vis)
     expected = np.flatnonzero(vis.encode(points, normals="estimate").query(CAMERA)[0])
     assert np.array_equal(np.asarray(index), expected)
+
+
+def test_oriented_normals_the_check_doubts_are_kept_where_the_estimates_side_with_them(vis, torus, monkeypatch):
+    """Thin walls can make the check doubt oriented normals: the two passes it then runs keep them
+    where they lie on the side of the estimated normals, and estimate the unoriented ones anew."""
+    from o3dvis import neural
+
+    monkeypatch.setattr(neural, "_MAX_FACING_AWAY", -1.0)  # every cloud's normals doubted
+    points, normals, _ = torus
+    field, said = _encode(vis, _cloud(points, normals))
+    assert not said
+    assert torch.equal(field.probabilities(CAMERA), vis.encode(points, normals=normals).probabilities(CAMERA))
+    field, said = _encode(vis, _cloud(points, _unoriented(torus, "random signs")))
+    assert len(said) == 1
+    assert torch.equal(field.probabilities(CAMERA), vis.encode(points, normals="estimate").probabilities(CAMERA))

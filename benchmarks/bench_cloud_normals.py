@@ -2,8 +2,9 @@
 
 For each mesh, cloud size and noise level, points are sampled uniformly on the surface with their
 face normals, turned to the side that ray-cast cameras see (oriented normals, as a mesh's outward
-normals). The cloud then carries one of four kinds of normals and is answered for 4 random
-cameras at the bounding-box diagonal, scored against ray casting (accuracy, %):
+normals), and moved by the project's noise (each point up to ``noise`` x the diagonal). The cloud
+then carries one of four kinds of normals and is answered for 4 random cameras at the
+bounding-box diagonal, scored against ray casting (accuracy, %):
 
 * as given: ``encode(pcd, normals=True)``, the normals model reading the normals as they are;
 * default: ``encode(pcd)``, which estimates normals anew where the cloud's look unoriented;
@@ -29,6 +30,7 @@ import torch
 from mesh_bench import DEFAULT_MESHES, command_line, emit_report, load_mesh, markdown, mesh_subset, sample
 from o3dvis.groundtruth import orient_normals, sample_viewpoints, visibility_from_mesh
 from o3dvis.neural import NeuralVisibility
+from o3dvis.training.data.perturb import add_noise
 
 KINDS = ("oriented", "estimate_normals()", "random signs", "facing a sensor")
 REFERENCE_VIEWS = 32
@@ -59,7 +61,7 @@ def score(vis: NeuralVisibility, mesh_path: Path, count: int, noise: float, seed
     oriented = orient_normals(points, normals, reference, visibility_from_mesh(mesh, points, reference))
     cameras = sample_viewpoints(4, center, diagonal, rng)
     truth = visibility_from_mesh(mesh, points, cameras)
-    noisy = points + rng.normal(size=points.shape) * noise * diagonal
+    noisy = add_noise(points, noise, diagonal, rng)
     sensor = center + diagonal * np.array([0.3, 0.4, 0.87])
     row = {"without normals": float((vis.encode(noisy, normals=False).query(cameras) == truth).mean())}
     for kind in KINDS:
@@ -79,7 +81,7 @@ def main() -> int:
     parser.add_argument("--meshes", type=Path, default=DEFAULT_MESHES, help=f"mesh folder (default {DEFAULT_MESHES})")
     parser.add_argument("--limit", type=int, default=None, help="this many meshes, evenly spread (default: all)")
     parser.add_argument("--points", default="2048,8192,32768,81920", help="comma-separated cloud sizes")
-    parser.add_argument("--noise", default="0,0.01", help="comma-separated noise levels (x the diagonal)")
+    parser.add_argument("--noise", default="0,0.01", help="comma-separated noise levels (fractions of the diagonal)")
     parser.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
     parser.add_argument("--out", type=Path, default=None, help="write the Markdown report here too")
     args = parser.parse_args()

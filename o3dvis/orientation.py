@@ -29,8 +29,8 @@ from .nn.octree import cell_keys, morton_decode, normalize_points
 from .threads import plan_threads, threaded_map
 
 __all__ = ["voted_normals", "oriented_planes", "nearest_neighbours", "NeighbourSearch", "fit_planes",
-           "smallest_eigenvectors", "vote", "facing_away", "visibility_affinity", "layer_sides", "surface_variation", "orient_by_vote",
-           "complete_orientation", "row_chunks"]
+           "smallest_eigenvectors", "vote", "facing_away", "visibility_affinity", "layer_sides", "surface_variation",
+           "orient_by_vote", "complete_orientation", "row_chunks"]
 
 _GRAPH_NEIGHBOURS = 10  # neighbours of a point in the graph that propagates orientation
 _CHUNK = 4096  # rows of neighbourhoods handled at once

@@ -151,9 +151,26 @@ def first_pass_normals(field: VisibilityField, points: np.ndarray, stored: bool 
     Returns:
         (N, 3) unit normals, or None.
     """
+    return estimated_normals(field, points, stored)[0]
+
+
+def estimated_normals(field: VisibilityField, points: np.ndarray, stored: bool = False,
+                      clean_only: bool = True) -> tuple[np.ndarray | None, bool]:
+    """:func:`first_pass_normals`, and whether the cloud looks clean enough for them to pay.
+
+    Args:
+        field, points, stored: as in :func:`first_pass_normals`.
+        clean_only: False estimates the normals of a cloud that looks noisy too (to compare
+            other normals with them, not to give them to the normals model).
+
+    Returns:
+        (N, 3) unit normals, or None (no plane fits, or a noisy cloud with ``clean_only``), and
+        whether the cloud looks clean.
+    """
     noise = field.noise if field.noise is not None else noise_cues(field.points, ordered=True)
-    if float(noise[0]) >= _ESTIMATE_MAX_NOISE:
-        return None
+    clean = float(noise[0]) < _ESTIMATE_MAX_NOISE
+    if clean_only and not clean:
+        return None, False
     # in the field's order along the Morton curve: neighbours close in memory make the KNN search
     # and the plane fits cache-friendly (at 200 k points 380 -> 245 ms)
     rank = None if stored or field.rank is None else field.rank.cpu().numpy()
@@ -163,17 +180,18 @@ def first_pass_normals(field: VisibilityField, points: np.ndarray, stored: bool 
         points = points[order]
     search = NeighbourSearch(points)
     near = search.query(min(_PLANE_NEIGHBOURS, len(points)))  # the weak votes' wider planes: asked later
-    if len(points) < _CUE_ALONE_POINTS:
+    if clean and len(points) < _CUE_ALONE_POINTS:
         sample = near[::max(1, len(near) // _VARIATION_SAMPLE), :_PLANE_NEIGHBOURS]
-        if np.quantile(surface_variation(points, sample), 0.25) >= _ESTIMATE_MAX_VARIATION:
-            return None
+        clean = bool(np.quantile(surface_variation(points, sample), 0.25) < _ESTIMATE_MAX_VARIATION)
+        if clean_only and not clean:
+            return None, False
     cameras = viewpoints_around(points, _ORIENTING_VIEWS)
     visibility = field.stored_probabilities(cameras).cpu().numpy()
     try:
         normals = oriented_planes(points, near, cameras, visibility, fit=_PLANE_NEIGHBOURS, search=search)
     except ValueError:  # no plane fits anywhere: every neighbourhood is one point repeated, or a line
-        return None
-    return normals if rank is None else normals[rank]
+        return None, clean
+    return (normals if rank is None else normals[rank]), clean
 
 
 def _normalize(points: Tensor, bounds: tuple[Tensor, Tensor] | None = None
@@ -371,7 +389,8 @@ class NeuralVisibility:
         points with what the network without normals sees of them, and where
         more than about a third of the vote is against them (normals from
         ``estimate_normals()``, which point either way, or ones that face a
-        sensor) the cloud is encoded as with ``"estimate"`` instead, with a
+        sensor) normals are estimated as above, and the cloud's are kept only
+        where most lie on the estimates' side; else they are ignored, with a
         warning. ``normals=True`` or an array skips that check.
 
         On the CPU, its ops split over the threads that :mod:`o3dvis.threads`
@@ -450,12 +469,13 @@ class NeuralVisibility:
         if two_pass:
             with workers_only():
                 stored = points.detach().cpu().double().index_select(0, order.cpu()).numpy()
-                normals = first_pass_normals(field, stored, stored=True)
+                normals, clean = estimated_normals(field, stored, stored=True, clean_only=doubted is None)
             if normals is not None:
                 unit = torch.from_numpy(normals).to(self.device).float()
                 if doubted is not None and float(((doubted * unit).sum(dim=1) > 0).float().mean()) >= _MIN_SAME_SIDE:
-                    unit, doubted = doubted, None  # on the estimates' side: oriented, with walls the check misjudged
-                field = self._field(self.normals_network, unit, *frame, scene=scene, shared=shared)
+                    unit, clean, doubted = doubted, True, None  # on the estimates' side: oriented after all
+                if clean:
+                    field = self._field(self.normals_network, unit, *frame, scene=scene, shared=shared)
         if doubted is not None:
             warnings.warn(f"o3dvis: the cloud's normals look unoriented ({100 * share:.0f} % of the vote of cameras "
                           "around it is against them) and are ignored, as with normals='estimate'; orient them "

@@ -106,3 +106,22 @@ def test_oriented_normals_the_check_doubts_are_kept_where_the_estimates_side_wit
     field, said = _encode(vis, _cloud(points, _unoriented(torus, "random signs")))
     assert len(said) == 1
     assert torch.equal(field.probabilities(CAMERA), vis.encode(points, normals="estimate").probabilities(CAMERA))
+
+
+def test_on_a_noisy_cloud_doubted_normals_are_kept_or_ignored_by_the_same_test(vis, torus, monkeypatch):
+    """A noisy cloud keeps one pass under normals="estimate": its estimates still tell oriented normals
+    from unoriented ones, which are then ignored (one pass without normals)."""
+    from o3dvis import neural
+    from o3dvis.training.data.perturb import add_noise
+
+    points, normals, _ = torus
+    noisy = add_noise(points, 0.03, 3.0, np.random.default_rng(2))
+    alone = vis.encode(noisy, normals=False).probabilities(CAMERA)
+    assert torch.equal(vis.encode(noisy, normals="estimate").probabilities(CAMERA), alone)  # one pass there
+    monkeypatch.setattr(neural, "_MAX_FACING_AWAY", -1.0)  # every cloud's normals doubted
+    field, said = _encode(vis, _cloud(noisy, normals))
+    assert not said
+    assert torch.equal(field.probabilities(CAMERA), vis.encode(noisy, normals=normals).probabilities(CAMERA))
+    field, said = _encode(vis, _cloud(noisy, _unoriented(torus, "random signs")))
+    assert len(said) == 1
+    assert torch.allclose(field.probabilities(CAMERA), alone, atol=1e-5)  # the one pass (threads may round apart)

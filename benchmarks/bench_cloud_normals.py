@@ -10,7 +10,7 @@ bounding-box diagonal, scored against ray casting (accuracy, %):
 * default: ``encode(pcd)``, which estimates normals anew where the cloud's look unoriented;
 * without normals: ``encode(pcd, normals=False)``, the same on every row.
 
-The ``checked`` column is the share of clouds whose normals the default took as unoriented.
+The ``checked`` column is the share of clouds whose normals the default ignored, with a warning.
 
     nice -n 10 python3 benchmarks/bench_cloud_normals.py --points 2048,8192,32768,81920 --noise 0,0.01 \\
         --out benchmarks/results/cloud_normals.md
@@ -105,7 +105,7 @@ def main() -> int:
                 cells = [f"{values[n]:.0f} %" if how == "checked" else f"{values[n]:.1f}" for n in sizes]
                 lines.append([f"{kind}, {how}", f"{noise:g}", *cells])
     report = "\n".join([command_line(), "", f"{len(paths)} meshes of {args.meshes.name}; accuracy (%) for 4 "
-                        "cameras; `checked`: clouds whose normals the default estimated anew.", "",
+                        "cameras; `checked`: clouds whose normals the default ignored.", "",
                         markdown(header, lines)])
     return emit_report(report, args.out)
 

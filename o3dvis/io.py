@@ -33,7 +33,9 @@ _PLY_TYPES = {"char": "i1", "uchar": "u1", "int8": "i1", "uint8": "u1", "short":
 _PLY_SETS = {"point": ("x", "y", "z"), "normal": ("nx", "ny", "nz"), "colour": ("red", "green", "blue")}
 _PCD_SETS = {"point": ("x", "y", "z"), "normal": ("normal_x", "normal_y", "normal_z")}
 # the PCD (TYPE, SIZE) pairs Open3D 0.20 reads as numbers from binary data, with their numpy types: it reads any
-# other pair as 0; from ASCII data it parses the text, so a double (F 8) is read there too
+# other pair as 0; from ASCII data it parses the text, so a double (F 8) is read there too. Binary doubles of
+# the points and normals are decoded here and replace the zeros it reads (not in compressed data)
+_PCD_DOUBLE = ("F", 8)
 _PCD_NUMBERS = {("F", 4): "<f4", ("I", 1): "i1", ("I", 2): "<i2", ("I", 4): "<i4", ("U", 1): "u1", ("U", 2): "<u2",
                 ("U", 4): "<u4"}
 _PCD_KEYWORDS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
@@ -317,7 +319,7 @@ def _check_pcd_numbers(path: Path, fields: list[_Field], data: str) -> None:
     Raises:
         ValueError: another TYPE, SIZE or COUNT of these fields, or both rgb and rgba.
     """
-    readable = set(_PCD_NUMBERS) | ({("F", 8)} if data == "ascii" else set())
+    readable = set(_PCD_NUMBERS) | ({_PCD_DOUBLE} if data != "binary_compressed" else set())
     allowed = ", ".join(f"{kind} {size}" for kind, size in sorted(readable))
     colours = [field for field in fields if field.name in ("rgb", "rgba")]
     for field in fields:
@@ -330,9 +332,10 @@ def _check_pcd_numbers(path: Path, fields: list[_Field], data: str) -> None:
         raise ValueError(f"{path}: the PCD colours must be one field, rgb or rgba, of SIZE 4 COUNT 1")
 
 
-def _check_pcd(path: Path, f, size: int) -> tuple[int, np.ndarray | None]:
-    """Checks a PCD file's header and data; returns its number of points and, unless compressed, their x, y, z as
-    the file declares them (decoded here, to compare with what Open3D reads)."""
+def _check_pcd(path: Path, f, size: int) -> tuple[int, np.ndarray | None, dict[str, np.ndarray]]:
+    """Checks a PCD file's header and data; returns its number of points, unless compressed their x, y, z as the
+    file declares them (decoded here, to compare with what Open3D reads), and the points and normals Open3D reads
+    as zeros from binary doubles, decoded here (``"points"``, ``"normals"``: (N, 3) float64; else empty)."""
     values = _pcd_header(path, f)
     fields = _pcd_fields(path, values)
     if "POINTS" in values:
@@ -355,22 +358,31 @@ def _check_pcd(path: Path, f, size: int) -> tuple[int, np.ndarray | None]:
             raise ValueError(f"{path}: {'truncated PCD file: ' if stats.lines < points else ''}its header declares "
                              f"{points} points ({points * numbers} numbers) but it holds {stats.lines} lines of data")
         f.seek(start)
-        return points, _text_points(path, f, 0, points, numbers, [field.column for field in xyz], "PCD data lines")
+        return points, _text_points(path, f, 0, points, numbers, [field.column for field in xyz], "PCD data lines"), {}
     data = size - start
     if kind == "binary":
         if data != points * row:
             raise ValueError(f"{path}: {'truncated PCD file: ' if data < points * row else ''}its header declares "
                              f"{points} points ({points * row} bytes) but it holds {data} bytes of data")
-        rows = np.fromfile(f, np.dtype({"names": list("xyz"), "offsets": [field.offset for field in xyz],
-                                        "formats": [_PCD_NUMBERS[field.kind, field.size] for field in xyz],
+        sets = {"points": xyz, "normals": [field for name in _PCD_SETS["normal"] for field in fields
+                                           if field.name == name]}
+        wanted = [field for group in sets.values() for field in group]
+        formats = {**_PCD_NUMBERS, _PCD_DOUBLE: "<f8"}
+        rows = np.fromfile(f, np.dtype({"names": [field.name for field in wanted],
+                                        "offsets": [field.offset for field in wanted],
+                                        "formats": [formats[field.kind, field.size] for field in wanted],
                                         "itemsize": row}), points)
-        return points, np.stack([rows[name] for name in "xyz"], axis=1).astype(np.float64)
+        decoded = {key: np.stack([rows[field.name] for field in group], axis=1).astype(np.float64)
+                   for key, group in sets.items() if group}
+        doubles = {key: decoded[key] for key, group in sets.items()
+                   if any((field.kind, field.size) == _PCD_DOUBLE for field in group)}
+        return points, decoded["points"], doubles
     sizes = np.frombuffer(f.read(8), dtype="<u4")
     if len(sizes) < 2 or sizes[0] > data - 8 or sizes[1] != points * row or not _lzf_complete(
             f.read(int(sizes[0])), int(sizes[1])):
         raise ValueError(f"{path}: truncated or corrupted compressed PCD file ({data} bytes of data "
                          f"for {points} points)")
-    return points, None
+    return points, None, {}
 
 
 def _lzf_complete(data: bytes, size: int) -> bool:
@@ -458,12 +470,12 @@ def read_point_cloud(path: str | Path):
     suffix = path.suffix.lower()
     if suffix not in SUFFIXES:
         raise ValueError(f"{path}: unknown point cloud format {path.suffix!r}; use one of {', '.join(SUFFIXES)}")
-    size, declared = path.stat().st_size, None
+    size, declared, doubles = path.stat().st_size, None, {}
     with open(path, "rb") as f:
         if suffix == ".ply":
             expected, declared = _check_ply(path, f, size)
         elif suffix == ".pcd":
-            expected, declared = _check_pcd(path, f, size)
+            expected, declared, doubles = _check_pcd(path, f, size)
         else:
             expected = _check_text(path, f, suffix)
     pcd = o3d.io.read_point_cloud(str(path), format="auto")
@@ -473,6 +485,9 @@ def read_point_cloud(path: str | Path):
         raise ValueError(f"{path}: {len(points)} points could be read where the file holds {expected}{detail}")
     if len(points) == 0:
         raise ValueError(f"no points could be read from {path}")
+    for key, values in doubles.items():  # binary doubles, which Open3D reads as zeros
+        setattr(pcd, key, o3d.utility.Vector3dVector(values))
+    points = np.asarray(pcd.points)
     if declared is not None and not np.array_equal(points, declared, equal_nan=True):
         wrong = np.flatnonzero(~((points == declared) | (np.isnan(points) & np.isnan(declared))).all(axis=1))
         raise ValueError(f"{path}: Open3D read {len(wrong)} of {len(points)} points otherwise than the file declares "

@@ -680,8 +680,8 @@ FILE_CASES: dict[str, tuple[str, bytes | None, str]] = {
     "PCD of TYPE F SIZE 2": ("half.pcd", _pcd("binary", 10, SPHERE[:10].astype(np.float16).tobytes(), sizes="2 2 2"),
                              "'x' is TYPE F SIZE 2"),
     "PCD of TYPE F SIZE 1": ("byte.pcd", _pcd("binary", 10, bytes(30), sizes="1 1 1"), "'x' is TYPE F SIZE 1"),
-    "binary PCD of TYPE F SIZE 8": ("double.pcd", _pcd("binary", 10, SPHERE[:10].tobytes(), sizes="8 8 8"),
-                                    "'x' is TYPE F SIZE 8.*binary"),
+    "compressed PCD of TYPE F SIZE 8": ("double.pcd", _pcd("binary_compressed", 10, lzf_literal(
+        SPHERE[:10].tobytes()), sizes="8 8 8"), "'x' is TYPE F SIZE 8.*binary_compressed"),
     "PCD with x of COUNT 2": ("count.pcd", _pcd("binary", 10, np.c_[SPHERE[:10, :1], SPHERE[:10]].astype(
         np.float32).tobytes(), counts="2 1 1"), "'x' is TYPE F SIZE 4 COUNT 2"),
     "PCD with a TYPE letter not F, I or U": ("type.pcd", _pcd("binary", 10, _FLOATS, types="F F Q"),
@@ -779,6 +779,35 @@ def test_cli_refuses_a_pcd_that_crashes_open3d_in_a_child_process(tmp_path, case
     assert err and "Traceback" not in run.stderr, run.stderr[-2000:]
     assert err[-1].startswith("o3dvis visible: error: ") and __import__("re").search(message, err[-1]), err[-1]
     assert sorted(p.name for p in tmp_path.iterdir()) == [file_name]
+
+
+@pytest.mark.parametrize("normals", ["F 8", "F 4", None])
+def test_a_binary_pcd_of_doubles_is_read_as_its_doubles(tmp_path, normals):
+    """Open3D reads binary 8-byte floats as zeros: the reader decodes the points' and normals' own."""
+    from o3dvis.io import read_point_cloud
+
+    rng = np.random.default_rng(4)
+    points, unit = rng.normal(size=(200, 3)), SPHERE[rng.integers(0, len(SPHERE), 200)]
+    names, sizes, columns = "x y z", "8 8 8", [points]
+    if normals is not None:
+        size = normals.split()[1]
+        names, sizes = names + " normal_x normal_y normal_z", f"{sizes} {size} {size} {size}"
+    layout = [("xyz", "<f8", (3,))] + ([("n", f"<f{normals.split()[1]}", (3,))] if normals else [])
+    table = np.zeros(len(points), layout)
+    table["xyz"] = points
+    if normals:
+        table["n"] = unit
+    count = len(names.split())
+    header = (f"VERSION 0.7\nFIELDS {names}\nSIZE {sizes}\nTYPE {' '.join(['F'] * count)}\n"
+              f"COUNT {' '.join(['1'] * count)}\nWIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
+              f"POINTS {len(points)}\nDATA binary\n")
+    path = tmp_path / "doubles.pcd"
+    path.write_bytes(header.encode() + table.tobytes())
+    read = read_point_cloud(path)
+    np.testing.assert_array_equal(np.asarray(read.points), points)
+    assert read.has_normals() == (normals is not None)
+    if normals:
+        np.testing.assert_array_equal(np.asarray(read.normals), table["n"].astype(np.float64))
 
 
 @pytest.mark.parametrize("suffix, options", [(".ply", {}), (".ply", {"write_ascii": True}), (".pcd", {}),

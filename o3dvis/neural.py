@@ -459,7 +459,7 @@ class NeuralVisibility:
             scene = functools.partial(self._field, self.scene_network, None, *frame)
         doubted, share = None, 0.0  # the cloud's own normals where they look unoriented, and why
         if check and hull is None:
-            share = self._facing_away(points.index_select(0, order.to(points.device)), unit)
+            share = self._facing_away(points, order, unit)
             if share > _MAX_FACING_AWAY:
                 doubted, network, unit, estimate = unit, self._points_network(len(points)), None, True
         # a flat cloud hides nothing from off its plane: one pass is exact there
@@ -483,18 +483,18 @@ class NeuralVisibility:
                           stacklevel=4)
         return field
 
-    def _facing_away(self, points: Tensor, normals: Tensor) -> float:
+    def _facing_away(self, points: Tensor, order: Tensor, normals: Tensor) -> float:
         """How much of the vote of cameras around a cloud (:func:`~o3dvis.orientation.facing_away`)
-        on the normals of :data:`_CHECK_POINTS` of its points, evenly spread along ``points``' order,
-        is against them, with the cameras' answers from the points-only network's encoding of those
-        points alone."""
-        rows = torch.arange(0, len(points), max(1, len(points) // _CHECK_POINTS), device=points.device)
-        sample = points.index_select(0, rows)
+        on the normals (in Morton ``order``) of :data:`_CHECK_POINTS` of its points, evenly spread
+        along that order, is against them, with the cameras' answers from the points-only network's
+        encoding of those points alone."""
+        rows = torch.arange(0, len(order), max(1, len(order) // _CHECK_POINTS), device=order.device)
+        sample = points.index_select(0, order.index_select(0, rows).to(points.device))
         field = self._encode_points(self._points_network(len(rows)), None, sample, None)
         sample = sample.detach().cpu().double().numpy()
         cameras = viewpoints_around(sample, _CHECK_VIEWS)
-        return facing_away(sample, normals.index_select(0, rows).detach().cpu().double().numpy(), cameras,
-                           field.probabilities(cameras).cpu().numpy())
+        sampled = normals.index_select(0, rows.to(normals.device)).detach().cpu().double().numpy()
+        return facing_away(sample, sampled, cameras, field.probabilities(cameras).cpu().numpy())
 
     def _field(self, network: VisibilityNetwork, unit: Tensor | None, normalized: Tensor, center: Tensor,
                scale: Tensor, bounds: tuple[Tensor, Tensor], hull: tuple[Tensor, Tensor] | None, rank: Tensor,

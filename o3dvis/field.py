@@ -24,20 +24,20 @@ import torch
 from torch import Tensor
 
 from .cameras import Views, as_views
-from .geometry import lengths
+from .geometry import within_range
 from .nn import native
 from .nn.network import VisibilityNetwork
 from .nn.cues import point_surfels
 from .nn.features import LeafFeatures
+from .nn.frame import CloudFrame
 from .nn.zbuffer import surfel_zbuffer
 from .threads import plan_threads, threaded_map, torch_threads
 
-__all__ = ["VisibilityField", "RotatedEncoding", "DEFAULT_CHUNK", "checked_range", "inside_box", "OnPointError"]
+__all__ = ["VisibilityField", "RotatedEncoding", "DEFAULT_CHUNK", "checked_range", "OnPointError"]
 
 DEFAULT_CHUNK = 1 << 15
 """Rows (views x points) that one predictor call processes at most: small enough for the cache."""
 
-_INSIDE_TOL = 1e-6
 _FAR_VIEW = 1e3
 """A camera farther than this many bounding-box diagonals from the cloud's centre is answered as
 the orthographic view in its direction, the limit of ever farther cameras. The per-view steps work
@@ -95,14 +95,6 @@ def checked_range(max_range) -> float | None:
     return float(max_range)
 
 
-def inside_box(positions: Tensor, bounds: tuple[Tensor, Tensor]) -> Tensor:
-    """(V,) bool: which of the (V, 3) positions lie in the box ``bounds``, up to a tolerance."""
-    lo, hi = bounds
-    tol = _INSIDE_TOL * (hi - lo).amax() / 2
-    positions = positions.detach()
-    return ((positions >= lo - tol) & (positions <= hi + tol)).all(dim=1)
-
-
 class RotatedEncoding(NamedTuple):
     """The U-Net's features of a cloud turned by ``rotation`` and normalised anew.
 
@@ -133,8 +125,9 @@ class VisibilityField:
     batches of views of at most ``chunk_size`` rows (views x points), the
     points of a view cut into such chunks too where the torch ops answer it
     or its chunks run side by side on several threads.
-    For a flat cloud (``hull``: centre and basis of its plane or line, in the
-    normalised frame), views from off that plane or line see every point.
+    ``frame`` is the cloud's normalisation (:class:`~o3dvis.nn.frame.CloudFrame`):
+    ``points`` are in its frame; for a flat cloud (the frame's ``hull``), views
+    from off its plane or line see every point.
     With ``rotated`` encodings (see ``NeuralVisibility(num_rotations=...)``),
     a probability is the mean of the network's answers in every frame.
     ``calibration``: the ``(scale, shift)`` that a calibrated network applies
@@ -155,22 +148,22 @@ class VisibilityField:
     """
 
     def __init__(self, network: VisibilityNetwork, features: Tensor | LeafFeatures, points: Tensor,
-                 normals: Tensor | None, center: Tensor, scale: Tensor, bounds: tuple[Tensor, Tensor],
-                 chunk_size: int = DEFAULT_CHUNK, hull: tuple[Tensor, Tensor] | None = None,
+                 normals: Tensor | None, frame: CloudFrame, *, chunk_size: int = DEFAULT_CHUNK,
                  rank: Tensor | None = None, rotated: Sequence[RotatedEncoding] = (),
                  calibration: tuple[float, float] | None = None, matmul_dtype: torch.dtype = torch.float32,
                  scene: Callable[[], "VisibilityField"] | None = None, noise: Tensor | None = None):
         self.network = network
+        self.encoders: tuple[VisibilityNetwork, ...] = (network,)
+        """The networks whose answers made the features: ``network``, after the first pass's of a
+        two-pass encoding (:mod:`o3dvis.two_pass`)."""
         # the features as encoded, per leaf (or per point), and carried to every point on first use
         self._leaves = features if isinstance(features, LeafFeatures) else None
         self._features = None if self._leaves is not None else features
         self._queried = False
         self.points = points
         self.normals = normals
-        self.center, self.scale = center, scale
-        self.bounds = bounds
+        self.frame = frame
         self.chunk_size = chunk_size
-        self.hull = hull
         self.rank = rank
         self.rotated = tuple(rotated)
         self.calibration = calibration
@@ -228,19 +221,17 @@ class VisibilityField:
         dtype = self.points.dtype
         if views.directions is not None:
             return None, views.directions.to(self.device).to(dtype), [True] * len(views)
-        positions = views.positions.to(self.device)
-        lo, hi = self.bounds
-        offsets = (positions - self.center) / self.scale  # float64: exact enough at any distance
+        offsets = self.frame.to_unit(views.positions.to(self.device))  # float64: exact enough at any distance
         # scaled by the largest coordinate first, so that no norm overflows
         largest = offsets.detach().abs().amax(dim=1, keepdim=True).clamp_min(torch.finfo(offsets.dtype).tiny)
         directions = -torch.nn.functional.normalize(offsets / largest, dim=1)
         # in the normalised frame: the world's diagonal squared underflows below 1e-154, overflows above 1e154
-        far = offsets.detach().norm(dim=1) > _FAR_VIEW * ((hi - lo) / self.scale).norm()
+        far = offsets.detach().norm(dim=1) > _FAR_VIEW * self.frame.unit_diagonal
         return offsets.to(dtype), directions.to(dtype), far.tolist()
 
     def _inside(self, views: Views) -> Tensor | None:
         """(V,) bool: the cameras inside the cloud's bounding box (None for directions)."""
-        return None if views.positions is None else inside_box(views.positions.to(self.device), self.bounds)
+        return None if views.positions is None else self.frame.contains(views.positions.to(self.device))
 
     def _scene_field(self) -> "VisibilityField":
         """The field answering cameras inside the bounding box, encoded on first use (thread-safe)."""
@@ -279,9 +270,9 @@ class VisibilityField:
         rotated = [e._replace(features=channels_first(e.features), points=rows(e.points), normals=rows(e.normals))
                    for e in self.rotated]
         features = channels_first(self._features) if self._leaves is None else self._leaves.restricted(kept)
-        return VisibilityField(self.network, features, rows(self.points), rows(self.normals),
-                               self.center, self.scale, self.bounds, self.chunk_size, self.hull, None, rotated,
-                               self.calibration, self.matmul_dtype, noise=self.noise)
+        return VisibilityField(self.network, features, rows(self.points), rows(self.normals), self.frame,
+                               chunk_size=self.chunk_size, rotated=rotated, calibration=self.calibration,
+                               matmul_dtype=self.matmul_dtype, noise=self.noise)
 
     def _cropped(self, view: Views, max_range: float) -> Tensor:
         """(1, N) probabilities, in the cloud's order, of one view that sees only the points within
@@ -289,8 +280,7 @@ class VisibilityField:
         cameras, _, _ = self._normalised(view)
         if cameras is None:
             raise ValueError("max_range needs camera positions, not viewing directions")
-        reach = lengths(self.points - cameras[0].detach()) <= max_range / float(self.scale)
-        kept = reach.nonzero()[:, 0]
+        kept = within_range(self.points, cameras[0].detach(), max_range / float(self.frame.scale))
         probs = self.points.new_zeros(1, self.num_points)
         if len(kept):
             near = torch.cat([p for _, p in self._restricted(kept)._batches(view)], dim=1)
@@ -317,9 +307,9 @@ class VisibilityField:
         a millionth of the cloud's extent of one (zero when all points coincide). Only a camera inside
         the bounding box (``inside``) can be. The points are float32 in the normalised frame: a distance
         below their rounding (a cloud stretched by a far outlier) is given as that bound, not as a figure."""
-        lo, hi = self.bounds
-        tol = float(_INSIDE_TOL * (hi - lo).amax() / 2)
-        rounding = 3 ** 0.5 * torch.finfo(self.points.dtype).eps * float(self.scale)
+        lo, hi = self.frame.bounds
+        tol = float(self.frame.tolerance())
+        rounding = 3 ** 0.5 * torch.finfo(self.points.dtype).eps * float(self.frame.scale)
         for i in inside.nonzero()[:, 0].tolist():
             gap = self._nearest_distance(positions[i].detach().to(self.device))
             if gap <= tol:
@@ -331,24 +321,11 @@ class VisibilityField:
     def _nearest_distance(self, position: Tensor) -> float:
         """The distance from a (3,) position in the cloud's frame to its nearest point: one pass over
         the points, in chunks (linear in N, the cost of one view's projection)."""
-        camera = ((position - self.center) / self.scale).to(self.points.dtype)
+        camera = self.frame.to_unit(position).to(self.points.dtype)
         step = 1 << 20
         nearest = min(float((self.points[a:a + step] - camera).square().sum(dim=1).min())
                       for a in range(0, self.num_points, step))
-        return float(nearest) ** 0.5 * float(self.scale)
-
-    def _off_the_hull(self, views: Views) -> Tensor | None:
-        """(V,) bool: the views from off the plane or line of a flat cloud (None for a 3-D cloud)."""
-        if self.hull is None:
-            return None
-        centre, basis = self.hull
-        if views.directions is not None:
-            offset, tol = views.directions.detach().to(self.device), _INSIDE_TOL
-        else:
-            lo, hi = self.bounds
-            offset = (views.positions.detach().to(self.device) - self.center) / self.scale - centre
-            tol = _INSIDE_TOL * (hi - lo).amax() / 2 / self.scale
-        return (offset - (offset @ basis.T) @ basis).norm(dim=1) > tol
+        return float(nearest) ** 0.5 * float(self.frame.scale)
 
     def _checked_indices(self, indices) -> Tensor | None:
         """``indices`` as a checked (M,) long tensor on the field's device (None: all points)."""
@@ -439,7 +416,7 @@ class VisibilityField:
         the views). Every point occludes, whichever rows are asked for. ``stored``: ``rows`` and
         the answers in the order the points are stored in (along the Morton curve), not the cloud's."""
         cameras, directions, orthographic = self._normalised(views)
-        clear = self._off_the_hull(views)
+        clear = self.frame.off_the_hull(views.positions, views.directions)
         n, total = self.num_points if rows is None else len(rows), len(views)
         unsort = None  # the columns, in the cloud's order, of an answer for all stored rows
         if self.rank is not None and not stored:
@@ -466,7 +443,7 @@ class VisibilityField:
                 probs = probs / len(frames)
             if clear is not None:  # a flat cloud seen from off its plane or line hides nothing
                 probs = torch.where(clear[batch, None], torch.ones_like(probs), probs)
-            masks = [(j, f.contains(asked_points, self.center, self.scale))
+            masks = [(j, f.contains(asked_points, self.frame.center, self.frame.scale))
                      for j, f in enumerate(views.frustums[batch]) if f is not None]
             if masks:
                 keep = torch.ones_like(probs, dtype=torch.bool)

@@ -203,7 +203,7 @@ def test_field_fuses_camera_views_and_keeps_directions(tmp_path):
     with torch.inference_mode():  # as the field computes them (with the C kernels, where built)
         surfels = point_surfels(field.points, areas=True)
     for j, camera in enumerate(cameras):
-        cam = ((torch.from_numpy(camera) - field.center) / field.scale).float()
+        cam = field.frame.to_unit(torch.from_numpy(camera)).float()
         answers = surfel_zbuffer(field.points, surfels, cam)[rank]
         expected = torch.sigmoid(loaded.fusion(margin[j], zbuffer_inputs(answers), field.noise)).double()
         keep = p[j].sub(0.5).abs() < 0.49  # away from float32 saturation of the plain margins

@@ -24,6 +24,7 @@ runs only with ``O3DVIS_LARGE=1`` (see benchmarks/large_cloud.py for time and me
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -615,8 +616,8 @@ def test_a_flat_cloud_is_all_visible_from_off_its_plane_and_left_to_the_network_
     in_plane = tilted.mean(axis=0) + 3 * (tilted[-1] - tilted[0])
     for cloud in (tilted, noisy):
         field = vis.encode(cloud)
-        raw = o3dvis.VisibilityField(field.network, field.features, field.points, None, field.center,
-                                     field.scale, field.bounds, rank=field.rank,
+        raw = o3dvis.VisibilityField(field.network, field.features, field.points, None,
+                                     dataclasses.replace(field.frame, hull=None), rank=field.rank,
                                      matmul_dtype=field.matmul_dtype)  # without the flat rule
         off = [tilted.mean(axis=0) + 4 * normal, tilted.mean(axis=0) - 5 * normal]
         assert (field.probabilities(off) == 1).all() and not (raw.probabilities(off) == 1).all()
@@ -625,7 +626,7 @@ def test_a_flat_cloud_is_all_visible_from_off_its_plane_and_left_to_the_network_
         torch.testing.assert_close(field.probabilities(direction=tilted[1] - tilted[0]),
                                    raw.probabilities(direction=tilted[1] - tilted[0]), rtol=0, atol=0)
     sphere = vis.encode(SPHERE)
-    assert sphere.hull is None and not (sphere.probabilities(CAMERA) == 1).all()
+    assert sphere.frame.hull is None and not (sphere.probabilities(CAMERA) == 1).all()
 
 
 # ------------------------------------------------------------------------------ the CLI's readers

@@ -139,18 +139,18 @@ def test_a_height_field_a_hair_off_flat_is_answered_as_the_flat_one(vis, bump):
     flat = vis.encode(np.c_[GRID, np.zeros(len(GRID))])
     for amplitude in (1e-12, 1e-9, 1e-7):
         field = vis.encode(np.c_[GRID, amplitude * z])
-        assert field.hull is not None, f"a bump of {amplitude:g} makes the cloud 3-D"
+        assert field.frame.hull is not None, f"a bump of {amplitude:g} makes the cloud 3-D"
         mask = field.query(cameras)
         assert mask.all(), f"bump {amplitude:g}: {(~mask).sum(axis=1)} points hidden"
         np.testing.assert_array_equal(mask, flat.query(cameras))
-    assert vis.encode(np.c_[GRID, 1e-3 * z]).hull is None  # a real relief is left to the network
+    assert vis.encode(np.c_[GRID, 1e-3 * z]).frame.hull is None  # a real relief is left to the network
 
 
 def test_the_flat_rule_is_relative_to_the_size_of_the_cloud(vis):
     z = 1e-9 * np.random.default_rng(1).normal(size=len(GRID))
     for size in (1e-6, 1.0, 1e6):
-        assert vis.encode(size * np.c_[GRID, z]).hull is not None
-        assert vis.encode(size * np.c_[GRID, 1e-3 * z / 1e-9]).hull is None
+        assert vis.encode(size * np.c_[GRID, z]).frame.hull is not None
+        assert vis.encode(size * np.c_[GRID, 1e-3 * z / 1e-9]).frame.hull is None
 
 
 # ------------------------------------------------------------------ pinhole intrinsics

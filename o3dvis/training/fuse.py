@@ -116,7 +116,7 @@ def fuse(checkpoint: str | Path, data: list[str | Path], out: str | Path, clouds
         field = vis.encode(cloud.points)
         p = field.probabilities(cloud.cameras).double().clamp(1e-7, 1 - 1e-7)
         margin = torch.log(p) - torch.log1p(-p)
-        cameras = ((torch.as_tensor(cloud.cameras) - field.center) / field.scale).to(field.points.dtype)
+        cameras = field.frame.to_unit(torch.as_tensor(cloud.cameras)).to(field.points.dtype)
         with torch.inference_mode():  # as the fused network's field computes them (C kernels, where built)
             surfels = point_surfels(field.points, areas=True)
             answers = torch.stack([surfel_zbuffer(field.points, surfels, c) for c in cameras])

@@ -16,7 +16,7 @@ estimation of :mod:`o3dvis.apps.normals`.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -24,24 +24,14 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
+from .neighbours import NeighbourSearch, nearest_neighbours
 from .nn import native
-from .nn.octree import cell_keys, morton_decode, normalize_points
-from .threads import plan_threads, threaded_map
+from .threads import on_threads, row_chunks
 
-__all__ = ["voted_normals", "oriented_planes", "nearest_neighbours", "NeighbourSearch", "fit_planes",
-           "smallest_eigenvectors", "vote", "facing_away", "visibility_affinity", "layer_sides", "surface_variation",
-           "orient_by_vote", "complete_orientation", "row_chunks"]
+__all__ = ["voted_normals", "oriented_planes", "fit_planes", "smallest_eigenvectors", "vote", "facing_away",
+           "visibility_affinity", "layer_sides", "surface_variation", "orient_by_vote", "complete_orientation"]
 
 _GRAPH_NEIGHBOURS = 10  # neighbours of a point in the graph that propagates orientation
-_CHUNK = 4096  # rows of neighbourhoods handled at once
-_GRID_DEPTH = 16  # the finest grid of the neighbour search
-_CELL_POINTS = 6  # points per occupied cell the neighbour search's grid aims at, at least
-_GRID_MIN_POINTS = 2_000  # smaller clouds are searched with a k-d tree (faster there)
-_KEY_SLACK = 1e-6  # how far off its cell float32 keys may put a point, in normalised coordinates
-_PARALLEL_ROWS = 8192  # rows below which the plane fits, the votes and the search run on one thread
-# (row, point) distances the search again computes before taking a k-d tree: 2^24 take about as
-# long as building one for 200 k points
-_BRUTE_FORCE_PAIRS = 1 << 24
 # the scale of the visibility differences that weigh a plane fit's neighbours (visibility_affinity):
 # on the validation meshes 0.1 gave the normals model 0.3-0.75 point more than unweighted fits at
 # 2-32 k points (0.05: as good; 0.03 and 0.3: 0.1-0.3 point less)
@@ -57,141 +47,6 @@ _WEAK_AGREEMENT = 0.6
 LAYER_NEIGHBOURS = 16
 
 
-def row_chunks(count: int, size: int = _CHUNK, start: int = 0) -> list[slice]:
-    """Slices of ``size`` rows covering ``start..count``: per-neighbour temporaries of a chunk stay in cache."""
-    return [slice(first, min(first + size, count)) for first in range(start, count, size)]
-
-
-def _on_threads(fn: Callable[[slice], object], count: int) -> Iterator:
-    """``fn`` of a share of ``count`` rows on each of the threads the load allows (one below
-    :data:`_PARALLEL_ROWS` rows), in order: for C kernels and numpy ops, which let go of the GIL."""
-    workers = plan_threads(count, _PARALLEL_ROWS)
-    return _side_by_side(fn, row_chunks(count, -(-count // workers) if count else 1), workers)
-
-
-def _side_by_side(fn: Callable, items: list, workers: int) -> Iterator:
-    """``map(fn, items)``: on ``workers`` threads, or on the caller's alone for one."""
-    return map(fn, items) if workers == 1 else threaded_map(fn, items, workers)
-
-
-def nearest_neighbours(points: np.ndarray, k: int) -> np.ndarray:
-    """(N, k) indices of the ``k`` nearest points to each point, itself included, nearest first (the
-    order of equally near ones is left open), as ``cKDTree(points).query(points, k)`` finds them.
-
-    Where the package's kernels are built, the points are bucketed in the cells of a grid with about
-    :data:`_CELL_POINTS` points in each occupied one and each point's neighbours are sought among
-    the 27 cells around it, in one pass of C (``native.grid_knn``); a point whose k-th neighbour is
-    not nearer than the border of those cells, in a sparse corner of the cloud, is searched again
-    among all points. The grid is the octree's (:func:`~o3dvis.nn.octree.cell_keys`), so points in
-    the order of an encoding are sorted by cell already and are not moved. Small clouds and ``k``
-    over 64 take a k-d tree. :class:`NeighbourSearch` asks again for some of the points.
-
-    Args:
-        points: (N, 3) finite points.
-        k: neighbours per point (at most N).
-
-    Returns:
-        (N, k) int64 indices.
-    """
-    return NeighbourSearch(points).query(k)
-
-
-class NeighbourSearch:
-    """:func:`nearest_neighbours` of one cloud, asked for all its points or some, as often as
-    needed: the grid (or the k-d tree) is made once.
-
-    Args:
-        points: (N, 3) finite points.
-    """
-
-    def __init__(self, points: np.ndarray):
-        self.points = points
-        self._tree: cKDTree | None = None
-        self._grid: tuple | None = None
-
-    def query(self, k: int, rows: np.ndarray | None = None) -> np.ndarray:
-        """(M, k) int64: the ``k`` nearest points (at most N) to each of the points ``rows``
-        ((M,) indices; None: all), nearest first, as :func:`nearest_neighbours` finds them."""
-        count = len(self.points)
-        asked = np.arange(count) if rows is None else np.asarray(rows, dtype=np.int64)
-        if not (native.available() and count >= _GRID_MIN_POINTS and k <= 64):
-            if self._tree is None:
-                self._tree = cKDTree(self.points, balanced_tree=False)
-            return self._tree.query(self.points[asked], k=k, workers=-1)[1].reshape(len(asked), k)
-        grid = self._grid_of()
-        if grid is None:  # one point, repeated
-            return np.broadcast_to(np.arange(k), (len(asked), k)).copy()
-        order, ordered, first, tensors, level, corner, side = grid
-        near, exact = torch.empty((count, k), dtype=torch.long), torch.empty(count, dtype=torch.uint8)
-        if ordered:  # the rows' places in the sorted points
-            place = asked
-        else:
-            inverse = np.empty_like(order)
-            inverse[order] = np.arange(count)
-            place = inverse[asked]
-        cells = wanted = None
-        if rows is not None:  # the cells holding the rows, and in them the rows alone
-            cells = torch.from_numpy(np.unique(np.searchsorted(first, place, side="right") - 1))
-            wanted = torch.zeros(count, dtype=torch.bool)
-            wanted[torch.from_numpy(place)] = True
-        todo = len(first) if cells is None else len(cells)
-        workers = plan_threads(len(asked), 2 * _PARALLEL_ROWS)
-        bounds = (np.searchsorted(first, np.linspace(0, count, workers + 1)[1:-1]).tolist() if cells is None else
-                  np.linspace(0, todo, workers + 1)[1:-1].astype(int).tolist())
-        ranges = list(zip([0, *bounds], [*bounds, todo]))
-        for _ in _side_by_side(lambda span: native.grid_knn(*tensors, level, corner, side, _KEY_SLACK, k, span, near,
-                                                            exact, cells, wanted), ranges, workers):
-            pass
-        every = rows is None and ordered  # the rows as the kernel wrote them
-        found = near.numpy() if every else near.numpy()[place]
-        result = found if ordered else order[found]
-        again = np.flatnonzero((exact.numpy() if every else exact.numpy()[place]) == 0)
-        if len(again):
-            result[again] = _nearest_by_search(self.points, asked[again], k)
-        return result
-
-    def _grid_of(self) -> tuple | None:
-        """The grid's arrays (made on first use), None for a cloud of one point repeated."""
-        if self._grid is None:
-            points = np.ascontiguousarray(self.points, dtype=np.float64)
-            count = len(points)
-            normalised, _, scale = normalize_points(torch.from_numpy(points))
-            if float(scale) <= torch.finfo(torch.float64).tiny:
-                return None
-            keys = cell_keys(normalised.float(), _GRID_DEPTH).numpy()  # as the octree's: an encoding's order sorts them
-            order = np.argsort(keys, kind="stable")
-            ordered = bool((order[1:] > order[:-1]).all())
-            sorted_points = normalised.numpy() if ordered else normalised.numpy()[order]
-            keys = keys if ordered else keys[order]
-            level = 1  # the finest grid whose occupied cells hold _CELL_POINTS points on average
-            while level < _GRID_DEPTH and count >= _CELL_POINTS * _occupied(keys, 3 * (_GRID_DEPTH - level - 1)):
-                level += 1
-            coarse = keys >> (3 * (_GRID_DEPTH - level))
-            first = np.flatnonzero(np.diff(coarse, prepend=-1))
-            unique = torch.from_numpy(coarse[first])
-            tensors = [torch.from_numpy(sorted_points), morton_decode(unique, level), unique,
-                       torch.from_numpy(np.append(first, count)), native.key_table(unique)]
-            self._grid = (order, ordered, first, tensors, level, torch.full((3,), -1.0, dtype=torch.float64),
-                          2.0 / (1 << level))
-        return self._grid
-
-
-def _occupied(sorted_keys: np.ndarray, shift: int) -> int:
-    """How many cells the sorted fine ``sorted_keys`` occupy on the grid ``shift`` bits coarser."""
-    coarse = sorted_keys >> shift
-    return 1 + int(np.count_nonzero(coarse[1:] != coarse[:-1]))
-
-
-def _nearest_by_search(points: np.ndarray, rows: np.ndarray, k: int) -> np.ndarray:
-    """(len(rows), k) the ``k`` nearest points to ``points[rows]``, nearest first: by their distances
-    to all points in C for a few rows (the grid's kernels are built wherever this is asked), by a
-    k-d tree for many."""
-    if len(rows) * len(points) > _BRUTE_FORCE_PAIRS:
-        return cKDTree(points, balanced_tree=False).query(points[rows], k=k, workers=-1)[1].reshape(-1, k)
-    return native.brute_knn(torch.from_numpy(np.ascontiguousarray(points, dtype=np.float64)),
-                            torch.from_numpy(np.asarray(rows, dtype=np.int64)), k).numpy()
-
-
 def fit_planes(points: np.ndarray, neighbours: np.ndarray, weight: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals (M, 3) of weighted least-squares planes through rows of neighbours (M, K), and
@@ -204,7 +59,7 @@ def fit_planes(points: np.ndarray, neighbours: np.ndarray, weight: np.ndarray | 
         points, neighbours = (torch.from_numpy(np.ascontiguousarray(a, dtype=t)) for a, t in (
             (points, np.float64), (neighbours, np.int64)))
         weight = None if weight is None else torch.from_numpy(np.ascontiguousarray(weight, dtype=np.float64))
-        parts = list(_on_threads(lambda rows: native.fit_planes(
+        parts = list(on_threads(lambda rows: native.fit_planes(
             points, neighbours[rows], None if weight is None else weight[rows]), len(neighbours)))
         return torch.cat([n for n, _ in parts]).numpy(), torch.cat([p for _, p in parts]).numpy()
     weight = np.ones(neighbours.shape) if weight is None else weight
@@ -324,7 +179,7 @@ def _votes(points: np.ndarray, normals: np.ndarray, cameras: np.ndarray, visibil
     if native.available() and len(cameras):  # one pass of C over the points, a camera at a time
         tensors = [torch.from_numpy(np.ascontiguousarray(a, dtype=t)) for a, t in (
             (points, np.float64), (normals, np.float64), (cameras, np.float64), (visibility, np.float32))]
-        parts = list(_on_threads(lambda rows: native.votes(*tensors, rows), len(points)))
+        parts = list(on_threads(lambda rows: native.votes(*tensors, rows), len(points)))
         return tuple(torch.cat([part[k] for part in parts]).numpy() if parts else np.empty(0) for k in (0, 1))
     vote, agreement = np.empty(len(points)), np.empty(len(points))
 
@@ -339,7 +194,7 @@ def _votes(points: np.ndarray, normals: np.ndarray, cameras: np.ndarray, visibil
         vote[rows] = terms.sum(axis=1)
         agreement[rows] = np.abs(vote[rows]) / np.maximum(np.abs(terms).sum(axis=1), 1e-300)
 
-    for _ in _on_threads(lambda rows: [chunk(part) for part in row_chunks(rows.stop, start=rows.start)],
+    for _ in on_threads(lambda rows: [chunk(part) for part in row_chunks(rows.stop, start=rows.start)],
                          len(points)):
         pass
     return vote, agreement
@@ -387,7 +242,7 @@ def visibility_affinity(visibility: np.ndarray, neighbours: np.ndarray, scale: f
     if native.available():
         table = native.affinity_table(torch.from_numpy(np.asarray(visibility, dtype=np.float32)))
         near = torch.from_numpy(np.ascontiguousarray(neighbours, dtype=np.int64))
-        return torch.cat(list(_on_threads(lambda rows: native.visibility_affinity(
+        return torch.cat(list(on_threads(lambda rows: native.visibility_affinity(
             table, len(visibility), near[rows], rows.start, scale, _AFFINITY_FLOOR), len(neighbours)))).numpy()
     table = np.ascontiguousarray(visibility.T, dtype=np.float32)  # (N, V): a point's answers together
     weight = np.empty(neighbours.shape, dtype=np.float64)
@@ -396,7 +251,7 @@ def visibility_affinity(visibility: np.ndarray, neighbours: np.ndarray, scale: f
         squared = np.square(table[neighbours[rows]] - table[rows, None]).mean(axis=2)
         weight[rows] = np.maximum(np.exp(squared * (-1.0 / scale ** 2)), _AFFINITY_FLOOR)
 
-    for _ in _on_threads(lambda rows: [chunk(part) for part in row_chunks(rows.stop, start=rows.start)],
+    for _ in on_threads(lambda rows: [chunk(part) for part in row_chunks(rows.stop, start=rows.start)],
                          len(neighbours)):
         pass
     return weight

@@ -11,7 +11,8 @@ from scipy.spatial import cKDTree
 from o3dvis.cameras import viewpoints_around
 from o3dvis.nn import native
 from o3dvis.nn.octree import morton_order, normalize_points
-from o3dvis.orientation import (layer_sides, nearest_neighbours, surface_variation, visibility_affinity, vote,
+from o3dvis.neighbours import nearest_neighbours
+from o3dvis.orientation import (layer_sides, surface_variation, visibility_affinity, vote,
                                 voted_normals)
 
 
@@ -184,7 +185,7 @@ def _clouds() -> dict[str, np.ndarray]:
 @pytest.fixture
 def grid_search(monkeypatch):
     """The grid search for clouds of every size (it takes only large ones)."""
-    monkeypatch.setattr("o3dvis.orientation._GRID_MIN_POINTS", 1)
+    monkeypatch.setattr("o3dvis.neighbours._GRID_MIN_POINTS", 1)
 
 
 @pytest.mark.parametrize("name", list(_clouds()))
@@ -204,7 +205,7 @@ def test_nearest_neighbours_search_again_where_the_grid_is_too_coarse(grid_searc
     """A dense cluster and a sparse shell: the shell's points have no k neighbours in the 27 cells
     around them, and get their exact ones all the same (by distances to all points, or with many
     such points by a k-d tree)."""
-    monkeypatch.setattr("o3dvis.orientation._BRUTE_FORCE_PAIRS", 0 if by_tree else 1 << 40)
+    monkeypatch.setattr("o3dvis.neighbours._BRUTE_FORCE_PAIRS", 0 if by_tree else 1 << 40)
     rng = np.random.default_rng(5)
     points = np.concatenate([rng.normal(size=(20000, 3)) * 0.01, _sphere(300, seed=6) * 10])
     near = nearest_neighbours(points, 8)
@@ -218,10 +219,10 @@ def test_a_search_asked_for_some_points_answers_as_for_all(monkeypatch, grid, sh
     """NeighbourSearch.query of some rows (the grid's cells of those rows only, the rows alone in
     them; or the k-d tree) gives the rows of the query of all points: in a dense cluster, and in a
     sparse shell whose points the grid cannot answer (searched again among all points)."""
-    from o3dvis.orientation import NeighbourSearch
+    from o3dvis.neighbours import NeighbourSearch
 
     if grid:
-        monkeypatch.setattr("o3dvis.orientation._GRID_MIN_POINTS", 1)
+        monkeypatch.setattr("o3dvis.neighbours._GRID_MIN_POINTS", 1)
     rng = np.random.default_rng(7)
     points = np.concatenate([rng.normal(size=(20000, 3)) * 0.01, _sphere(300, seed=6) * 10])
     order = (rng.permutation(len(points)) if shuffled else

@@ -38,7 +38,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import o3dvis  # noqa: E402
 from o3dvis import encodings  # noqa: E402
 from o3dvis.neural import NeuralVisibility  # noqa: E402
-from o3dvis.pretrained import shared_pretrained  # noqa: E402
 from o3dvis.threads import cpu_pressure, plan_threads  # noqa: E402
 from o3dvis.training.speed import bench_cloud  # noqa: E402
 
@@ -110,7 +109,7 @@ def _peak_mib(way: str, points: int, kind: str | None, rotations: int) -> float 
 def measure(points: int, rounds: int, kind: str | None = None, rotations: int = 1) -> dict:
     pcd, camera, radius = _scene(points, kind)
     name = "scene" if kind else "default"
-    vis = shared_pretrained(name) if rotations == 1 else NeuralVisibility.pretrained(name, num_rotations=rotations)
+    vis = NeuralVisibility.pretrained(name, num_rotations=rotations)
     model = _dropin_model(rotations)
 
     def dropin():

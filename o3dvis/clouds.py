@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import torch
@@ -14,25 +14,44 @@ from .cameras import as_vectors
 if TYPE_CHECKING:
     import open3d as o3d
 
-__all__ = ["cloud_arrays", "cloud_points", "cloud_normals", "set_cloud_normals", "legacy_cloud",
+__all__ = ["Cloud", "cloud_arrays", "cloud_points", "cloud_normals", "set_cloud_normals", "legacy_cloud",
            "cloud_device", "unit_normals"]
 
 
-def cloud_arrays(pcd) -> tuple[Tensor, Tensor | None]:
+class Cloud(NamedTuple):
+    """A cloud's checked points and normals as (N, 3) float64 tensors (normals None: none).
+
+    What :func:`cloud_arrays` makes of any cloud, once; every function that takes a cloud
+    takes a ``Cloud`` as it is.
+    """
+
+    points: Tensor
+    normals: Tensor | None
+
+    def crop(self, rows: Tensor) -> "Cloud":
+        """The cloud of the points ``rows`` (a long tensor) alone, with their normals."""
+        normals = None if self.normals is None else self.normals.index_select(0, rows.to(self.normals.device))
+        return Cloud(self.points.index_select(0, rows.to(self.points.device)), normals)
+
+
+def cloud_arrays(pcd) -> Cloud:
     """Points and normals (when the cloud has them) of a cloud, as float64 tensors.
 
     Args:
-        pcd: ``o3d.geometry.PointCloud``, ``o3d.t.geometry.PointCloud``, or an
-            (N, 3) numpy array / torch tensor / ``o3d.core.Tensor`` of points.
+        pcd: ``o3d.geometry.PointCloud``, ``o3d.t.geometry.PointCloud``, an
+            (N, 3) numpy array / torch tensor / ``o3d.core.Tensor`` of points, or
+            a :class:`Cloud` (returned as it is).
 
     Returns:
-        ``(points, normals)``: (N, 3) float64 tensors on the cloud's device;
+        The :class:`Cloud`: (N, 3) float64 tensors on the cloud's device;
         ``normals`` is None when the cloud has none (always for arrays).
 
     Raises:
         TypeError: an unsupported type or non-real dtype.
         ValueError: an empty cloud, a wrong shape, NaN or Inf coordinates.
     """
+    if isinstance(pcd, Cloud):
+        return pcd
     normals = None
     if is_open3d(pcd, "geometry.PointCloud"):
         points = np.asarray(pcd.points)
@@ -54,7 +73,7 @@ def cloud_arrays(pcd) -> tuple[Tensor, Tensor | None]:
     if shape[0] == 0:
         raise ValueError("point cloud is empty")
     points = as_vectors(points, "points")
-    return points, None if normals is None else as_vectors(normals, "normals").to(points.device)
+    return Cloud(points, None if normals is None else as_vectors(normals, "normals").to(points.device))
 
 
 def cloud_points(pcd) -> np.ndarray:

@@ -9,13 +9,12 @@ from __future__ import annotations
 
 import numpy as np
 import open3d as o3d
-import torch
 
 from . import encodings
 from .cameras import Views, as_views
-from .clouds import cloud_arrays, cloud_device
+from .clouds import cloud_arrays, cloud_device, unit_normals
 from .field import checked_range
-from .geometry import diagonal, lengths
+from .geometry import diagonal, within_range
 from .models import torch_device
 from .pretrained import resolve_model
 
@@ -39,31 +38,27 @@ def _one_view(camera_location, direction, frustum: bool) -> Views:
     return views
 
 
-def _visible_indices(pcd, cameras, direction, threshold: float, model, device, normals,
-                     frustum: bool = True, max_range: float | None = None) -> np.ndarray:
-    """Sorted int64 indices of the points of ``pcd`` visible from one view.
+def _visible_indices(pcd, views: Views, threshold: float, model, device, normals,
+                     max_range: float | None = None) -> np.ndarray:
+    """Sorted int64 indices of the points of ``pcd`` visible from the one view ``views``.
 
     With ``max_range``, only the points within it of the camera are encoded and
     answered (the octree's cells then fit the crop, not the whole cloud)."""
-    views = _one_view(cameras, direction, frustum)
     max_range = checked_range(max_range)
     device = torch_device(device) if device is not None else cloud_device(pcd)
     model = resolve_model(model, device)
-    camera = None if views.positions is None else views.positions[0]
     if max_range is None:
-        field = encodings.encode(model, pcd, normals, camera)
+        field = encodings.encode(model, pcd, normals, views)
         return np.flatnonzero(field.query(views, threshold=threshold)[0]).astype(np.int64)
     if views.positions is None:
         raise ValueError("max_range needs a camera position, not a viewing direction")
-    points, cloud_normals = cloud_arrays(pcd)
-    estimate = isinstance(normals, str)  # "estimate": estimated on the crop (encode checks the value)
-    _, unit = model._network_and_normals(cloud_normals, False if estimate else normals, points.shape[0])
-    camera = camera.detach().to(points.device)
-    near = torch.nonzero(lengths(points - camera) <= max_range)[:, 0]
+    cloud = cloud_arrays(pcd)
+    near = within_range(cloud.points, views.positions[0].detach().to(cloud.points.device), max_range)
     if len(near) == 0:
         return np.zeros(0, dtype=np.int64)
-    cropped = normals if estimate else False if unit is None else unit[near.to(unit.device)]
-    field = model._encode(points[near], cropped, camera)
+    if normals is not None and not isinstance(normals, (bool, str)):  # explicit normals: those of the crop
+        normals = unit_normals(normals, len(cloud.points)).index_select(0, near.to(cloud.points.device))
+    field = model.encode(cloud.crop(near), normals, views=views)
     return near.cpu().numpy()[np.flatnonzero(field.query(views, threshold=threshold)[0])].astype(np.int64)
 
 
@@ -169,7 +164,7 @@ def hidden_point_removal_neural(pcd, camera_location=None, radius: float | None 
         raise TypeError(f"pcd must be an Open3D PointCloud (legacy or tensor), got {type(pcd).__name__}")
     _checked_radius(radius)
     views = _one_view(camera_location, direction, frustum)
-    index = _visible_indices(pcd, views, None, threshold, model, device, normals, max_range=max_range)
+    index = _visible_indices(pcd, views, threshold, model, device, normals, max_range)
     return _hpr_result(pcd, index, views if triangulate else None)
 
 
@@ -228,7 +223,8 @@ def select_visible(pcd, camera=None, *, direction=None, threshold: float = 0.5, 
             more than one camera, a max_range that is not positive or given with a direction.
         TypeError: unsupported input types or dtypes.
     """
-    index = _visible_indices(pcd, camera, direction, threshold, model, device, normals, frustum, max_range)
+    views = _one_view(camera, direction, frustum)
+    index = _visible_indices(pcd, views, threshold, model, device, normals, max_range)
     if isinstance(pcd, o3d.geometry.PointCloud):
         return pcd.select_by_index(index.tolist())
     if isinstance(pcd, o3d.t.geometry.PointCloud):

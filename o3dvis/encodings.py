@@ -25,10 +25,9 @@ import torch
 from torch import Tensor
 
 from .clouds import cloud_arrays
-from .field import inside_box
-from .nn.octree import bounding_box
 
 if TYPE_CHECKING:  # type hints only: o3dvis.neural and o3dvis.field stay unloaded until used
+    from .cameras import Views
     from .field import VisibilityField
     from .neural import NeuralVisibility
     from .nn.network import VisibilityNetwork
@@ -43,6 +42,7 @@ class _Entry(NamedTuple):
     cloud: int  # id() of the cloud object
     model: "NeuralVisibility"  # held, so that no other model takes its id
     settings: tuple
+    inside: bool  # with a scene network, whether the camera it was made for is inside the cloud's box
     networks: list["VisibilityNetwork"]  # those of the model that the encoding depends on
     weights: list[list]  # their weights then (VisibilityNetwork.weights_state)
     points: Tensor  # copies of what was encoded
@@ -54,25 +54,20 @@ _last: _Entry | None = None
 _lock = threading.Lock()
 
 
-def _settings(model: "NeuralVisibility", normals, points: Tensor, camera: Tensor | None) -> tuple:
+def _settings(model: "NeuralVisibility", normals) -> tuple:
     """What an encoding depends on besides the cloud and the networks' weights: the networks the
-    model holds now (compared by identity: which of them a cloud is routed to follows from them), its
-    rotations, value for value, and with a scene network, whether the camera is inside the cloud's
-    bounding box too."""
-    inside = (model.scene_network is not None and camera is not None
-              and bool(inside_box(camera.detach().to(points)[None], bounding_box(points))[0]))
+    model holds now (compared by identity: which of them a cloud is routed to follows from them)
+    and its rotations, value for value."""
     held = (model.network, model.normals_network, model.scene_network, model.small_network)
     rotations = tuple(model.rotations.flatten().tolist())
-    return normals, str(model.device), model.precision, model.chunk_size, held, rotations, inside
+    return normals, str(model.device), model.precision, model.chunk_size, held, rotations
 
 
-def _networks(model: "NeuralVisibility", field: "VisibilityField", normals, count: int) -> list["VisibilityNetwork"]:
-    """The networks of ``model`` that an encoding of ``count`` points depends on: the one that
-    encoded it, and with estimated normals the first pass's. Not the scene network where another
-    encoded it: the encoding is reused for cameras on the same side of the box only (see
-    :func:`_settings`), and those outside never ask the scene network."""
-    networks = [field.network, model._points_network(count) if normals == "estimate" else None]
-    return [net for i, net in enumerate(networks) if net is not None and all(net is not n for n in networks[:i])]
+def _inside(model: "NeuralVisibility", field: "VisibilityField", views: "Views") -> bool:
+    """Whether a scene network answers ``views`` from inside the bounding box of ``field``'s cloud
+    (its frame has the box): with one, the encoding made for a camera inside is the scene model's."""
+    return (model.scene_network is not None and views.positions is not None
+            and bool(field.frame.contains(views.positions).all()))
 
 
 def _same(a: Tensor | None, b: Tensor | None) -> bool:
@@ -80,14 +75,16 @@ def _same(a: Tensor | None, b: Tensor | None) -> bool:
 
 
 def _holds(entry: _Entry | None, model: "NeuralVisibility", pcd, settings: tuple, points: Tensor,
-           normals: Tensor | None) -> bool:
-    """Whether ``entry`` is the encoding of this cloud, as it is now, by ``model`` as it is now."""
+           normals: Tensor | None, views: "Views") -> bool:
+    """Whether ``entry`` is the encoding of this cloud, as it is now, by ``model`` as it is now, for
+    ``views`` on the same side of the cloud's bounding box."""
     return (entry is not None and entry.cloud == id(pcd) and entry.model is model and entry.settings == settings
             and all(net.weights_unchanged(weights) for net, weights in zip(entry.networks, entry.weights))
-            and _same(entry.points, points) and _same(entry.normals, normals))
+            and _same(entry.points, points) and _same(entry.normals, normals)
+            and entry.inside == _inside(model, entry.field, views))
 
 
-def encode(model: "NeuralVisibility", pcd, normals=None, camera: Tensor | None = None) -> "VisibilityField":
+def encode(model: "NeuralVisibility", pcd, normals, views: "Views") -> "VisibilityField":
     """The field the drop-ins query for one view: the one kept from the last call when it holds.
 
     Args:
@@ -95,9 +92,8 @@ def encode(model: "NeuralVisibility", pcd, normals=None, camera: Tensor | None =
         pcd: a cloud, as :meth:`NeuralVisibility.encode` takes it.
         normals: None, True or False are kept with the encoding; explicit normals
             (an array) are encoded every time.
-        camera: the (3,) camera of the view to come, or None (a direction): with
-            a scene network, a camera inside the cloud's bounding box gets the
-            scene model's field.
+        views: the view to come (:class:`~o3dvis.cameras.Views`): with a scene network, a
+            camera inside the cloud's bounding box gets the scene model's field.
 
     Returns:
         The cloud's :class:`VisibilityField` (the kept one is shared: do not change it).
@@ -107,18 +103,19 @@ def encode(model: "NeuralVisibility", pcd, normals=None, camera: Tensor | None =
     """
     global _last
     if normals is not None and not isinstance(normals, bool):
-        return model._encode(pcd, normals, camera)
-    points, cloud_normals = cloud_arrays(pcd)
-    settings = _settings(model, normals, points, camera)
+        return model.encode(pcd, normals, views=views)
+    cloud = cloud_arrays(pcd)
+    settings = _settings(model, normals)
     with _lock:
         last = _last
-    if _holds(last, model, pcd, settings, points, cloud_normals):
+    if _holds(last, model, pcd, settings, *cloud, views):
         return last.field
-    field = model._encode(pcd, normals, camera, (points, cloud_normals))
-    if len(points) <= MAX_POINTS:
-        networks = _networks(model, field, normals, len(points))
-        entry = _Entry(id(pcd), model, settings, networks, [net.weights_state() for net in networks], points.clone(),
-                       None if cloud_normals is None else cloud_normals.clone(), field)
+    field = model.encode(cloud, normals, views=views)
+    if len(cloud.points) <= MAX_POINTS:
+        networks = list(field.encoders)
+        entry = _Entry(id(pcd), model, settings, _inside(model, field, views), networks,
+                       [net.weights_state() for net in networks], cloud.points.clone(),
+                       None if cloud.normals is None else cloud.normals.clone(), field)
         with _lock:
             _last = entry
     return field

@@ -8,7 +8,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["bounds", "diagonal", "box_diagonal", "lengths", "random_rotation", "fixed_rotations", "fibonacci_sphere"]
+__all__ = ["bounds", "diagonal", "box_diagonal", "lengths", "within_range", "random_rotation", "fixed_rotations", "fibonacci_sphere"]
 
 
 def bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -39,6 +39,12 @@ def lengths(vectors: Tensor) -> Tensor:
     beyond the dtype's range is inf."""
     largest = vectors.abs().amax(dim=1, keepdim=True)
     return largest[:, 0] * (vectors / largest.clamp_min(torch.finfo(vectors.dtype).tiny)).norm(dim=1)
+
+
+def within_range(points: Tensor, camera: Tensor, reach: float) -> Tensor:
+    """(M,) int64: the rows of (N, 3) ``points`` within ``reach`` of the (3,) ``camera``, in order
+    (a range crop, as a LiDAR's)."""
+    return torch.nonzero(lengths(points - camera) <= reach)[:, 0]
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:

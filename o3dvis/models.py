@@ -20,18 +20,23 @@ import hashlib
 import json
 import pickle
 import struct
+import threading
 from pathlib import Path
 
 import torch
 
 from .nn.network import VisibilityNetwork
+from .nn.state import WeightsState
 
 __all__ = ["WEIGHTS_DIR", "CARD_NAME", "read_model_card", "available_models", "file_sha256",
-           "check_safetensors", "load_model", "torch_device"]
+           "check_safetensors", "load_model", "is_shared", "torch_device"]
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 CARD_NAME = "model_card.json"
 _MAX_HEADER = 100 * 1024 * 1024
+# (path, sha256, device): (the files' stats, the network, its weights when loaded)
+_SHARED: dict[tuple[str, str | None, str], tuple[tuple, VisibilityNetwork, WeightsState]] = {}
+_SHARED_LOCK = threading.Lock()
 
 
 def torch_device(device: str | torch.device | None) -> torch.device:
@@ -217,7 +222,8 @@ def _load_checked(path: Path, sha256: str | None, entry: dict | None,
 
 
 def load_model(name_or_path: str | Path, device: str | torch.device | None = None, *,
-               weights_dir: str | Path | None = None, sha256: str | None = None) -> VisibilityNetwork:
+               weights_dir: str | Path | None = None, sha256: str | None = None,
+               shared: bool = False) -> VisibilityNetwork:
     """Loads a shipped model by name or a safetensors checkpoint by path.
 
     A string is a model name when the card lists it; otherwise, and for a
@@ -231,6 +237,10 @@ def load_model(name_or_path: str | Path, device: str | torch.device | None = Non
             ``o3dvis/weights``).
         sha256: expected digest of a file given by path (the card's digest is
             used for names and for files that the card next to them lists).
+        shared: the network loaded (and checked) once per process and device, shared by every
+            caller until the file or the card next to it is written anew, or someone changes the
+            network (its weights, its device, its training mode: the next call loads it anew).
+            False, the default, gives a network of one's own, e.g. to train.
 
     Returns:
         The network in eval mode on ``device``.
@@ -241,9 +251,41 @@ def load_model(name_or_path: str | Path, device: str | torch.device | None = Non
             sha256 mismatch, tampered, truncated or non-safetensors file.
         TypeError: ``name_or_path`` is neither a string nor a path.
     """
+    device = torch_device(device)
+    path, expected, entry = _checkpoint(name_or_path, weights_dir, sha256)
+    if not shared:
+        return _load_checked(path, expected, entry, device)
+    key = str(path.resolve()), expected, str(device)
+    stats = _stats(path) + _stats(path.parent / CARD_NAME)
+    with _SHARED_LOCK:
+        kept = _SHARED.get(key)
+        if kept is None or kept[0] != stats or kept[1].training or not kept[2].holds([kept[1]]):
+            network = _load_checked(path, expected, entry, device)
+            kept = _SHARED[key] = stats, network, WeightsState([network])
+        return kept[1]
+
+
+def is_shared(network: VisibilityNetwork) -> bool:
+    """Whether ``network`` is one that ``load_model(..., shared=True)`` hands out."""
+    with _SHARED_LOCK:
+        return any(kept[1] is network for kept in _SHARED.values())
+
+
+def _stats(path: Path) -> tuple:
+    """What tells a file written anew: its inode, size and times (None for a missing file)."""
+    try:
+        stat = path.stat()
+    except OSError:
+        return (None,)
+    return stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns
+
+
+def _checkpoint(name_or_path: str | Path, weights_dir: str | Path | None, sha256: str | None
+                ) -> tuple[Path, str | None, dict | None]:
+    """``(file, expected sha256 or None, card entry or None)`` of a model name or path (see
+    :func:`load_model`)."""
     if not isinstance(name_or_path, (str, Path)):
         raise TypeError(f"name_or_path must be a model name or a path, got {type(name_or_path).__name__}")
-    device = torch_device(device)
     looks_like_path = isinstance(name_or_path, Path) or any(
         c in name_or_path for c in "/\\") or name_or_path.endswith(".safetensors")
     if not looks_like_path:
@@ -260,11 +302,10 @@ def load_model(name_or_path: str | Path, device: str | torch.device | None = Non
             if not path.is_file():
                 raise FileNotFoundError(f"model {name_or_path!r}: checkpoint {path} listed in "
                                         f"{card_dir / CARD_NAME} is missing")
-            return _load_checked(path, entry["sha256"], entry, device)
+            return path, entry["sha256"], entry
         if not Path(name_or_path).is_file():
             names = ", ".join(sorted(models)) or "none"
             raise ValueError(f"unknown model {name_or_path!r}; available: {names}")
     path = Path(name_or_path)
     entry = _card_entry_for(path) if path.is_file() else None
-    expected = sha256 if sha256 is not None else (entry["sha256"] if entry else None)
-    return _load_checked(path, expected, entry, device)
+    return path, (sha256 if sha256 is not None else (entry["sha256"] if entry else None)), entry

@@ -7,29 +7,27 @@ runs the U-Net once (and once per extra rotation of an ensemble) and returns the
 
 from __future__ import annotations
 
+import copy
 import functools
-import warnings
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 import torch
 from torch import Tensor
 
-from .cameras import viewpoints_around
+from .cameras import Views, as_views
 from .clouds import cloud_arrays, unit_normals
 from .geometry import fixed_rotations
-from .field import DEFAULT_CHUNK, RotatedEncoding, VisibilityField, inside_box
-from .models import available_models, load_model, torch_device
+from .field import DEFAULT_CHUNK, RotatedEncoding, VisibilityField
+from .models import available_models, is_shared, load_model, torch_device
 from .nn.calibration import calibration_terms
-from .nn import native
 from .nn.network import VisibilityNetwork
-from .nn.noise import noise_cues
-from .nn.octree import MORTON_DEPTH, bounding_box, coarser_keys, cube_frame, morton_sort, normalize_points
+from .nn.frame import CloudFrame, normalized
+from .nn.octree import MORTON_DEPTH, coarser_keys, morton_sort
 from .nn.conv import products_in
 from .nn.predictor import resolve_precision
-from .orientation import NeighbourSearch, facing_away, oriented_planes, surface_variation
-from .threads import plan_threads, torch_threads, workers_only
+from .threads import plan_threads, torch_threads
+from . import two_pass
 
 __all__ = ["NeuralVisibility"]
 
@@ -42,165 +40,6 @@ _SMALL_MODEL = "small"
 # hence a bound between those; encode + one query of 5 k points take two thirds of the default's
 # time on one thread
 _SMALL_MAX_POINTS = 5500
-_FLAT_TOL = 1e-6
-"""A cloud is flat along a direction when no point lies farther from its mean along it than this
-many bounding-box diagonals: below what the network's float32 coordinates (about 2^-23 of the box)
-resolve, so such a cloud is answered as the exactly flat one."""
-# the two-pass encoding: cameras whose first-pass answers orient the normals, points per plane fit
-_ORIENTING_VIEWS = 14
-_PLANE_NEIGHBOURS = 8
-# where normals="estimate" takes two passes: clouds of at least _ESTIMATE_MIN_POINTS points whose
-# noise cue (the cell thickness in spacings of o3dvis.nn.noise) is under _ESTIMATE_MAX_NOISE and,
-# below _CUE_ALONE_POINTS points, where the cue cannot see noise finer than the spacing, whose
-# plane fits' neighbourhoods have a lower quartile of surface variation
-# (o3dvis.orientation.surface_variation, over an even sample of _VARIATION_SAMPLE of them) under
-# _ESTIMATE_MAX_VARIATION. On the validation meshes two passes everywhere gained 1.1-2.0 points on
-# clean clouds and lost 0.2-5.2 points on those with 0.5-2 % noise; with this rule the clean
-# columns (2-81 k points) came within 0.2 point of that gain, and the noisy ones lost at most
-# 0.3 point (0.5 % noise at 8 k points)
-_ESTIMATE_MIN_POINTS = 1_000
-_ESTIMATE_MAX_NOISE = 0.2
-_CUE_ALONE_POINTS = 65_536
-_ESTIMATE_MAX_VARIATION = 0.01
-_VARIATION_SAMPLE = 4096
-# a cloud's own normals are held against what the points-only network sees of _CHECK_POINTS of its
-# points, spread along the Morton curve, from _CHECK_VIEWS cameras around it: where more than
-# _MAX_FACING_AWAY of the cameras' vote is against them, they are taken as unoriented. On the
-# validation meshes at 2-32 k points that vote was 0.35-0.72 for normals from estimate_normals(),
-# 0.48-0.53 for randomly flipped ones and 0.41-0.65 for ones facing a sensor, and at most 0.44 for
-# oriented ones (0-0.05 on closed surfaces; bowls, cups, chairs and vases, whose thin walls the
-# points-only network answers worst, reach 0.35-0.44). Those the check doubts are kept after all
-# where, in the two passes that follow, at least _MIN_SAME_SIDE of them lie on the side of the
-# estimated normals: 0.64-1 for oriented normals there, at most 0.53 for the others (2 k and 8 k points)
-_CHECK_POINTS = 4096
-_CHECK_VIEWS = 14
-_MAX_FACING_AWAY = 0.35
-_MIN_SAME_SIDE = 0.6
-
-
-def _flat_hull(points: Tensor, diagonal: Tensor) -> tuple[Tensor, Tensor] | None:
-    """Centre and orthonormal basis (rows) of the affine hull of a flat cloud; None for a 3-D one.
-
-    A cloud extends along a direction when some point lies farther than ``_FLAT_TOL`` x
-    ``diagonal`` (its bounding box's) from the mean along it. Most clouds are told 3-D by the
-    3x3 scatter matrix alone: when the root-mean-square spread along its least direction,
-    less the matrix's rounding, exceeds that, so does every direction's largest one. The others'
-    principal directions come from the SVD of the 3x3 R of a QR of the centred points (O(N) and
-    accurate), and the largest distances along them decide, so that a cloud a hair off its
-    plane is answered as the exactly flat one.
-    """
-    centre = points.mean(dim=0)
-    offsets = points - centre
-    if _solid(offsets.T @ offsets, len(points), diagonal):
-        return None
-    bound = _FLAT_TOL * diagonal
-    _, _, vt = torch.linalg.svd(torch.linalg.qr(offsets, mode="r").R)
-    spans = (offsets @ vt.T).abs().max(dim=0).values > bound
-    return None if bool(spans.all()) else (centre, vt[spans])
-
-
-def _solid(scatter: Tensor, count: int, diagonal: Tensor) -> bool:
-    """Whether the (3, 3) float64 scatter matrix of ``count`` points about their mean (or a point
-    a few ulps from it) tells that they extend along every direction (see :func:`_flat_hull`)."""
-    least, _, largest = torch.linalg.eigvalsh(scatter).tolist()
-    bound = _FLAT_TOL * float(diagonal)
-    return least - 1e3 * torch.finfo(scatter.dtype).eps * largest > bound * bound * count
-
-
-def _unit_frame(points: Tensor) -> tuple[Tensor, Tensor | None, Tensor, Tensor, tuple[Tensor, Tensor],
-                                         tuple[Tensor, Tensor] | None]:
-    """``(normalised float32 points, their keys at MORTON_DEPTH or None, center, scale, bounds,
-    flat hull)`` of (N, 3) float64 points: :func:`_normalize`, then :func:`_flat_hull` of the
-    float64 normalised points and :func:`~o3dvis.nn.octree.cell_keys` of the float32 ones; on the
-    CPU in two passes of C (the float64 normalised points are made only for a cloud that may be
-    flat)."""
-    in_c = points.device.type == "cpu" and points.dtype == torch.float64 and native.available()
-    if in_c:
-        points = points.contiguous()
-        lo, hi, total = native.bounds(points)
-    else:
-        lo, hi = bounding_box(points)
-    if not bool(torch.isfinite(hi - lo).all()):
-        raise ValueError(f"the cloud spans more than float64 holds: its bounding box runs from {lo.tolist()} to "
-                         f"{hi.tolist()}, whose sides overflow; scale it down")
-    if not (in_c and (hi - lo).amax() > 0):  # torch ops, or all points coincide
-        normalized, center, scale = _normalize(points, (lo, hi))
-        hull = _flat_hull(normalized, ((hi - lo) / scale).norm())  # float64: flat to the last bits
-        return normalized.float(), None, center, scale, (lo, hi), hull
-    center, scale = cube_frame(lo, hi)
-    normalized, keys, scatter = native.normalize(points, center, float(scale), (total / len(points) - center) / scale)
-    diagonal = ((hi - lo) / scale).norm()
-    hull = None if _solid(scatter, len(points), diagonal) else _flat_hull(_normalize(points, (lo, hi))[0], diagonal)
-    return normalized, keys, center, scale, (lo, hi), hull
-
-
-def first_pass_normals(field: VisibilityField, points: np.ndarray, stored: bool = False) -> np.ndarray | None:
-    """The normals ``normals="estimate"`` gives the normals model: a plane through each point's
-    nearest neighbours, those the first pass sees alike from a few cameras around the cloud
-    weighing most, oriented by the vote of those cameras, or where they split, by the side of its
-    neighbours the point lies on (:func:`o3dvis.orientation.oriented_planes` of what ``field``
-    answers); None where the cloud looks too noisy for that to pay (see :data:`_ESTIMATE_MAX_NOISE`)
-    or no plane fits any of its neighbourhoods.
-
-    Args:
-        field: a points-only model's encoding of the cloud.
-        points: (N, 3) the cloud's points, in its order.
-        stored: ``points``, and the normals returned, in the order the field stores them (along
-            the Morton curve; see :meth:`VisibilityField.stored_probabilities`).
-
-    Returns:
-        (N, 3) unit normals, or None.
-    """
-    return estimated_normals(field, points, stored)[0]
-
-
-def estimated_normals(field: VisibilityField, points: np.ndarray, stored: bool = False,
-                      clean_only: bool = True) -> tuple[np.ndarray | None, bool]:
-    """:func:`first_pass_normals`, and whether the cloud looks clean enough for them to pay.
-
-    Args:
-        field, points, stored: as in :func:`first_pass_normals`.
-        clean_only: False estimates the normals of a cloud that looks noisy too (to compare
-            other normals with them, not to give them to the normals model).
-
-    Returns:
-        (N, 3) unit normals, or None (no plane fits, or a noisy cloud with ``clean_only``), and
-        whether the cloud looks clean.
-    """
-    noise = field.noise if field.noise is not None else noise_cues(field.points, ordered=True)
-    clean = float(noise[0]) < _ESTIMATE_MAX_NOISE
-    if clean_only and not clean:
-        return None, False
-    # in the field's order along the Morton curve: neighbours close in memory make the KNN search
-    # and the plane fits cache-friendly (at 200 k points 380 -> 245 ms)
-    rank = None if stored or field.rank is None else field.rank.cpu().numpy()
-    if rank is not None:
-        order = np.empty_like(rank)
-        order[rank] = np.arange(len(rank))
-        points = points[order]
-    search = NeighbourSearch(points)
-    near = search.query(min(_PLANE_NEIGHBOURS, len(points)))  # the weak votes' wider planes: asked later
-    if clean and len(points) < _CUE_ALONE_POINTS:
-        sample = near[::max(1, len(near) // _VARIATION_SAMPLE), :_PLANE_NEIGHBOURS]
-        clean = bool(np.quantile(surface_variation(points, sample), 0.25) < _ESTIMATE_MAX_VARIATION)
-        if clean_only and not clean:
-            return None, False
-    cameras = viewpoints_around(points, _ORIENTING_VIEWS)
-    visibility = field.stored_probabilities(cameras).cpu().numpy()
-    try:
-        normals = oriented_planes(points, near, cameras, visibility, fit=_PLANE_NEIGHBOURS, search=search)
-    except ValueError:  # no plane fits anywhere: every neighbourhood is one point repeated, or a line
-        return None, clean
-    return (normals if rank is None else normals[rank]), clean
-
-
-def _normalize(points: Tensor, bounds: tuple[Tensor, Tensor] | None = None
-               ) -> tuple[Tensor, Tensor, Tensor]:
-    """:func:`normalize_points`, with scale 1 when all points coincide (any scale maps them to 0)."""
-    lo, hi = bounding_box(points) if bounds is None else bounds
-    if (hi - lo).amax() > 0:
-        return normalize_points(points, bounds=(lo, hi))
-    return points - lo, lo, torch.ones((), dtype=points.dtype, device=points.device)
 
 
 class NeuralVisibility:
@@ -276,6 +115,13 @@ class NeuralVisibility:
                    use_small: bool = True) -> "NeuralVisibility":
         """A shipped model from ``o3dvis/weights`` (sha256-checked, no pickle).
 
+        The networks are loaded and checked once per process and device
+        (:func:`~o3dvis.models.load_model` with ``shared=True``): a repeated call
+        costs no load. The models it returns share them until their files are
+        written anew or one is changed (its weights, device or mode: the next call
+        loads it anew; :meth:`to` moves copies). To train or change a network,
+        take one of one's own: ``NeuralVisibility(load_model(name))``.
+
         With ``name="default"`` the shipped ``"normals"`` model, when there is
         one, is loaded too and used for clouds that have normals, the shipped
         ``"scene"`` model, when there is one, for cameras inside a cloud's
@@ -300,16 +146,16 @@ class NeuralVisibility:
             ValueError: unknown name (the message lists the available ones),
                 tampered or truncated checkpoint.
         """
-        network = load_model(name, device, weights_dir=weights_dir)
+        network = load_model(name, device, weights_dir=weights_dir, shared=True)
         normals_network = None
-        if (use_normals and name == "default" and not network.config.use_normals
-                and _NORMALS_MODEL in available_models(weights_dir)):
-            normals_network = load_model(_NORMALS_MODEL, device, weights_dir=weights_dir)
+        names = available_models(weights_dir) if name == "default" else []
+        if use_normals and _NORMALS_MODEL in names and not network.config.use_normals:
+            normals_network = load_model(_NORMALS_MODEL, device, weights_dir=weights_dir, shared=True)
         companions = {}
         for model, wanted, keyword in ((_SCENE_MODEL, use_scene, "scene_network"),
                                        (_SMALL_MODEL, use_small, "small_network")):
-            if wanted and name == "default" and model in available_models(weights_dir):
-                companions[keyword] = load_model(model, device, weights_dir=weights_dir)
+            if wanted and model in names:
+                companions[keyword] = load_model(model, device, weights_dir=weights_dir, shared=True)
         return cls(network, normals_network, device=device, num_rotations=num_rotations, precision=precision,
                    **companions)
 
@@ -323,13 +169,14 @@ class NeuralVisibility:
         return self.network.device
 
     def to(self, device: str | torch.device) -> "NeuralVisibility":
-        """Moves the networks to ``device`` (in place), in eval mode, and returns self. A network
-        there already and in eval mode is left as it is: walking its modules cost more than a
-        small cloud's encode."""
+        """Moves the networks to ``device`` (in place; copies of shared ones, see :meth:`pretrained`),
+        in eval mode, and returns self. A network there already and in eval mode is left as it is:
+        walking its modules costs more than a small cloud's encode."""
         device = torch_device(device)
-        for net in self.networks():
-            if net.training or next(net.parameters()).device != device:
-                net.to(device).eval()
+        for name in ("network", "normals_network", "scene_network", "small_network"):
+            net = getattr(self, name)
+            if net is not None and (net.training or next(net.parameters()).device != device):
+                setattr(self, name, (copy.deepcopy(net) if is_shared(net) else net).to(device).eval())
         return self
 
     def __repr__(self) -> str:
@@ -369,7 +216,7 @@ class NeuralVisibility:
             raise ValueError("normals were given but no loaded model takes normals")
         return takes_normals, unit_normals(normals, num_points)
 
-    def encode(self, pcd, normals=None) -> VisibilityField:
+    def encode(self, pcd, normals=None, *, views: Views | None = None) -> VisibilityField:
         """Runs the U-Net over a cloud: once, or twice to estimate oriented normals first.
 
         With ``normals="estimate"``, a cloud is encoded in two passes where
@@ -397,14 +244,20 @@ class NeuralVisibility:
         plans (one for small clouds or a busy machine).
 
         Args:
-            pcd: ``o3d.geometry.PointCloud``, ``o3d.t.geometry.PointCloud``, or
-                an (N, 3) numpy array / torch tensor of points.
+            pcd: ``o3d.geometry.PointCloud``, ``o3d.t.geometry.PointCloud``, an
+                (N, 3) numpy array / torch tensor of points, or a
+                :class:`~o3dvis.clouds.Cloud`.
             normals: None uses the cloud's normals when it has them, a model
                 taking normals is loaded and they face out (see above);
                 ``"estimate"`` estimates them as above (the cloud's own are
                 ignored; a normals model is needed); False ignores normals; True
                 requires the cloud's normals and uses them as they are; an
                 (N, 3) array gives them explicitly.
+            views: the views (:func:`~o3dvis.cameras.as_views`) the field will
+                answer, where the caller knows them: when every one is a camera
+                inside the cloud's bounding box and a scene model is loaded,
+                that model's encoding alone is made (the object model's is
+                never needed); None: any view may come.
 
         Returns:
             A :class:`VisibilityField` to query with cameras; its ``normals`` are
@@ -417,14 +270,8 @@ class NeuralVisibility:
                 without a normals model).
             TypeError: unsupported input types or dtypes.
         """
-        return self._encode(pcd, normals)
-
-    def _encode(self, pcd, normals=None, camera: Tensor | None = None,
-                arrays: tuple[Tensor, Tensor | None] | None = None) -> VisibilityField:
-        """:meth:`encode`; given the (3,) ``camera`` of the only view to come, a camera inside the
-        cloud's bounding box with a scene network gets the scene model's field alone. ``arrays``:
-        the cloud's :func:`~o3dvis.clouds.cloud_arrays`, where the caller has them already."""
-        points, cloud_normals = cloud_arrays(pcd) if arrays is None else arrays
+        points, cloud_normals = cloud_arrays(pcd)
+        views = None if views is None else as_views(views)
         estimate = isinstance(normals, str)
         if estimate and normals != "estimate":
             raise ValueError(f"normals must be None, True, False, 'estimate' or an (N, 3) array, got {normals!r}")
@@ -435,70 +282,52 @@ class NeuralVisibility:
             cloud_normals, normals, points.shape[0])
         check = normals is None and unit is not None and network is self.normals_network
         if self.device.type != "cpu":
-            return self._encode_points(network, unit, points, camera, estimate, check)
+            return self._encode_points(network, unit, points, views, estimate, check)
         # every cloud is encoded on the threads the load allows: two measured faster than one
         # down to 16 points (the U-Net's products split, its many small ops do not slow down)
         with torch_threads(plan_threads(points.shape[0], 1)):
-            return self._encode_points(network, unit, points, camera, estimate, check)
+            return self._encode_points(network, unit, points, views, estimate, check)
 
     def _encode_points(self, network: VisibilityNetwork, unit: Tensor | None, points: Tensor,
-                       camera: Tensor | None, estimate: bool = False, check: bool = False) -> VisibilityField:
-        """:meth:`_encode` of checked points and unit normals (or None) with ``network``; ``estimate``:
+                       views: Views | None, estimate: bool = False, check: bool = False) -> VisibilityField:
+        """:meth:`encode` of checked points and unit normals (or None) with ``network``; ``estimate``:
         normals estimated in a first pass where that pays (see :meth:`encode`); ``check``: ``unit``
         are the cloud's own normals, estimated instead where they look unoriented
-        (:meth:`_facing_away`) and the estimates do not side with them."""
-        normalized, keys, center, scale, (lo, hi), hull = _unit_frame(points.to(self.device))
-        keys, order, rank = morton_sort(normalized, keys=keys)
-        normalized = normalized.index_select(0, order)
+        (:func:`~o3dvis.two_pass.facing_away_share`) and the estimates do not side with them."""
+        unit_points, keys, frame = CloudFrame.of(points.to(self.device))
+        keys, order, rank = morton_sort(unit_points, keys=keys)
+        unit_points = unit_points.index_select(0, order)
         unit = None if unit is None else unit.to(self.device).index_select(0, order).float()
-        frame = (normalized, center, scale, (lo, hi), hull, rank)
+        cloud = (unit_points, frame, rank)
         scene = None
         if self.scene_network is not None:
-            if camera is not None and inside_box(camera.to(lo)[None], (lo, hi))[0]:
-                return self._field(self.scene_network, None, *frame)
-            scene = functools.partial(self._field, self.scene_network, None, *frame)
+            if views is not None and views.positions is not None and bool(frame.contains(views.positions).all()):
+                return self._field(self.scene_network, None, *cloud)
+            scene = functools.partial(self._field, self.scene_network, None, *cloud)
         doubted, share = None, 0.0  # the cloud's own normals where they look unoriented, and why
-        if check and hull is None:
-            share = self._facing_away(points, order, unit)
-            if share > _MAX_FACING_AWAY:
+        if check and frame.hull is None:
+            share = two_pass.facing_away_share(
+                lambda sample: self._encode_points(self._points_network(len(sample)), None, sample, None),
+                points, order, unit)
+            if share > two_pass.MAX_FACING_AWAY:
                 doubted, network, unit, estimate = unit, self._points_network(len(points)), None, True
         # a flat cloud hides nothing from off its plane: one pass is exact there
-        two_pass = estimate and hull is None and len(normalized) >= _ESTIMATE_MIN_POINTS
+        twice = estimate and frame.hull is None and len(unit_points) >= two_pass.ESTIMATE_MIN_POINTS
         shared = {"keys": keys}
-        field = self._field(network, unit, *frame, scene=scene, shared=shared)
-        if two_pass:
-            with workers_only():
-                stored = points.detach().cpu().double().index_select(0, order.cpu()).numpy()
-                normals, clean = estimated_normals(field, stored, stored=True, clean_only=doubted is None)
-            if normals is not None:
-                unit = torch.from_numpy(normals).to(self.device).float()
-                if doubted is not None and float(((doubted * unit).sum(dim=1) > 0).float().mean()) >= _MIN_SAME_SIDE:
-                    unit, clean, doubted = doubted, True, None  # on the estimates' side: oriented after all
-                if clean:
-                    field = self._field(self.normals_network, unit, *frame, scene=scene, shared=shared)
+        field = self._field(network, unit, *cloud, scene=scene, shared=shared)
+        if twice:
+            unit, doubted = two_pass.second_pass_normals(field, points, order, doubted)
+            if unit is not None:
+                first, field = field.network, self._field(self.normals_network, unit, *cloud, scene=scene,
+                                                          shared=shared)
+                field.encoders = (first, field.network)
         if doubted is not None:
-            warnings.warn(f"o3dvis: the cloud's normals look unoriented ({100 * share:.0f} % of the vote of cameras "
-                          "around it is against them) and are ignored, as with normals='estimate'; orient them "
-                          "first (o3dvis.orient_normals_neural) or pass normals=True to use them as they are",
-                          stacklevel=4)
+            two_pass.warn_ignored(share)
         return field
 
-    def _facing_away(self, points: Tensor, order: Tensor, normals: Tensor) -> float:
-        """How much of the vote of cameras around a cloud (:func:`~o3dvis.orientation.facing_away`)
-        on the normals (in Morton ``order``) of :data:`_CHECK_POINTS` of its points, evenly spread
-        along that order, is against them, with the cameras' answers from the points-only network's
-        encoding of those points alone."""
-        rows = torch.arange(0, len(order), max(1, len(order) // _CHECK_POINTS), device=order.device)
-        sample = points.index_select(0, order.index_select(0, rows).to(points.device))
-        field = self._encode_points(self._points_network(len(rows)), None, sample, None)
-        sample = sample.detach().cpu().double().numpy()
-        cameras = viewpoints_around(sample, _CHECK_VIEWS)
-        sampled = normals.index_select(0, rows.to(normals.device)).detach().cpu().double().numpy()
-        return facing_away(sample, sampled, cameras, field.probabilities(cameras).cpu().numpy())
-
-    def _field(self, network: VisibilityNetwork, unit: Tensor | None, normalized: Tensor, center: Tensor,
-               scale: Tensor, bounds: tuple[Tensor, Tensor], hull: tuple[Tensor, Tensor] | None, rank: Tensor,
-               scene: Callable[[], VisibilityField] | None = None, shared: dict | None = None) -> VisibilityField:
+    def _field(self, network: VisibilityNetwork, unit: Tensor | None, unit_points: Tensor, frame: CloudFrame,
+               rank: Tensor, scene: Callable[[], VisibilityField] | None = None,
+               shared: dict | None = None) -> VisibilityField:
         """The field of ``network`` over the normalised, Morton-ordered points of :meth:`encode`.
 
         ``shared``: a dict that the passes over the same points fill and reuse: their noise cues
@@ -512,26 +341,27 @@ class NeuralVisibility:
             if network.config.noise_cues or calibrated or fused:
                 noise = shared.get("noise")
                 if noise is None:
-                    noise = shared["noise"] = network.cloud_noise(normalized, ordered=True)
+                    noise = shared["noise"] = network.cloud_noise(unit_points, ordered=True)
             depths = (network.config.depth, network.config.full_depth)
             octree = shared.get(depths)
             if octree is None:
                 keys = shared.get("keys")
                 keys = None if keys is None else coarser_keys(keys, MORTON_DEPTH, network.config.depth)
-                octree = shared[depths] = network.octree(normalized, keys=keys)
-            features = network.encode_leaves(normalized, normals=unit, noise=noise, octree=octree)
-            rotated = [self._rotated(network, normalized, unit, r) for r in self.rotations[1:]]
-        calibration = (network.calibration.affine(calibration_terms(noise[0], len(normalized)))
+                octree = shared[depths] = network.octree(unit_points, keys=keys)
+            features = network.encode_leaves(unit_points, normals=unit, noise=noise, octree=octree)
+            rotated = [self._rotated(network, unit_points, unit, r) for r in self.rotations[1:]]
+        calibration = (network.calibration.affine(calibration_terms(noise[0], len(unit_points)))
                        if calibrated else None)
-        return VisibilityField(network, features, normalized, unit, center, scale, bounds, self.chunk_size,
-                               hull, rank, rotated, calibration, precision, scene, None if noise is None else noise[0])
+        return VisibilityField(network, features, unit_points, unit, frame, chunk_size=self.chunk_size, rank=rank,
+                               rotated=rotated, calibration=calibration, matmul_dtype=precision, scene=scene,
+                               noise=None if noise is None else noise[0])
 
     @staticmethod
-    def _rotated(network: VisibilityNetwork, normalized: Tensor, normals: Tensor | None,
+    def _rotated(network: VisibilityNetwork, unit_points: Tensor, normals: Tensor | None,
                  rotation: Tensor) -> RotatedEncoding:
         """The encoding of normalised points turned by ``rotation`` and normalised anew."""
-        rotation = rotation.to(normalized)
-        points, center, scale = _normalize(normalized @ rotation.T)
+        rotation = rotation.to(unit_points)
+        points, center, scale = normalized(unit_points @ rotation.T)
         normals = None if normals is None else normals @ rotation.T
         return RotatedEncoding(network.encode(points, normals=normals), points, normals, rotation,
                                center, scale)

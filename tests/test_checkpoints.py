@@ -297,15 +297,15 @@ def test_load_builds_the_network_on_map_location(tmp_path):
 def test_a_path_model_is_loaded_once_until_its_file_changes(tmp_path, monkeypatch):
     """``model=path`` loads (and hashes) the checkpoint once per process, so that the drop-ins' kept
     encoding holds across calls; a file written anew, or the card next to it, is read again."""
-    from o3dvis import encodings, neural
+    from o3dvis import encodings, models, neural
     from o3dvis.pretrained import resolve_model
 
     path = tmp_path / "mine.safetensors"
     _network(7).save(path)
     loads, encodes = [], []
-    load, encode = neural.load_model, neural.NeuralVisibility._encode
-    monkeypatch.setattr(neural, "load_model", lambda *a, **k: loads.append(a) or load(*a, **k))
-    monkeypatch.setattr(neural.NeuralVisibility, "_encode", lambda *a, **k: encodes.append(a) or encode(*a, **k))
+    load, encode = models._load_checked, neural.NeuralVisibility.encode
+    monkeypatch.setattr(models, "_load_checked", lambda *a, **k: loads.append(a) or load(*a, **k))
+    monkeypatch.setattr(neural.NeuralVisibility, "encode", lambda *a, **k: encodes.append(a) or encode(*a, **k))
     encodings.clear()
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.random.default_rng(0).normal(size=(500, 3))))
     answers = [o3dvis.hidden_point_removal_neural(pcd, [0, 0, 5.0], model=m)[1] for m in (path, str(path), path)]

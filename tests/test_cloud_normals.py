@@ -96,9 +96,9 @@ def test_the_drop_in_warns_and_answers_as_the_estimate(vis, torus):
 def test_oriented_normals_the_check_doubts_are_kept_where_the_estimates_side_with_them(vis, torus, monkeypatch):
     """Thin walls can make the check doubt oriented normals: the two passes it then runs keep them
     where they lie on the side of the estimated normals, and estimate the unoriented ones anew."""
-    from o3dvis import neural
+    from o3dvis import two_pass
 
-    monkeypatch.setattr(neural, "_MAX_FACING_AWAY", -1.0)  # every cloud's normals doubted
+    monkeypatch.setattr(two_pass, "MAX_FACING_AWAY", -1.0)  # every cloud's normals doubted
     points, normals, _ = torus
     field, said = _encode(vis, _cloud(points, normals))
     assert not said
@@ -111,14 +111,14 @@ def test_oriented_normals_the_check_doubts_are_kept_where_the_estimates_side_wit
 def test_on_a_noisy_cloud_doubted_normals_are_kept_or_ignored_by_the_same_test(vis, torus, monkeypatch):
     """A noisy cloud keeps one pass under normals="estimate": its estimates still tell oriented normals
     from unoriented ones, which are then ignored (one pass without normals)."""
-    from o3dvis import neural
+    from o3dvis import two_pass
     from o3dvis.training.data.perturb import add_noise
 
     points, normals, _ = torus
     noisy = add_noise(points, 0.03, 3.0, np.random.default_rng(2))
     alone = vis.encode(noisy, normals=False).probabilities(CAMERA)
     assert torch.equal(vis.encode(noisy, normals="estimate").probabilities(CAMERA), alone)  # one pass there
-    monkeypatch.setattr(neural, "_MAX_FACING_AWAY", -1.0)  # every cloud's normals doubted
+    monkeypatch.setattr(two_pass, "MAX_FACING_AWAY", -1.0)  # every cloud's normals doubted
     field, said = _encode(vis, _cloud(noisy, normals))
     assert not said
     assert torch.equal(field.probabilities(CAMERA), vis.encode(noisy, normals=normals).probabilities(CAMERA))

@@ -18,13 +18,13 @@ def counted(monkeypatch):
     """The number of clouds encoded so far (every NeuralVisibility), starting from a cleared memory."""
     encodings.clear()
     calls = []
-    encode = NeuralVisibility._encode
+    encode = NeuralVisibility.encode
 
     def spy(self, *args, **kwargs):
         calls.append(self)
         return encode(self, *args, **kwargs)
 
-    monkeypatch.setattr(NeuralVisibility, "_encode", spy)
+    monkeypatch.setattr(NeuralVisibility, "encode", spy)
     yield calls
     encodings.clear()
 

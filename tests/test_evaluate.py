@@ -292,7 +292,7 @@ def test_the_octree_column_is_the_part_of_the_encoding_that_built_it(monkeypatch
     from o3dvis.training.methods import NeuralMethod
 
     encoding = threading.local()
-    encode, build = NeuralVisibility._encode, VisibilityNetwork.octree
+    encode, build = NeuralVisibility.encode, VisibilityNetwork.octree
 
     def flagged_encode(self, *args, **kwargs):
         encoding.on = True
@@ -306,7 +306,7 @@ def test_the_octree_column_is_the_part_of_the_encoding_that_built_it(monkeypatch
             _time.sleep(0.3)
         return build(self, *args, **kwargs)
 
-    monkeypatch.setattr(NeuralVisibility, "_encode", flagged_encode)
+    monkeypatch.setattr(NeuralVisibility, "encode", flagged_encode)
     monkeypatch.setattr(VisibilityNetwork, "octree", octree)
     network = VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 8), feature_channels=8, hidden=(8,))).eval()
     method = NeuralMethod(NeuralVisibility(network), "tiny")

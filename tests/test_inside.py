@@ -10,7 +10,6 @@ import torch
 import o3dvis
 from o3dvis.apps import render, shadows
 from o3dvis.nn import NetworkConfig, VisibilityNetwork, native
-from o3dvis.pretrained import shared_pretrained
 
 from conftest import box_surface
 
@@ -45,7 +44,7 @@ def _balanced_accuracy(predicted: np.ndarray, truth: np.ndarray) -> float:
 
 def test_room_with_a_partition_from_inside(room):
     points, in_left = room
-    visible = shared_pretrained().encode(points).query(CAMERAS)
+    visible = o3dvis.NeuralVisibility.pretrained().encode(points).query(CAMERAS)
     for predicted, truth in zip(visible, _truth(in_left)):
         assert _balanced_accuracy(predicted, truth) > 0.9
 
@@ -53,7 +52,7 @@ def test_room_with_a_partition_from_inside(room):
 def test_camera_on_a_point_raises(room):
     points, _ = room
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    field = shared_pretrained().encode(points)
+    field = o3dvis.NeuralVisibility.pretrained().encode(points)
     for camera in (points[7], points[7] + 1e-9):
         with pytest.raises(ValueError, match="on a point"):
             field.query(camera)
@@ -71,7 +70,7 @@ def test_every_public_form_answers_inside(room):
     points, in_left = room
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     camera, truth = CAMERAS[0], _truth(in_left)[0]
-    field = shared_pretrained().encode(pcd)
+    field = o3dvis.NeuralVisibility.pretrained().encode(pcd)
     expected = field.query(camera)[0]
     assert _balanced_accuracy(expected, truth) > 0.9
     np.testing.assert_array_equal(field.probabilities(camera)[0].numpy() > 0.5, expected)
@@ -104,7 +103,7 @@ def test_every_public_form_answers_inside(room):
 def test_max_range_crops(room):
     points, _ = room
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    plain = o3dvis.NeuralVisibility(shared_pretrained().network)  # no scene model: one field answers all
+    plain = o3dvis.NeuralVisibility(o3dvis.NeuralVisibility.pretrained().network)  # no scene model: one field answers all
     field = plain.encode(points)
     reach = 2.0
     far = np.linalg.norm(points[None] - CAMERAS[:, None], axis=2) > reach
@@ -134,14 +133,14 @@ def test_scene_model_answers_the_cameras_inside(room):
     torch.manual_seed(0)
     scene = VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 8, 8, 8), feature_channels=8,
                                             num_frequencies=2, hidden=(16,)))
-    default = shared_pretrained().network
+    default = o3dvis.NeuralVisibility.pretrained().network
     both = o3dvis.NeuralVisibility(default, scene_network=scene).encode(points)
     outside = [[20.0, 2.0, 1.5], [-9.0, -9.0, 9.0]]
     cameras = np.vstack([outside[:1], CAMERAS[:2], outside[1:]])
     probs = both.probabilities(cameras).numpy()
     alone = o3dvis.NeuralVisibility(scene).encode(points).probabilities(CAMERAS[:2]).numpy()
     np.testing.assert_array_equal(probs[1:3], alone)
-    np.testing.assert_array_equal(probs[[0, 3]], shared_pretrained().encode(points).probabilities(outside).numpy())
+    np.testing.assert_array_equal(probs[[0, 3]], o3dvis.NeuralVisibility.pretrained().encode(points).probabilities(outside).numpy())
     np.testing.assert_array_equal(both.query(cameras), probs > 0.5)
     # The one-view functions answer an inside camera by the scene model too (encoding only it).
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
@@ -162,7 +161,7 @@ def test_the_torch_ops_answer_the_cameras_inside_as_the_kernels(room, scene, mon
     direction is short, and rounded as torch rounds it, points on the far side of the azimuthal
     image changed pixels: answers 0.2 apart."""
     points, _ = room
-    model = shared_pretrained() if scene else o3dvis.NeuralVisibility(shared_pretrained().network)
+    model = o3dvis.NeuralVisibility.pretrained() if scene else o3dvis.NeuralVisibility(o3dvis.NeuralVisibility.pretrained().network)
     cameras = np.vstack([CAMERAS, [[0.3, 3.7, 2.8], [3.0, 0.2, 0.1]]])
     kernels = model.encode(points).probabilities(cameras)
     monkeypatch.setattr(native, "usable", lambda *tensors: False)
@@ -196,7 +195,7 @@ def test_stored_probabilities_are_the_probabilities_in_the_stored_order(room):
     torch.manual_seed(0)
     scene = VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 8, 8, 8), feature_channels=8,
                                             num_frequencies=2, hidden=(16,)))
-    field = o3dvis.NeuralVisibility(shared_pretrained().network, scene_network=scene).encode(points)
+    field = o3dvis.NeuralVisibility(o3dvis.NeuralVisibility.pretrained().network, scene_network=scene).encode(points)
     cameras = np.vstack([[[20.0, 2.0, 1.5]], CAMERAS[:2], [[-9.0, -9.0, 9.0]]])
     order = torch.argsort(field.rank)
     assert not torch.equal(order, torch.arange(len(points)))  # the cloud is not in Morton order
@@ -213,7 +212,7 @@ def test_rotations_average_the_scene_model_too(room):
     torch.manual_seed(0)
     scene = VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 8, 8, 8), feature_channels=8,
                                             num_frequencies=2, hidden=(16,)))
-    default = shared_pretrained().network
+    default = o3dvis.NeuralVisibility.pretrained().network
     model = o3dvis.NeuralVisibility(default, scene_network=scene, num_rotations=3, precision="float32")
     got = model.encode(points).probabilities(CAMERAS[:2]).numpy()
     turned = o3dvis.NeuralVisibility(scene, num_rotations=3, precision="float32")

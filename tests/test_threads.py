@@ -111,13 +111,13 @@ def test_workers_only_gives_torch_one_thread_and_plans_as_before(monkeypatch):
         assert torch.get_num_threads() == 1 and threads.plan_threads(1000, 1000) == 3
     assert torch.get_num_threads() == 3 and threads.plan_threads(1000, 1000) == 3
     seen = []
-    first_pass = o3dvis.neural.estimated_normals
+    first_pass = o3dvis.two_pass.estimated_normals
 
     def spy(*args, **kwargs):
         seen.append((torch.get_num_threads(), threads.plan_threads(10 ** 6, 1)))
         return first_pass(*args, **kwargs)
 
-    monkeypatch.setattr(o3dvis.neural, "estimated_normals", spy)
+    monkeypatch.setattr(o3dvis.two_pass, "estimated_normals", spy)
     o3dvis.NeuralVisibility.pretrained().encode(bench_cloud(3_000, 1).points, normals="estimate")
     assert seen == [(1, 3)] and torch.get_num_threads() == 3
 

@@ -29,7 +29,7 @@ class Augmentation:
         rotate: apply a uniform random rotation.
         estimated_normals: share of clouds whose normals are those that
             ``normals="estimate"`` computes (the shipped default's first pass,
-            :func:`o3dvis.neural.first_pass_normals`), with their flips and angle
+            :func:`o3dvis.two_pass.first_pass_normals`), with their flips and angle
             errors, instead of the exact ones (which a cloud keeps where two passes
             would not be taken): for a normals model that answers on estimated normals.
     """
@@ -116,10 +116,10 @@ class VisibilityDataset(torch.utils.data.Dataset):
         if a.noise > 0 and rng.random() < a.noise_prob:
             points = add_noise(points, rng.uniform(0, a.noise), diagonal(points), rng)
         if a.estimated_normals > 0 and rng.random() < a.estimated_normals:
-            from ...neural import first_pass_normals  # the runtime's, imported where it is asked for
-            from ...pretrained import shared_pretrained
+            from ...neural import NeuralVisibility  # the runtime's, imported where it is asked for
+            from ...two_pass import first_pass_normals
 
-            estimated = first_pass_normals(shared_pretrained().encode(points), points)
+            estimated = first_pass_normals(NeuralVisibility.pretrained().encode(points, normals=False), points)
             normals = normals if estimated is None else estimated  # None: two passes would not be taken
         pts, center, scale = normalize_points(torch.from_numpy(points))
         cams = (torch.from_numpy(cameras.astype(np.float64)) - center) / scale

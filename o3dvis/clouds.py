@@ -8,8 +8,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._open3d import is_open3d, require_open3d
-from .cameras import as_vectors
+from .cameras import as_vectors, is_open3d, require_open3d
 
 if TYPE_CHECKING:
     import open3d as o3d

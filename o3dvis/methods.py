@@ -13,8 +13,6 @@ methods is :mod:`o3dvis.training.methods`.
 
 from __future__ import annotations
 
-import functools
-import warnings
 from collections.abc import Callable
 from pathlib import Path
 
@@ -22,26 +20,7 @@ import numpy as np
 
 from .baselines import Method
 
-__all__ = ["resolve_method", "resolve_soft_method", "ground_truth_method", "accepts_method_keyword"]
-
-
-def accepts_method_keyword(function: Callable) -> Callable:
-    """Lets ``function(..., method=x)``, the keyword's former name, mean ``function(..., model=x)``.
-
-    Raises:
-        TypeError: both ``model=`` and ``method=`` are given.
-    """
-    @functools.wraps(function)
-    def wrapper(*args, **kwargs):
-        if "method" in kwargs:
-            if "model" in kwargs:
-                raise TypeError(f"{function.__name__}() got both model= and method=, its former name")
-            warnings.warn(f"{function.__name__}(method=...) is now {function.__name__}(model=...)",
-                          DeprecationWarning, stacklevel=2)
-            kwargs["model"] = kwargs.pop("method")
-        return function(*args, **kwargs)
-
-    return wrapper
+__all__ = ["resolve_method", "resolve_soft_method", "ground_truth_method"]
 
 
 def _neural(model):

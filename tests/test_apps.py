@@ -366,18 +366,16 @@ def test_normals_bad_input(sphere):
                                 search_param=o3d.geometry.KDTreeSearchParamKNN(8))
 
 
-def test_model_keyword_takes_names_and_the_former_method_keyword(box_on_floor):
+def test_model_keyword_takes_names_and_visibility_methods(box_on_floor):
     """``model=`` of the applications takes what the drop-ins take (a shipped model's name) and
-    any visibility method; ``method=``, its former name, still works, with a DeprecationWarning."""
+    any visibility method; ``method=`` is no keyword of theirs."""
     points, _, method = box_on_floor
     pcd = _cloud(points)
     by_name = points_in_shadow(pcd, LIGHT, model="default")
     np.testing.assert_array_equal(by_name, points_in_shadow(pcd, LIGHT))
-    expected = points_in_shadow(pcd, LIGHT, model=method)
-    with pytest.warns(DeprecationWarning, match="model="):
-        np.testing.assert_array_equal(points_in_shadow(pcd, LIGHT, method=method), expected)
-    with pytest.raises(TypeError, match="both model= and method="):
-        points_in_shadow(pcd, LIGHT, model=method, method=method)
+    assert not np.array_equal(points_in_shadow(pcd, LIGHT, model=method), np.zeros(len(points), bool))
+    with pytest.raises(TypeError, match="method"):
+        points_in_shadow(pcd, LIGHT, method=method)
 
 
 # ---------------------------------------------------------------- reconstruction

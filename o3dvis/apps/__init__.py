@@ -3,7 +3,8 @@ shadows, best views and headless renders. Each takes the source of visibility as
 as the Open3D drop-ins do (default: the pretrained neural network; see :mod:`o3dvis.methods`).
 """
 
-from ..cameras import View, fibonacci_sphere, make_view
+from ..cameras import fibonacci_sphere
+from .pinhole import PinholeView, make_view
 from ..methods import ground_truth_method, resolve_method
 from .normals import estimate_normals_neural, orient_normals_neural
 from .reconstruction import reconstruct_poisson, reconstruct_view_dependent
@@ -14,4 +15,4 @@ from .views import best_view
 __all__ = ["estimate_normals_neural", "orient_normals_neural", "reconstruct_view_dependent",
            "reconstruct_poisson", "shadow_map", "points_in_shadow", "render_with_shadows",
            "best_view", "render_points", "depth_image", "ground_truth_method", "resolve_method",
-           "View", "make_view", "fibonacci_sphere"]
+           "PinholeView", "make_view", "fibonacci_sphere"]

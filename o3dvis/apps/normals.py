@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 from ..baselines import distinct_points
 from ..cameras import viewpoints_around
 from ..clouds import cloud_normals, cloud_points, set_cloud_normals
-from ..methods import accepts_method_keyword, resolve_method
+from ..methods import resolve_method
 from ..orientation import complete_orientation, fit_planes, orient_by_vote, vote
 from ..threads import plan_threads, row_chunks, threaded_map
 from .triangulation import DEFAULT_EDGE_FACTOR, facing_triangles, local_spacing
@@ -218,7 +218,6 @@ def _covisible_path(points: np.ndarray, method, cameras: np.ndarray, refine_view
     return normals
 
 
-@accepts_method_keyword
 def estimate_normals_neural(pcd, search_param=None, num_views: int = 26, model=None, *, refine_views: int = 0,
                             edge_factor: float = DEFAULT_EDGE_FACTOR, progress: bool = False):
     """Estimates oriented normals from visibility, in place, like ``pcd.estimate_normals()``.
@@ -274,7 +273,6 @@ def _check_views(num_views: int, refine_views: int) -> None:
                          f"{num_views} and {refine_views}")
 
 
-@accepts_method_keyword
 def orient_normals_neural(pcd, num_views: int = 26, model=None, *, refine_views: int = 0):
     """Flips the normals a cloud already has to face the cameras that see their points.
 

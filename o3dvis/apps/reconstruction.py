@@ -8,9 +8,9 @@ import os
 import numpy as np
 import open3d as o3d
 
-from ..cameras import camera_location_of
+from .pinhole import camera_location_of
 from ..clouds import cloud_points, legacy_cloud
-from ..methods import accepts_method_keyword, resolve_method
+from ..methods import resolve_method
 from .normals import estimate_normals_neural
 from .triangulation import DEFAULT_EDGE_FACTOR, local_spacing, visible_triangles
 
@@ -23,7 +23,6 @@ POISSON_BYTES_PER_POINT_LEVEL = 4096
 """Memory of Open3D's Poisson per point and per octree level finer than the points fill (about 3.7 kB measured)."""
 
 
-@accepts_method_keyword
 def reconstruct_view_dependent(pcd, camera, model=None, *,
                                edge_factor: float = DEFAULT_EDGE_FACTOR) -> o3d.geometry.TriangleMesh:
     """The surface a camera sees, as a mesh over the visible points.
@@ -58,7 +57,6 @@ def reconstruct_view_dependent(pcd, camera, model=None, *,
     return mesh
 
 
-@accepts_method_keyword
 def reconstruct_poisson(pcd, depth: int = 8, model=None, *, num_views: int = 26,
                         refine_views: int = 0, width: float = 0,
                         scale: float = 1.1, linear_fit: bool = False, n_threads: int = 1,

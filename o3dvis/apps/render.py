@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
-from ..cameras import View, make_view
+from .pinhole import PinholeView, make_view
 from ..clouds import cloud_points, legacy_cloud
-from ..methods import accepts_method_keyword, resolve_method
+from ..methods import resolve_method
 from .triangulation import local_spacing
 
 __all__ = ["render_points", "depth_image", "splat", "rasterize", "point_colors", "lambert"]
@@ -20,7 +20,7 @@ __all__ = ["render_points", "depth_image", "splat", "rasterize", "point_colors",
 MAX_SPLAT_RADIUS = 32
 
 
-def splat(view: View, points: np.ndarray, radius: np.ndarray | float,
+def splat(view: PinholeView, points: np.ndarray, radius: np.ndarray | float,
           keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Z-buffers round point splats into the view's image.
 
@@ -77,7 +77,7 @@ def _nearest_per_pixel(pixels: np.ndarray, depth: np.ndarray, owners: np.ndarray
     return pixels, owners[order][first]
 
 
-def rasterize(view: View, points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+def rasterize(view: PinholeView, points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Z-buffered depth image of triangles over ``points``, depth interpolated inside each.
 
     Args:
@@ -158,7 +158,6 @@ def image_from(index: np.ndarray, colors: np.ndarray, background) -> o3d.geometr
     return o3d.geometry.Image(np.ascontiguousarray(np.rint(np.clip(rgb, 0, 1) * 255).astype(np.uint8)))
 
 
-@accepts_method_keyword
 def render_points(pcd, camera, visible_only: bool = True, width: int = 640, height: int = 480,
                   model=None, *, intrinsic=None, point_size: float | None = None,
                   background=(1.0, 1.0, 1.0)) -> o3d.geometry.Image:
@@ -188,7 +187,6 @@ def render_points(pcd, camera, visible_only: bool = True, width: int = 640, heig
     return image_from(index, point_colors(pcd, points, view.location), background)
 
 
-@accepts_method_keyword
 def depth_image(pcd, camera, intrinsic=None, *, width: int = 640, height: int = 480,
                 visible_only: bool = True, model=None,
                 point_size: float | None = None) -> o3d.geometry.Image:

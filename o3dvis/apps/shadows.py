@@ -11,10 +11,11 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
-from ..cameras import as_camera_location, make_view
+from ..cameras import as_camera_location
+from .pinhole import make_view
 from ..clouds import cloud_points, legacy_cloud
 from ..field import OnPointError
-from ..methods import accepts_method_keyword, resolve_method
+from ..methods import resolve_method
 from .render import image_from, lambert, rasterize, splat, splat_size
 from .triangulation import DEFAULT_EDGE_FACTOR, local_spacing, visible_triangles
 
@@ -32,13 +33,12 @@ def _seen_from(model, points: np.ndarray, cameras: np.ndarray, light: int) -> np
         raise error.named("the light") from None
 
 
-@accepts_method_keyword
 def shadow_map(pcd, light, resolution: int = 512, model=None, *,
                edge_factor: float = DEFAULT_EDGE_FACTOR) -> o3d.geometry.Image:
     """The depth image of the surface a point light sees.
 
     The light is a pinhole at ``light`` looking at the bounding-box centre,
-    framed to the cloud (:func:`o3dvis.cameras.make_view` with
+    framed to the cloud (:func:`o3dvis.apps.pinhole.make_view` with
     ``width = height = resolution``). Points visible from the light are
     triangulated in its image plane (long triangles dropped) and their depth
     interpolated linearly inside each triangle.
@@ -66,7 +66,6 @@ def shadow_map(pcd, light, resolution: int = 512, model=None, *,
     return o3d.geometry.Image(rasterize(view, points, triangles).astype(np.float32))
 
 
-@accepts_method_keyword
 def points_in_shadow(pcd, light, model=None) -> np.ndarray:
     """Which points a point light does not reach.
 
@@ -84,7 +83,6 @@ def points_in_shadow(pcd, light, model=None) -> np.ndarray:
     return ~_seen_from(model, points, light[None], 0)[0]
 
 
-@accepts_method_keyword
 def render_with_shadows(pcd, light, camera, width: int = 640, height: int = 480, model=None, *,
                         ambient: float = 0.3, intrinsic=None, point_size: float | None = None,
                         background=(1.0, 1.0, 1.0)) -> o3d.geometry.Image:

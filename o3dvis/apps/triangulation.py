@@ -8,7 +8,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from . import delaunay
-from ..cameras import look_at
+from .pinhole import look_at
 
 __all__ = ["local_spacing", "delaunay_surface", "visible_triangles", "facing_triangles"]
 

@@ -17,7 +17,7 @@ import torch
 from ..cameras import fibonacci_sphere
 from ..clouds import cloud_points
 from ..geometry import bounds, box_diagonal
-from ..methods import accepts_method_keyword, resolve_soft_method
+from ..methods import resolve_soft_method
 
 __all__ = ["best_view", "SEARCHES"]
 
@@ -30,7 +30,6 @@ _BATCH_VALUES = 1 << 22  # probabilities per call of the model (views x points)
 _PROGRESS_DELAY = 2.0  # seconds before a progress bar shows: a quick call prints nothing
 
 
-@accepts_method_keyword
 def best_view(pcd, maximize: bool = True, steps: int | None = None, model=None, *, starts: int | None = None,
               candidates: int = 200, search: str = "candidates", lr: float = 0.05,
               distance: float | None = None, progress: bool = True) -> tuple[np.ndarray, np.ndarray]:

@@ -24,7 +24,8 @@ import open3d as o3d
 from .._optional import figure_class
 from ..apps.render import image_from, lambert, splat, splat_size
 from ..baselines import SWEEPS, hpr_method
-from ..cameras import View, as_camera_location, make_view
+from ..apps.pinhole import PinholeView, make_view
+from ..cameras import as_camera_location
 from ..methods import ground_truth_method
 from .data.prepare import sample_surface
 from .data.shapes import random_shape
@@ -207,7 +208,7 @@ def _pictures(out: Path, pcd: o3d.geometry.PointCloud, mesh: o3d.geometry.Triang
     return paths
 
 
-def _camera_arrow(view: View, centre: np.ndarray, camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _camera_arrow(view: PinholeView, centre: np.ndarray, camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Image-plane start and end of an arrow from the border towards the centre, coming from the camera."""
     uv, _ = view.project(np.stack([centre, centre + 0.05 * (camera - centre)]))
     direction = uv[1] - uv[0]

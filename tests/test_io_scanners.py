@@ -180,5 +180,13 @@ def test_a_missing_extra_is_named(tmp_path, monkeypatch, suffix, module, extra):
         read_point_cloud(path)
 
 
+def test_a_laz_file_without_a_decompressor_names_the_extra(tmp_path, monkeypatch):
+    path = tmp_path / "map.laz"
+    _write_las(path)
+    monkeypatch.setattr(laspy.LazBackend, "detect_available", staticmethod(lambda: ()))
+    with pytest.raises(ImportError, match=r'needs lazrs; install it with: pip install "o3dvis\[las\]"'):
+        read_point_cloud(path)
+
+
 def test_the_scanner_formats_are_among_the_suffixes_read():
     assert {".las", ".laz", ".e57"} <= set(SUFFIXES)

@@ -1,5 +1,8 @@
 """Reading point cloud files, checked against what their headers and sizes promise.
 
+The formats Open3D reads are checked here; :func:`read_point_cloud` reads LAS,
+LAZ and E57 maps through :mod:`o3dvis.io.scanners` with the same final checks.
+
 Open3D's ``read_point_cloud`` only warns when a file is shorter than its header
 says: a binary PLY that declares 100 000 vertices and holds 30 floats comes back
 as 100 000 points, most of them zeros, and a PCD or PTS header that overstates
@@ -20,10 +23,14 @@ from pathlib import Path
 
 import numpy as np
 
+from .scanners import SCANNER_SUFFIXES, read_scan
+
 __all__ = ["read_point_cloud", "SUFFIXES"]
 
-# the formats Open3D reads point clouds from, and the numbers on each data line of the text ones
-SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")
+# the formats Open3D reads point clouds from, all the formats read here, and the numbers on each data line of
+# Open3D's text ones
+_OPEN3D_SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")
+SUFFIXES = _OPEN3D_SUFFIXES + SCANNER_SUFFIXES
 _LINE_NUMBERS = {".xyz": 3, ".xyzn": 6, ".xyzrgb": 6, ".pts": 3}
 _PLY_TYPES = {"char": "i1", "uchar": "u1", "int8": "i1", "uint8": "u1", "short": "i2", "ushort": "u2", "int16": "i2",
               "uint16": "u2", "int": "i4", "uint": "u4", "int32": "i4", "uint32": "u4", "float": "f4", "float32": "f4",
@@ -440,28 +447,36 @@ def _first_unread_line(path: Path, suffix: str) -> str:
 
 
 def read_point_cloud(path: str | Path):
-    """Reads a point cloud file as ``o3d.io.read_point_cloud`` does, checking it first and after.
+    """Reads a point cloud file, checking it first and after.
+
+    The formats Open3D reads are read as ``o3d.io.read_point_cloud`` reads
+    them; LAS, LAZ and E57 maps are read by :mod:`o3dvis.io.scanners`.
 
     Args:
         path: a ``.ply`` (ASCII or binary), ``.pcd`` (ASCII, binary or
-            compressed), ``.xyz``, ``.xyzn``, ``.xyzrgb`` or ``.pts`` file.
+            compressed), ``.xyz``, ``.xyzn``, ``.xyzrgb`` or ``.pts`` file, or
+            a ``.las``, ``.laz`` or ``.e57`` map (optional extras ``las`` and
+            ``e57``).
 
     Returns:
-        The ``o3d.geometry.PointCloud``, with the colours and normals the file holds.
+        The ``o3d.geometry.PointCloud``, float64 points with the colours and
+        normals the file holds (a scanner's colours, or its intensity as grey
+        levels: see :func:`o3dvis.io.scanners.read_scan`).
 
     Raises:
         FileNotFoundError: no such file.
+        ImportError: a LAS, LAZ or E57 file where its optional extra is not
+            installed.
         ValueError: a folder, an unknown suffix, a file shorter than its
             header declares or with a line that is not a point, a PLY or PCD
             header Open3D would misread (a partial set of coordinates, normals
             or colours, a list or a type it does not read as a number, a
             corrupted line), fewer or more points read than the file declares,
             points other than the file's (compared in full, except in a
-            compressed PCD, whose compressed data is checked instead), no
-            point, or NaN or infinite coordinates.
+            compressed PCD, whose compressed data is checked instead), a LAS,
+            LAZ or E57 file that is not one or is cut short, no point, or NaN
+            or infinite coordinates.
     """
-    import open3d as o3d
-
     path = Path(path)
     if path.is_dir():
         raise ValueError(f"{path} is a folder, not a point cloud file")
@@ -470,6 +485,21 @@ def read_point_cloud(path: str | Path):
     suffix = path.suffix.lower()
     if suffix not in SUFFIXES:
         raise ValueError(f"{path}: unknown point cloud format {path.suffix!r}; use one of {', '.join(SUFFIXES)}")
+    pcd = read_scan(path) if suffix in SCANNER_SUFFIXES else _read_open3d(path, suffix)
+    points = np.asarray(pcd.points)
+    if len(points) == 0:
+        raise ValueError(f"no points could be read from {path}")
+    bad = int((~np.isfinite(points).all(axis=1)).sum())
+    if bad:
+        raise ValueError(f"{path}: {bad} of {len(points)} points have NaN or infinite coordinates")
+    return pcd
+
+
+def _read_open3d(path: Path, suffix: str):
+    """A file of a format Open3D reads (one of ``_OPEN3D_SUFFIXES``), checked before and after Open3D reads it
+    (see :func:`read_point_cloud`)."""
+    import open3d as o3d
+
     size, declared, doubles = path.stat().st_size, None, {}
     with open(path, "rb") as f:
         if suffix == ".ply":
@@ -483,8 +513,6 @@ def read_point_cloud(path: str | Path):
     if len(points) != expected:
         detail = _first_unread_line(path, suffix) if suffix in _LINE_NUMBERS else ""
         raise ValueError(f"{path}: {len(points)} points could be read where the file holds {expected}{detail}")
-    if len(points) == 0:
-        raise ValueError(f"no points could be read from {path}")
     for key, values in doubles.items():  # binary doubles, which Open3D reads as zeros
         setattr(pcd, key, o3d.utility.Vector3dVector(values))
     points = np.asarray(pcd.points)
@@ -493,7 +521,4 @@ def read_point_cloud(path: str | Path):
         raise ValueError(f"{path}: Open3D read {len(wrong)} of {len(points)} points otherwise than the file declares "
                          f"them (point {wrong[0]}: {points[wrong[0]].tolist()} for {declared[wrong[0]].tolist()}); "
                          "a corrupted file")
-    bad = int((~np.isfinite(points).all(axis=1)).sum())
-    if bad:
-        raise ValueError(f"{path}: {bad} of {len(points)} points have NaN or infinite coordinates")
     return pcd

@@ -46,10 +46,8 @@ depth differences (accuracy falls from 10^5 on, to half at 10^7): the switch sit
 where a perspective view differs from the orthographic one by a thousandth of a radian."""
 # points a leaf from which every query the C kernels answer reads the features from the leaves (see
 # _query_features): with fewer, views that read them again and again cost more than carrying them
-# to the points once (26 views of 200 k points, 7.2 a leaf, 3-4 % faster than carrying them once,
-# on one thread or two; drop-in calls 6 % faster at 13 (a 1 M-point room) and 24 % at 33 (a 1 M-point
-# object)). A first query of one view reads the leaves at any density: a drop-in call of 2 k and 8 k
-# points, 1.2 points a leaf, 1-2 % faster (1 000 rounds interleaved)
+# to the points once. A first query of one view reads the leaves at any density: it reads each leaf
+# at most as often as carrying the features would write each point
 _LEAF_READ_POINTS = 4
 # queries of fewer rows (views x points) run on one thread where the C kernels answer: their helper
 # threads (see native.kernel_threads) take over some blocks of a view from there

@@ -33,16 +33,14 @@ __all__ = ["voted_normals", "oriented_planes", "fit_planes", "smallest_eigenvect
 
 _GRAPH_NEIGHBOURS = 10  # neighbours of a point in the graph that propagates orientation
 # the scale of the visibility differences that weigh a plane fit's neighbours (visibility_affinity):
-# on the validation meshes 0.1 gave the normals model 0.3-0.75 point more than unweighted fits at
-# 2-32 k points (0.05: as good; 0.03 and 0.3: 0.1-0.3 point less)
+# the best of the scales tried on the validation meshes, where weighted fits beat unweighted ones
 _AFFINITY_SCALE = 0.1
 # the least weight of a neighbour: a point whose neighbours all look different to the cameras (as
 # with exact visibility, where each camera's horizon falls) keeps a well-conditioned fit
 _AFFINITY_FLOOR = 0.01
 # a vote whose agreement is below this leaves the normal to the plane through LAYER_NEIGHBOURS
-# points and its side to layer_sides: on the validation meshes at 8 k points the two-pass normals
-# on the wrong side fell from 8.4 to 6.2 % (bowls, cups, chairs: 15-42 % before) and the normals
-# model gained 1.5 points; 0.8 measured the same, 0.3 0.3 point less
+# points and its side to layer_sides: the cameras split on thin walls (bowls, cups, chairs), where
+# the side of the point's layer is the surer guide
 _WEAK_AGREEMENT = 0.6
 LAYER_NEIGHBOURS = 16
 

@@ -268,7 +268,7 @@ _forked = False  # whether this process is the child of a fork
 
 def _after_fork_in_child() -> None:
     """A forked child has none of its parent's threads: it makes its own workers, and a fixed count
-    no longer raises torch's count above the child's own. Torch's OpenMP (GNU libgomp), in a child
+    never raises torch's count above the child's own. Torch's OpenMP (GNU libgomp), in a child
     forked after its parent ran a team, takes the team's threads for still there: a team of more
     than one waits for them for ever, which is why DataLoader workers set one torch thread."""
     global _POOL, _POOL_LOCK, _forked

@@ -39,10 +39,8 @@ _PLANE_NEIGHBOURS = 8
 # below _CUE_ALONE_POINTS points, where the cue cannot see noise finer than the spacing, whose
 # plane fits' neighbourhoods have a lower quartile of surface variation
 # (o3dvis.orientation.surface_variation, over an even sample of _VARIATION_SAMPLE of them) under
-# _ESTIMATE_MAX_VARIATION. On the validation meshes two passes everywhere gained 1.1-2.0 points on
-# clean clouds and lost 0.2-5.2 points on those with 0.5-2 % noise; with this rule the clean
-# columns (2-81 k points) came within 0.2 point of that gain, and the noisy ones lost at most
-# 0.3 point (0.5 % noise at 8 k points)
+# _ESTIMATE_MAX_VARIATION: two passes pay on clean clouds and cost on noisy ones, whose estimated
+# planes tilt (docs/results.md has the figures on the validation meshes)
 ESTIMATE_MIN_POINTS = 1_000
 _ESTIMATE_MAX_NOISE = 0.2
 _CUE_ALONE_POINTS = 65_536
@@ -101,7 +99,7 @@ def estimated_normals(field: VisibilityField, points: np.ndarray, stored: bool =
     if clean_only and not clean:
         return None, False
     # in the field's order along the Morton curve: neighbours close in memory make the KNN search
-    # and the plane fits cache-friendly (at 200 k points 380 -> 245 ms)
+    # and the plane fits cache-friendly
     rank = None if stored or field.rank is None else field.rank.cpu().numpy()
     if rank is not None:
         order = np.empty_like(rank)

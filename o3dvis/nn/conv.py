@@ -47,15 +47,14 @@ def _pad(x: Tensor) -> Tensor:
 _CHUNK_ELEMENTS = 1 << 20
 """Gathered values per chunk of a convolution (4 MB in float32): temporaries this size are reused
 from the heap by the allocator and stay in cache, where larger ones are mapped and page-faulted
-afresh on every call (measured: that was half the encode time at 200k points)."""
+afresh on every call, which would cost as much as the products themselves on large clouds."""
 
 
 _SERIAL_ROWS = 2048
 """Matrix products of fewer rows than this run on one thread. With several threads the CPU kernels
 split such products along their inner dimension, which changes the order of the sums with the
 thread count; in bfloat16 the rounded outputs then differ, and the answers for one cloud would
-depend on how many threads the machine's load left free (measured with 2 threads: products of up
-to 1 000 rows split)."""
+depend on how many threads the machine's load left free."""
 
 
 def gather_rows(x: Tensor, index: Tensor) -> Tensor:

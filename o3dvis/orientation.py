@@ -16,7 +16,7 @@ estimation of :mod:`o3dvis.apps.normals`.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import torch
@@ -26,10 +26,11 @@ from scipy.spatial import cKDTree
 
 from .neighbours import NeighbourSearch, nearest_neighbours
 from .nn import native
-from .threads import on_threads, row_chunks
+from .threads import PARALLEL_ROWS, plan_threads, side_by_side
 
 __all__ = ["voted_normals", "oriented_planes", "fit_planes", "smallest_eigenvectors", "vote", "facing_away",
-           "visibility_affinity", "layer_sides", "surface_variation", "orient_by_vote", "complete_orientation"]
+           "visibility_affinity", "layer_sides", "surface_variation", "orient_by_vote", "complete_orientation",
+           "row_chunks"]
 
 _GRAPH_NEIGHBOURS = 10  # neighbours of a point in the graph that propagates orientation
 # the scale of the visibility differences that weigh a plane fit's neighbours (visibility_affinity):
@@ -45,6 +46,22 @@ _WEAK_AGREEMENT = 0.6
 LAYER_NEIGHBOURS = 16
 
 
+_CHUNK = 4096  # rows of neighbourhoods handled at once
+
+
+def row_chunks(count: int, size: int = _CHUNK, start: int = 0) -> list[slice]:
+    """Slices of ``size`` rows covering ``start..count``: per-neighbour temporaries of a chunk stay in cache."""
+    return [slice(first, min(first + size, count)) for first in range(start, count, size)]
+
+
+def _on_threads(fn: Callable[[slice], object], count: int) -> Iterator:
+    """``fn`` of a share of ``count`` rows on each of the threads the load allows (one below
+    :data:`~o3dvis.threads.PARALLEL_ROWS` rows), in order: for C kernels and numpy ops, which let go
+    of the GIL."""
+    workers = plan_threads(count, PARALLEL_ROWS)
+    return side_by_side(fn, row_chunks(count, -(-count // workers) if count else 1), workers)
+
+
 def fit_planes(points: np.ndarray, neighbours: np.ndarray, weight: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals (M, 3) of weighted least-squares planes through rows of neighbours (M, K), and
@@ -57,7 +74,7 @@ def fit_planes(points: np.ndarray, neighbours: np.ndarray, weight: np.ndarray | 
         points, neighbours = (torch.from_numpy(np.ascontiguousarray(a, dtype=t)) for a, t in (
             (points, np.float64), (neighbours, np.int64)))
         weight = None if weight is None else torch.from_numpy(np.ascontiguousarray(weight, dtype=np.float64))
-        parts = list(on_threads(lambda rows: native.fit_planes(
+        parts = list(_on_threads(lambda rows: native.fit_planes(
             points, neighbours[rows], None if weight is None else weight[rows]), len(neighbours)))
         return torch.cat([n for n, _ in parts]).numpy(), torch.cat([p for _, p in parts]).numpy()
     weight = np.ones(neighbours.shape) if weight is None else weight
@@ -177,7 +194,7 @@ def _votes(points: np.ndarray, normals: np.ndarray, cameras: np.ndarray, visibil
     if native.available() and len(cameras):  # one pass of C over the points, a camera at a time
         tensors = [torch.from_numpy(np.ascontiguousarray(a, dtype=t)) for a, t in (
             (points, np.float64), (normals, np.float64), (cameras, np.float64), (visibility, np.float32))]
-        parts = list(on_threads(lambda rows: native.votes(*tensors, rows), len(points)))
+        parts = list(_on_threads(lambda rows: native.votes(*tensors, rows), len(points)))
         return tuple(torch.cat([part[k] for part in parts]).numpy() if parts else np.empty(0) for k in (0, 1))
     vote, agreement = np.empty(len(points)), np.empty(len(points))
 
@@ -192,7 +209,7 @@ def _votes(points: np.ndarray, normals: np.ndarray, cameras: np.ndarray, visibil
         vote[rows] = terms.sum(axis=1)
         agreement[rows] = np.abs(vote[rows]) / np.maximum(np.abs(terms).sum(axis=1), 1e-300)
 
-    for _ in on_threads(lambda rows: [chunk(part) for part in row_chunks(rows.stop, start=rows.start)],
+    for _ in _on_threads(lambda rows: [chunk(part) for part in row_chunks(rows.stop, start=rows.start)],
                          len(points)):
         pass
     return vote, agreement
@@ -240,7 +257,7 @@ def visibility_affinity(visibility: np.ndarray, neighbours: np.ndarray, scale: f
     if native.available():
         table = native.affinity_table(torch.from_numpy(np.asarray(visibility, dtype=np.float32)))
         near = torch.from_numpy(np.ascontiguousarray(neighbours, dtype=np.int64))
-        return torch.cat(list(on_threads(lambda rows: native.visibility_affinity(
+        return torch.cat(list(_on_threads(lambda rows: native.visibility_affinity(
             table, len(visibility), near[rows], rows.start, scale, _AFFINITY_FLOOR), len(neighbours)))).numpy()
     table = np.ascontiguousarray(visibility.T, dtype=np.float32)  # (N, V): a point's answers together
     weight = np.empty(neighbours.shape, dtype=np.float64)
@@ -249,7 +266,7 @@ def visibility_affinity(visibility: np.ndarray, neighbours: np.ndarray, scale: f
         squared = np.square(table[neighbours[rows]] - table[rows, None]).mean(axis=2)
         weight[rows] = np.maximum(np.exp(squared * (-1.0 / scale ** 2)), _AFFINITY_FLOOR)
 
-    for _ in on_threads(lambda rows: [chunk(part) for part in row_chunks(rows.stop, start=rows.start)],
+    for _ in _on_threads(lambda rows: [chunk(part) for part in row_chunks(rows.stop, start=rows.start)],
                          len(neighbours)):
         pass
     return weight

@@ -45,8 +45,8 @@ from concurrent.futures import ThreadPoolExecutor
 import torch
 
 __all__ = ["set_num_threads", "get_num_threads", "usable_cores", "busy_cores", "plan_threads", "torch_threads",
-           "workers_only", "threaded_map", "side_by_side", "on_threads", "row_chunks", "cpu_pressure", "ENV_VAR",
-           "MAX_PRESSURE", "ROW_CHUNK", "PARALLEL_ROWS"]
+           "workers_only", "threaded_map", "side_by_side", "cpu_pressure", "ENV_VAR", "MAX_PRESSURE",
+           "PARALLEL_ROWS"]
 
 ENV_VAR = "O3DVIS_NUM_THREADS"
 """Environment variable fixing the thread count (a positive int; ``auto`` or unset: the policy)."""
@@ -340,22 +340,8 @@ def threaded_map(fn: Callable, items: Iterable, workers: int) -> Iterator:
         futures.wait(runners)
 
 
-ROW_CHUNK = 4096
-"""Rows of per-point work (neighbourhoods, votes) handled at once: their temporaries stay in cache."""
 PARALLEL_ROWS = 8192
 """Rows below which per-point work (plane fits, votes, neighbour searches) runs on one thread."""
-
-
-def row_chunks(count: int, size: int = ROW_CHUNK, start: int = 0) -> list[slice]:
-    """Slices of ``size`` rows covering ``start..count``: per-neighbour temporaries of a chunk stay in cache."""
-    return [slice(first, min(first + size, count)) for first in range(start, count, size)]
-
-
-def on_threads(fn: Callable[[slice], object], count: int) -> Iterator:
-    """``fn`` of a share of ``count`` rows on each of the threads the load allows (one below
-    :data:`PARALLEL_ROWS` rows), in order: for C kernels and numpy ops, which let go of the GIL."""
-    workers = plan_threads(count, PARALLEL_ROWS)
-    return side_by_side(fn, row_chunks(count, -(-count // workers) if count else 1), workers)
 
 
 def side_by_side(fn: Callable, items: list, workers: int) -> Iterator:

@@ -22,8 +22,8 @@ from ..baselines import distinct_points
 from ..cameras import viewpoints_around
 from ..clouds import cloud_normals, cloud_points, set_cloud_normals
 from ..methods import resolve_method
-from ..orientation import complete_orientation, fit_planes, orient_by_vote, vote
-from ..threads import plan_threads, row_chunks, threaded_map
+from ..orientation import complete_orientation, fit_planes, orient_by_vote, row_chunks, vote
+from ..threads import plan_threads, threaded_map
 from .triangulation import DEFAULT_EDGE_FACTOR, facing_triangles, local_spacing
 
 __all__ = ["estimate_normals_neural", "orient_normals_neural", "multiview_normals",

@@ -25,7 +25,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import open3d as o3d  # noqa: E402
 
-from o3dvis.training.data.prepare import MESH_SUFFIXES, sample_surface  # noqa: E402
+from o3dvis.training.data.prepare import MESH_SUFFIXES  # noqa: E402
+from o3dvis.training.data.sample import sample_surface  # noqa: E402
 
 DEFAULT_MESHES = Path(__file__).resolve().parents[2] / "shared" / "meshes" / "val"  # ../shared beside the project
 
@@ -57,7 +58,7 @@ def data_settings(args: argparse.Namespace):
     """
     import torch
 
-    from o3dvis.training.data.prepare import load_sample
+    from o3dvis.training.data.sample import load_sample
     from o3dvis.training.evaluate import eval_cloud, list_samples
 
     torch.set_num_threads(args.threads)

@@ -16,7 +16,7 @@ from o3dvis.apps.normals import covisible_normals, multiview_normals, neighbourh
 from o3dvis.cli import build_parser
 from o3dvis.cli._common import split_vectors, visibility_method
 from o3dvis.orientation import fit_planes, smallest_eigenvectors, vote
-from o3dvis.training.data.prepare import sample_surface
+from o3dvis.training.data.sample import sample_surface
 
 
 def _sample(mesh: o3d.geometry.TriangleMesh, count: int, seed: int = 0):

@@ -88,14 +88,15 @@ def test_warm_start_drops_a_calibration():
 def test_calibrate_command_writes_a_calibrated_network(tmp_path, monkeypatch):
     from o3dvis.training.calibrate import calibrate
     from o3dvis.training.data.dataset import Augmentation
-    from o3dvis.training.data.prepare import _save, label_mesh
+    from o3dvis.training.data.prepare import label_mesh
+    from o3dvis.training.data.sample import save_sample
     from o3dvis.training.data.shapes import write_shapes
 
     data = tmp_path / "data"
     data.mkdir()
     for m in write_shapes(str(tmp_path / "meshes"), 2, seed=3):
         s = label_mesh(m, num_points=3000, num_views=8)
-        _save(s, data / f"{s.name}.npz")
+        save_sample(s, data / f"{s.name}.npz")
     torch.manual_seed(0)
     ckpt = tmp_path / "net.safetensors"
     VisibilityNetwork(NetworkConfig(**SMALL)).save(ckpt)

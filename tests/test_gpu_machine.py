@@ -64,13 +64,13 @@ def test_cuda_gives_the_cpu_answers_inside_a_room():
 def test_the_torch_core_and_training_run_without_open3d(tmp_path):
     """With Open3D unimportable, arrays are encoded and queried in one and two passes, and the
     training data set draws clouds with estimated normals."""
-    from o3dvis.training.data.prepare import Sample, _save
+    from o3dvis.training.data.sample import Sample, save_sample
 
     points = _dumbbell(4000)
     cameras = np.array([[0.6, 0.0, 4.0], [-4.0, 0.0, 0.0]])
     visibility = np.ones((2, len(points)), dtype=bool)
-    _save(Sample(points.astype(np.float32), points.astype(np.float32), cameras.astype(np.float32), visibility,
-                 "a"), tmp_path / "a.npz")
+    save_sample(Sample(points.astype(np.float32), points.astype(np.float32), cameras.astype(np.float32),
+                       visibility, "a"), tmp_path / "a.npz")
     script = f"""
 import sys
 sys.modules["open3d"] = None  # import open3d raises ImportError

@@ -8,7 +8,7 @@ import pytest
 
 from o3dvis import visibility_from_mesh
 from o3dvis.training.data import label_mesh, load_sample, prepare
-from o3dvis.training.data.prepare import sample_surface
+from o3dvis.training.data.sample import sample_surface
 
 
 def _surface(mesh: o3d.geometry.TriangleMesh, count: int, seed: int = 0) -> np.ndarray:

@@ -532,7 +532,8 @@ def test_checkpoint_roundtrip(tmp_path):
 
 def test_training_smoke_loss_falls(tmp_path):
     """A few steps on tiny procedural data: the loss must fall."""
-    from o3dvis.training.data.prepare import _save, label_mesh
+    from o3dvis.training.data.prepare import label_mesh
+    from o3dvis.training.data.sample import save_sample
     from o3dvis.training.data.shapes import write_shapes
     from o3dvis.training.train import TrainConfig, train
 
@@ -541,7 +542,7 @@ def test_training_smoke_loss_falls(tmp_path):
     data.mkdir()
     for m in meshes:
         s = label_mesh(m, num_points=3000, num_views=8)
-        _save(s, data / f"{s.name}.npz")
+        save_sample(s, data / f"{s.name}.npz")
     torch.manual_seed(0)
     cfg = TrainConfig(data=[str(data)], out=str(tmp_path / "run"), steps=40, batch_size=2, lr=3e-3,
                       warmup=5, val_every=1000, log_every=5, network={"depth": 6},
@@ -556,7 +557,8 @@ def test_training_with_footprints_finds_each_clouds_surfels_once(tmp_path, monke
     """Training and validation of a network with footprints run, and each cloud's surfels are
     found once for all its views."""
     from o3dvis.nn import network as network_module
-    from o3dvis.training.data.prepare import _save, label_mesh
+    from o3dvis.training.data.prepare import label_mesh
+    from o3dvis.training.data.sample import save_sample
     from o3dvis.training.data.shapes import write_shapes
     from o3dvis.training.train import TrainConfig, train
 
@@ -564,7 +566,7 @@ def test_training_with_footprints_finds_each_clouds_surfels_once(tmp_path, monke
     data.mkdir()
     for m in write_shapes(str(tmp_path / "meshes"), 2, seed=3):
         s = label_mesh(m, num_points=2000, num_views=4)
-        _save(s, data / f"{s.name}.npz")
+        save_sample(s, data / f"{s.name}.npz")
     found = []
     monkeypatch.setattr(network_module, "point_surfels",
                         lambda points, find=network_module.point_surfels: found.append(len(points)) or find(points))

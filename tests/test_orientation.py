@@ -311,12 +311,13 @@ def test_training_draws_the_first_pass_normals_for_the_share_asked(tmp_path):
     shape); the points, cameras and labels are the draw of estimated_normals=0, which draws as before."""
     torch = pytest.importorskip("torch")
     from o3dvis.training.data.dataset import Augmentation, VisibilityDataset
-    from o3dvis.training.data.prepare import _save, label_mesh
+    from o3dvis.training.data.prepare import label_mesh
+    from o3dvis.training.data.sample import save_sample
     from o3dvis.training.data.shapes import write_shapes
 
     mesh = write_shapes(str(tmp_path / "meshes"), 1, seed=6)[0]
     sample = label_mesh(mesh, num_points=6000, num_views=4)
-    _save(sample, tmp_path / "s.npz")
+    save_sample(sample, tmp_path / "s.npz")
     draw = dict(min_points=5000, max_points=5001, noise_prob=0.0)
     exact = VisibilityDataset([tmp_path / "s.npz"], Augmentation(**draw), seed=2, length=2)
     estimated = VisibilityDataset([tmp_path / "s.npz"], Augmentation(**draw, estimated_normals=1.0), seed=2, length=2)

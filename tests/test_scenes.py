@@ -11,7 +11,7 @@ from o3dvis import visibility_from_mesh
 from o3dvis.training.data import load_sample
 from o3dvis.training.data.prepare import label_scene, prepare_scenes
 from o3dvis.training.data.scenes import (HeightField, box_scene, free_positions, random_rooms, random_scene,
-                                random_street, sample_lidar, sample_uniform, scene_sample)
+                                         random_street, sample_lidar, sample_uniform, scene_sample)
 
 CLOSED = ("box", "sphere", "cylinder", "cone", "torus")  # primitives with no open surface
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import o3dvis
-from o3dvis.training.data.prepare import sample_surface
+from o3dvis.training.data.sample import sample_surface
 
 
 @pytest.fixture(scope="module")

@@ -177,7 +177,7 @@ def _drop_refusing(methods: dict, absent: dict, path: Path, points: int, views: 
     Returns:
         True when the file has no camera inside (nothing was tried).
     """
-    from ..training.data.prepare import load_sample
+    from ..training.data.sample import load_sample
     from ..training.evaluate import eval_cloud, run_method
 
     cloud = eval_cloud(load_sample(path), points, 0.0, views=views, inside=True)

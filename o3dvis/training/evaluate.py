@@ -36,7 +36,7 @@ import numpy as np
 from ..baselines import Method
 from ..geometry import diagonal
 from .data.perturb import add_noise
-from .data.prepare import Sample, load_sample
+from .data.sample import Sample, list_samples, load_sample
 
 __all__ = ["Counts", "list_samples", "category_of", "subsample_indices", "add_noise", "EvalCloud", "eval_cloud",
            "run_method", "inside_cameras", "camera_distance",
@@ -90,17 +90,6 @@ class Counts:
     def fp_rate(self) -> float:
         """Share of hidden points predicted visible."""
         return self.fp / (self.fp + self.tn) if self.fp + self.tn else float("nan")
-
-
-def list_samples(data_dir: str | Path, limit: int | None = None) -> list[Path]:
-    """The ``.npz`` samples below ``data_dir``, sorted, at most ``limit``."""
-    data_dir = Path(data_dir)
-    if not data_dir.is_dir():
-        raise FileNotFoundError(f"{data_dir} is not a folder")
-    files = sorted(p for p in data_dir.rglob("*.npz") if not p.name.endswith(".tmp.npz"))
-    if not files:
-        raise ValueError(f"no .npz samples below {data_dir} (make them with `o3dvis prepare`)")
-    return files[:limit] if limit else files
 
 
 def category_of(path: Path, data_dir: Path) -> str:

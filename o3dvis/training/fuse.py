@@ -87,7 +87,7 @@ def fuse(checkpoint: str | Path, data: list[str | Path], out: str | Path, clouds
     from tqdm import tqdm
 
     from ..neural import NeuralVisibility
-    from .data.prepare import load_sample
+    from .data.sample import load_sample
     from .evaluate import eval_cloud, inside_cameras, list_samples
 
     if clouds < 1 or keep < 1 or not 1 <= min_points <= max_points:

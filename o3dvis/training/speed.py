@@ -20,7 +20,7 @@ import numpy as np
 from ..baselines import Method
 from ..geometry import diagonal
 from ..groundtruth import sample_viewpoints
-from .data.prepare import sample_surface
+from .data.sample import sample_surface
 from .data.shapes import random_shape
 from .evaluate import EvalCloud, run_method
 

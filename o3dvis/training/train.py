@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from ..nn.network import NetworkConfig, VisibilityNetwork
 from ..nn.octree import normalize_points
 from .data.dataset import Augmentation, Batch, VisibilityDataset, collate
-from .data.prepare import load_sample
+from .data.sample import load_sample
 
 __all__ = ["TrainConfig", "train", "batch_loss", "validate"]
 

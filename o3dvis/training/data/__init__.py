@@ -1,4 +1,4 @@
-"""Labelled data for training and evaluation: procedural shapes, prepared samples, datasets.
+"""Labelled data for training and evaluation: procedural shapes and scenes, prepared samples, datasets.
 
 The shapes load on first use, so that training from prepared samples runs where Open3D (which
 making shapes and labelling meshes need) is not installed.
@@ -6,9 +6,11 @@ making shapes and labelling meshes need) is not installed.
 
 from importlib import import_module
 
-from .prepare import Sample, label_mesh, load_sample, prepare
+from .prepare import label_mesh, prepare
+from .sample import Sample, list_samples, load_sample, save_sample
 
-__all__ = ["random_shape", "write_shapes", "label_mesh", "load_sample", "prepare", "Sample"]
+__all__ = ["random_shape", "write_shapes", "label_mesh", "load_sample", "save_sample", "list_samples", "prepare",
+           "Sample"]
 
 
 def __getattr__(name: str):

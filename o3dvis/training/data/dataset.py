@@ -12,7 +12,7 @@ from torch import Tensor
 from ...geometry import diagonal, random_rotation
 from ...nn.octree import normalize_points
 from .perturb import add_noise
-from .prepare import Sample, load_sample
+from .sample import Sample, load_sample
 
 __all__ = ["Augmentation", "VisibilityDataset", "Batch", "collate"]
 

@@ -9,46 +9,16 @@ reported and skipped.
 from __future__ import annotations
 
 import hashlib
-import os
-import zipfile
-import zlib
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MESH_SUFFIXES", "sample_surface", "label_mesh", "prepare", "prepare_scenes", "label_scene",
-           "load_sample", "Sample"]
+from .sample import Sample, sample_surface, save_sample
+
+__all__ = ["MESH_SUFFIXES", "label_mesh", "prepare", "prepare_scenes", "label_scene"]
 
 MESH_SUFFIXES = (".ply", ".obj", ".off", ".stl")
-
-
-@dataclass
-class Sample:
-    """A labelled point cloud: ``visibility[v, i]`` tells whether ``cameras[v]`` sees ``points[i]``."""
-
-    points: np.ndarray
-    normals: np.ndarray
-    cameras: np.ndarray
-    visibility: np.ndarray
-    name: str
-
-
-def sample_surface(vertices: np.ndarray, triangles: np.ndarray, count: int,
-                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """``count`` points uniform on the surface (by area) and their triangle normals."""
-    tri = vertices[triangles]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    area = np.linalg.norm(cross, axis=1)
-    if not np.isfinite(area).all() or area.sum() <= 0:
-        raise ValueError("mesh has no surface area")
-    face = rng.choice(len(triangles), size=count, p=area / area.sum())
-    r1, r2 = np.sqrt(rng.random(count)), rng.random(count)
-    bary = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], axis=1)
-    points = np.einsum("ij,ijk->ik", bary, tri[face])
-    normals = cross[face] / np.maximum(area[face], 1e-300)[:, None]
-    return points, normals
 
 
 def _seed(name: str, seed: int) -> int:
@@ -82,30 +52,10 @@ def label_mesh(path: str | Path, num_points: int = 100_000, num_views: int = 16,
                   cameras.astype(np.float32), visibility, path.stem)
 
 
-def _save(sample: Sample, out: Path) -> None:
-    tmp = out.with_suffix(".tmp.npz")
-    np.savez_compressed(tmp, points=sample.points, normals=sample.normals, cameras=sample.cameras,
-                        visibility=np.packbits(sample.visibility, axis=1),
-                        num_points=np.int64(len(sample.points)))
-    os.replace(tmp, out)
-
-
-def load_sample(path: str | Path) -> Sample:
-    """Reads a file written by :func:`prepare`; raises ``ValueError`` if it is broken."""
-    path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as f:
-            n = int(f["num_points"])
-            vis = np.unpackbits(f["visibility"], axis=1, count=n).astype(bool)
-            return Sample(f["points"], f["normals"], f["cameras"], vis, path.stem)
-    except (OSError, KeyError, ValueError, zlib.error, EOFError, zipfile.BadZipFile) as e:
-        raise ValueError(f"{path}: not a readable o3dvis sample ({e})") from e
-
-
 def _job(args: tuple) -> tuple[str, str | None]:
     path, out, num_points, num_views, seed = args
     try:
-        _save(label_mesh(path, num_points, num_views, seed), Path(out))
+        save_sample(label_mesh(path, num_points, num_views, seed), Path(out))
         return str(path), None
     except Exception as e:  # a broken mesh must not stop the run
         return str(path), f"{type(e).__name__}: {e}"
@@ -173,7 +123,7 @@ def label_scene(index: int, meshes: list[str], num_points: int = 100_000, num_vi
         kinds, samplings: see ``o3dvis.training.data.scenes.KINDS`` and ``SAMPLINGS``.
         max_range: LiDAR-like range limit in metres (default: none).
     """
-    from .scenes import SAMPLINGS, random_scene, scene_sample
+    from .scenes import SAMPLINGS, random_scene, scene_sample  # Open3D: loaded when scenes are labelled
 
     unknown = sorted(set(samplings) - set(SAMPLINGS))
     if unknown or not samplings:
@@ -193,7 +143,7 @@ def _scene_job(args: tuple) -> tuple[str, str | None]:
     index, out_dir, meshes, num_points, num_views, seed, kinds, samplings, max_range = args
     try:
         for sample in label_scene(index, meshes, num_points, num_views, seed, kinds, samplings, max_range):
-            _save(sample, Path(out_dir) / f"{sample.name}.npz")
+            save_sample(sample, Path(out_dir) / f"{sample.name}.npz")
         return f"scene {index}", None
     except Exception as e:  # one failed scene must not stop the run
         return f"scene {index}", f"{type(e).__name__}: {e}"

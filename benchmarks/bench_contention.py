@@ -32,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import o3dvis  # noqa: E402
 from o3dvis import encodings  # noqa: E402
 from o3dvis.threads import busy_cores, usable_cores  # noqa: E402
-from o3dvis.training.speed import bench_cloud  # noqa: E402
+from o3dvis.evaluation.speed import bench_cloud  # noqa: E402
 
 
 def _spin(stop) -> None:

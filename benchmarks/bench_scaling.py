@@ -39,7 +39,7 @@ import o3dvis  # noqa: E402
 from o3dvis import encodings  # noqa: E402
 from o3dvis.neural import NeuralVisibility  # noqa: E402
 from o3dvis.threads import cpu_pressure, plan_threads  # noqa: E402
-from o3dvis.training.speed import bench_cloud  # noqa: E402
+from o3dvis.evaluation.speed import bench_cloud  # noqa: E402
 
 
 def _timed(fn) -> float:

@@ -53,13 +53,13 @@ def data_settings(args: argparse.Namespace):
     """The prepared files of the data flags, and each (points, noise) setting with its clouds.
 
     Sets the torch threads from ``--threads``. Returns ``(files, settings)``: ``settings`` yields
-    ``(points, noise, clouds)``, ``clouds`` an iterator of ``o3dvis.training.evaluate.EvalCloud``
+    ``(points, noise, clouds)``, ``clouds`` an iterator of ``o3dvis.evaluation.evaluate.EvalCloud``
     (subsampled, noised, ``--views`` views), one per file.
     """
     import torch
 
-    from o3dvis.training.data.sample import load_sample
-    from o3dvis.training.evaluate import eval_cloud, list_samples
+    from o3dvis.evaluation.evaluate import eval_cloud
+    from o3dvis.training.data.sample import list_samples, load_sample
 
     torch.set_num_threads(args.threads)
     files = list_samples(args.data, args.limit)

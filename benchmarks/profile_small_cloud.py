@@ -26,7 +26,7 @@ from o3dvis.nn.conv import products_in  # noqa: E402
 from o3dvis.nn.octree import morton_order, normalize_points  # noqa: E402
 from o3dvis.nn.predictor import resolve_precision  # noqa: E402
 from o3dvis.pretrained import shared_pretrained  # noqa: E402
-from o3dvis.training.speed import bench_cloud  # noqa: E402
+from o3dvis.evaluation.speed import bench_cloud  # noqa: E402
 
 
 def _cpu_ms(fn, repeats: int) -> float:

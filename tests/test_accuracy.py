@@ -11,7 +11,7 @@ import pytest
 from o3dvis.baselines import sweep
 from o3dvis.training.data.prepare import label_mesh
 from o3dvis.training.data.shapes import write_shapes
-from o3dvis.training.methods import neural_method
+from o3dvis.evaluation.methods import neural_method
 
 
 @pytest.fixture(scope="module")

@@ -790,7 +790,8 @@ def test_cli_visible_writes_the_visible_points(tmp_path, network, pcd, points, c
 
 
 def test_the_runtime_never_imports_training_code():
-    """Every module outside o3dvis.training and the command line imports without o3dvis.training."""
+    """Every module outside o3dvis.training, o3dvis.evaluation and the command line imports without
+    either of the two."""
     import subprocess
     import sys
     from pathlib import Path
@@ -798,12 +799,12 @@ def test_the_runtime_never_imports_training_code():
     root = Path(o3dvis.__file__).parent
     modules = sorted(".".join(("o3dvis",) + p.relative_to(root).with_suffix("").parts).removesuffix(".__init__")
                      for p in root.rglob("*.py")
-                     if p.relative_to(root).parts[0] not in ("training", "cli", "__main__.py"))
+                     if p.relative_to(root).parts[0] not in ("training", "evaluation", "cli", "__main__.py"))
     assert {"o3dvis", "o3dvis.neural", "o3dvis.field", "o3dvis.dropins", "o3dvis.apps.normals"} <= set(modules)
     code = ("import importlib, sys\n"
             f"for name in {modules!r}:\n"
             "    importlib.import_module(name)\n"
-            "print(sorted(m for m in sys.modules if m.startswith('o3dvis.training')))")
+            "print(sorted(m for m in sys.modules if m.startswith(('o3dvis.training', 'o3dvis.evaluation'))))")
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
                          cwd=root.parent)
     assert run.returncode == 0, run.stderr

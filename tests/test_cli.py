@@ -113,7 +113,7 @@ _UNWRITABLE = [
 def test_an_output_that_cannot_be_written_is_refused_before_any_work(tmp_path, capsys, argv, error):
     """The input (in.ply) does not exist: only a check of the output before any reading says the output."""
     from o3dvis.cli import main
-    from o3dvis.training import demo
+    from o3dvis.evaluation import demo
 
     (tmp_path / "file.txt").write_text("")
     argv = [a.replace("OUT", str(tmp_path)) for a in argv]

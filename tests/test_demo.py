@@ -8,8 +8,8 @@ import pytest
 
 from o3dvis.cli import main
 from o3dvis.groundtruth import visibility_from_mesh
-from o3dvis.training.demo import (FALSE_NEGATIVE, FALSE_POSITIVE, IMAGES, default_camera, demo_sample,
-                         error_colors, observer_location, run_demo)
+from o3dvis.evaluation.demo import (FALSE_NEGATIVE, FALSE_POSITIVE, IMAGES, default_camera, demo_sample,
+                                    error_colors, observer_location, run_demo)
 
 
 def test_sample_is_fixed_and_camera_outside():

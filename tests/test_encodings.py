@@ -10,7 +10,7 @@ import torch
 import o3dvis
 from o3dvis import encodings
 from o3dvis.neural import NeuralVisibility
-from o3dvis.training.speed import bench_cloud
+from o3dvis.evaluation.speed import bench_cloud
 
 
 @pytest.fixture

@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 
 from o3dvis.baselines import hidden_point_removal_mask
-from o3dvis.cli.eval import main
-from o3dvis.training.data import load_sample, prepare, write_shapes
-from o3dvis.training.evaluate import (Counts, add_noise, category_of, eval_cloud, evaluate, list_samples,
-                             markdown_table, subsample_indices, summarize)
-from o3dvis.training.speed import bench_cloud, benchmark, time_method
+from o3dvis.cli import main
+from o3dvis.evaluation.evaluate import (Counts, category_of, eval_cloud, evaluate, markdown_table, subsample_indices,
+                                        summarize)
+from o3dvis.evaluation.speed import bench_cloud, benchmark, time_method
+from o3dvis.training.data import list_samples, load_sample, prepare, write_shapes
+from o3dvis.training.data.perturb import add_noise
 
 POINTS, VIEWS = 2000, 3
 
@@ -32,7 +33,7 @@ def data(tmp_path_factory) -> Path:
 
 
 def _run(args: list[str], capsys) -> tuple[int, str]:
-    code = main("eval", args)
+    code = main(["eval", *args])
     return code, capsys.readouterr().out
 
 
@@ -184,7 +185,7 @@ def test_neural_checkpoint_is_scored_like_any_method(data, tmp_path, capsys):
 
 def test_neural_names_take_a_number_of_rotations_and_a_precision(tmp_path):
     pytest.importorskip("o3dvis.neural")
-    from o3dvis.training.methods import resolve_methods
+    from o3dvis.evaluation.methods import resolve_methods
     from o3dvis.nn import VisibilityNetwork
     from o3dvis.nn.network import NetworkConfig
 
@@ -266,8 +267,8 @@ def test_benchmark_times_methods_against_open3d(capsys):
     for ref, row in zip(rows[::2], rows[1::2]):
         assert row["reference_s"] == ref["seconds"] > 0
         assert row["speedup"] == pytest.approx(ref["seconds"] / row["seconds"])
-    assert main("bench", ["--points", "2048", "--views", "2", "--methods", "hpr,neural",
-                          "--checkpoint", "/nonexistent.safetensors"]) == 0
+    assert main(["bench", "--points", "2048", "--views", "2", "--methods", "hpr,neural",
+                 "--checkpoint", "/nonexistent.safetensors"]) == 0
     text = capsys.readouterr().out
     assert "| 2,048 | 2 | Open3D HPR |" in text and "| 2,048 | 2 | hpr |" in text
     assert "neural: absent" in text
@@ -289,7 +290,7 @@ def test_the_octree_column_is_the_part_of_the_encoding_that_built_it(monkeypatch
 
     from o3dvis.neural import NeuralVisibility
     from o3dvis.nn import NetworkConfig, VisibilityNetwork
-    from o3dvis.training.methods import NeuralMethod
+    from o3dvis.evaluation.methods import NeuralMethod
 
     encoding = threading.local()
     encode, build = NeuralVisibility.encode, VisibilityNetwork.octree
@@ -319,7 +320,7 @@ def test_the_octree_column_is_the_part_of_the_encoding_that_built_it(monkeypatch
 def test_peak_memory_sees_a_transient_allocation():
     import time as _time
 
-    from o3dvis.training.speed import PeakMemory
+    from o3dvis.evaluation.speed import PeakMemory
 
     with PeakMemory() as memory:
         block = np.ones(64 * 2**20 // 8)  # 64 MiB, touched
@@ -347,7 +348,7 @@ def scenes(tmp_path_factory) -> Path:
 
 
 def test_scene_clouds_keep_inside_cameras_and_scale_noise_by_camera_distance(scenes):
-    from o3dvis.training.evaluate import camera_distance, inside_cameras
+    from o3dvis.evaluation.evaluate import camera_distance, inside_cameras
 
     sample = load_sample(scenes / "street-uniform__00001.npz")
     inside = inside_cameras(sample)
@@ -388,7 +389,7 @@ def test_scene_eval_tables_per_sampling_match_an_independent_computation(scenes,
 
 def test_a_scene_file_without_a_camera_inside_counts_nothing(scenes):
     from o3dvis.baselines import hpr_method
-    from o3dvis.training.evaluate import evaluate_sample
+    from o3dvis.evaluation.evaluate import evaluate_sample
 
     sample = load_sample(scenes / "rooms-uniform__00000.npz")
     outside = sample.__class__(sample.points, sample.normals, sample.cameras[6:], sample.visibility[6:], "out")
@@ -399,7 +400,7 @@ def test_a_scene_file_without_a_camera_inside_counts_nothing(scenes):
 
 def test_neural_estimate_encodes_with_normals_estimated_first(monkeypatch):
     pytest.importorskip("o3dvis.neural")
-    from o3dvis.training.methods import resolve_methods
+    from o3dvis.evaluation.methods import resolve_methods
 
     methods, absent = resolve_methods(["neural-estimate", "neural"])
     if absent:
@@ -419,7 +420,7 @@ def test_a_normals_checkpoint_answers_the_second_pass_after_the_shipped_first(tm
 
     from o3dvis.models import load_model
     from o3dvis.nn.network import NetworkConfig, VisibilityNetwork
-    from o3dvis.training.methods import resolve_methods
+    from o3dvis.evaluation.methods import resolve_methods
 
     ckpt = tmp_path / "normals.safetensors"
     VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 8), feature_channels=8, hidden=(8,),

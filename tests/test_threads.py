@@ -14,7 +14,7 @@ import torch
 import o3dvis
 from o3dvis import threads
 from o3dvis.nn import native
-from o3dvis.training.speed import bench_cloud
+from o3dvis.evaluation.speed import bench_cloud
 
 
 @pytest.fixture(autouse=True)

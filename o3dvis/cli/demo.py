@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
     Returns:
         0.
     """
-    from ..training.demo import IMAGES, run_demo
+    from ..evaluation.demo import IMAGES, run_demo
 
     check_folder(args.out, "--out")
     result = run_demo(args.out, args.points, args.camera, model=args.model, device=args.device,

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from ._common import check_output, floats, positive_ints
 
-__all__ = ["register", "run_eval", "run_bench", "main"]
+__all__ = ["register", "run_eval", "run_bench"]
 
 _EVAL_EXAMPLE = """example:
   o3dvis eval --data data/val --points 2048,8192,32768,81920 --noise 0,0.01,0.02 \\
@@ -124,7 +124,7 @@ def _checkpoint(model: str | None) -> Path | None:
 def _methods(args, sweeps: dict):
     import torch
 
-    from ..training.methods import resolve_methods
+    from ..evaluation.methods import resolve_methods
 
     torch.set_num_threads(max(1, args.threads))
     methods, absent = resolve_methods(args.methods, _checkpoint(args.checkpoint), sweeps)
@@ -135,7 +135,8 @@ def _methods(args, sweeps: dict):
 
 def run_eval(args) -> int:
     """``o3dvis eval``: prints the Markdown tables; ``--out`` also writes JSON."""
-    from ..training.evaluate import category_of, evaluate, list_samples, markdown_table, scene_table, summarize
+    from ..evaluation.evaluate import category_of, evaluate, markdown_table, scene_table, summarize
+    from ..training.data.sample import list_samples
 
     if args.views is not None and args.views < 1:
         raise ValueError("--views must be >= 1")
@@ -177,8 +178,8 @@ def _drop_refusing(methods: dict, absent: dict, path: Path, points: int, views: 
     Returns:
         True when the file has no camera inside (nothing was tried).
     """
+    from ..evaluation.evaluate import eval_cloud, run_method
     from ..training.data.sample import load_sample
-    from ..training.evaluate import eval_cloud, run_method
 
     cloud = eval_cloud(load_sample(path), points, 0.0, views=views, inside=True)
     if not len(cloud.cameras):
@@ -199,7 +200,7 @@ def run_bench(args) -> int:
     from ..clib import cpu_name
     from ..nn import native
     from ..threads import usable_cores
-    from ..training.speed import benchmark, markdown_table
+    from ..evaluation.speed import benchmark, markdown_table
 
     check_output(args.out, "--out")
     # one setting per baseline: Open3D's usual radius (k = 2) and a mid-grid kernel exponent
@@ -219,18 +220,3 @@ def run_bench(args) -> int:
     _write(args.out, report, markdown)
     return 0
 
-
-def main(command: str, argv: list[str] | None = None) -> int:
-    """Runs one subcommand of this module alone (for the scripts in ``benchmarks/``).
-
-    Args:
-        command: ``"eval"`` or ``"bench"``.
-        argv: its arguments (default: ``sys.argv[1:]``).
-
-    Returns:
-        The exit code.
-    """
-    parser = argparse.ArgumentParser(prog="o3dvis", add_help=False)
-    register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args([command, *(sys.argv[1:] if argv is None else argv)])
-    return int(args.func(args) or 0)

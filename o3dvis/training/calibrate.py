@@ -18,6 +18,7 @@ from ..models import load_model
 from ..nn.calibration import NUM_TERMS, calibration_loss, calibration_terms, fit_calibration
 from ..nn.network import NetworkConfig, VisibilityNetwork
 from .data.dataset import Augmentation, VisibilityDataset
+from .data.sample import list_samples
 from .publish import portable_path
 
 __all__ = ["calibrate"]
@@ -46,7 +47,6 @@ def calibrate(checkpoint: str | Path, data: list[str | Path], out: str | Path, c
     """
     from tqdm import tqdm
 
-    from .evaluate import list_samples
     from ..neural import NeuralVisibility
 
     if clouds < 1 or keep < 1:

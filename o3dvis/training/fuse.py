@@ -21,6 +21,7 @@ from ..nn.cues import point_surfels
 from ..nn.fusion import ZBufferFusion, fusion_inputs, zbuffer_inputs
 from ..nn.network import NetworkConfig, VisibilityNetwork
 from ..nn.zbuffer import surfel_zbuffer
+from .data.sample import list_samples, load_sample
 from .publish import portable_path
 
 __all__ = ["fuse", "fit_fusion"]
@@ -86,9 +87,8 @@ def fuse(checkpoint: str | Path, data: list[str | Path], out: str | Path, clouds
     """
     from tqdm import tqdm
 
+    from ..evaluation.evaluate import eval_cloud, inside_cameras
     from ..neural import NeuralVisibility
-    from .data.sample import load_sample
-    from .evaluate import eval_cloud, inside_cameras, list_samples
 
     if clouds < 1 or keep < 1 or not 1 <= min_points <= max_points:
         raise ValueError(f"clouds and keep must be positive and 1 <= min_points <= max_points, got {clouds}, "

@@ -27,8 +27,8 @@ from ..baselines import SWEEPS, hpr_method
 from ..apps.pinhole import PinholeView, make_view
 from ..cameras import as_camera_location
 from ..methods import ground_truth_method
-from .data.sample import sample_surface
-from .data.shapes import random_shape
+from ..training.data.sample import sample_surface
+from ..training.data.shapes import random_shape
 from .evaluate import Counts, EvalCloud
 from .methods import NeuralMethod
 from .speed import time_method

@@ -35,10 +35,10 @@ import numpy as np
 
 from ..baselines import Method
 from ..geometry import diagonal
-from .data.perturb import add_noise
-from .data.sample import Sample, list_samples, load_sample
+from ..training.data.perturb import add_noise
+from ..training.data.sample import Sample, load_sample
 
-__all__ = ["Counts", "list_samples", "category_of", "subsample_indices", "add_noise", "EvalCloud", "eval_cloud",
+__all__ = ["Counts", "category_of", "subsample_indices", "EvalCloud", "eval_cloud",
            "run_method", "inside_cameras", "camera_distance",
            "evaluate_sample", "evaluate", "summarize", "markdown_table", "scene_table"]
 
@@ -240,7 +240,7 @@ def evaluate(files: list[Path], data_dir: str | Path, methods: dict[str, dict[st
     """Confusion counts of every method on every file, resuming from a cache.
 
     Args:
-        files: sample files (see :func:`list_samples`).
+        files: sample files (see :func:`o3dvis.training.data.sample.list_samples`).
         data_dir: their root folder (for categories).
         methods: ``{method name: {parameter label: method}}``.
         densities: numbers of points.

@@ -20,8 +20,8 @@ import numpy as np
 from ..baselines import Method
 from ..geometry import diagonal
 from ..groundtruth import sample_viewpoints
-from .data.sample import sample_surface
-from .data.shapes import random_shape
+from ..training.data.sample import sample_surface
+from ..training.data.shapes import random_shape
 from .evaluate import EvalCloud, run_method
 
 __all__ = ["bench_cloud", "PeakMemory", "open3d_hpr_seconds", "time_method", "benchmark", "markdown_table"]

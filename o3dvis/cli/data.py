@@ -120,9 +120,12 @@ def _fit_arguments(p: argparse.ArgumentParser, data: str, out: str, clouds: int)
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    fmt = argparse.RawDescriptionHelpFormatter
-    p = sub.add_parser("shapes", help="write random procedural training meshes", formatter_class=fmt,
+_FORMAT = argparse.RawDescriptionHelpFormatter
+
+
+def _add_shapes(sub: argparse._SubParsersAction) -> None:
+    """``o3dvis shapes``: random procedural training meshes."""
+    p = sub.add_parser("shapes", help="write random procedural training meshes", formatter_class=_FORMAT,
                        description="Write random unions of primitives as PLY meshes.\n\n"
                                    "example:\n  o3dvis shapes data/proc_meshes --count 600")
     p.add_argument("out_dir", metavar="OUT_DIR", help="folder for the meshes (created)")
@@ -135,7 +138,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="put each shape inside a closed shell (half of them with a hole cut in it)")
     p.set_defaults(func=_shapes)
 
-    p = sub.add_parser("prepare", help="label meshes with ray-cast visibility", formatter_class=fmt,
+
+def _add_prepare(sub: argparse._SubParsersAction) -> None:
+    """``o3dvis prepare``: meshes or procedural scenes labelled with ray-cast visibility."""
+    p = sub.add_parser("prepare", help="label meshes with ray-cast visibility", formatter_class=_FORMAT,
                        description="Sample points on every mesh (ply/obj/off/stl) below MESH_DIR and label\n"
                                    "them from random viewpoints; resumable, parallel. With --scenes N,\n"
                                    "label N procedural scenes instead (furnished rooms, streets; metres),\n"
@@ -158,7 +164,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
     p.set_defaults(func=_prepare)
 
-    p = sub.add_parser("train", help="train a visibility network", formatter_class=fmt,
+
+def _add_train(sub: argparse._SubParsersAction) -> None:
+    """``o3dvis train``: a visibility network trained on prepared folders."""
+    p = sub.add_parser("train", help="train a visibility network", formatter_class=_FORMAT,
                        description="Train on prepared folders; resumes when OUT holds a run.\n"
                                    "Several GPUs: torchrun --nproc_per_node=N -m o3dvis train ... --device cuda\n\n"
                                    "example:\n  o3dvis train data/train data/proc --val data/val --out runs/default")
@@ -198,7 +207,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "with the network; default 0: none)")
     p.set_defaults(func=_train)
 
-    p = sub.add_parser("calibrate", help="fit a trained network's per-cloud calibration", formatter_class=fmt,
+
+def _add_calibrate(sub: argparse._SubParsersAction) -> None:
+    """``o3dvis calibrate``: a trained network's per-cloud calibration."""
+    p = sub.add_parser("calibrate", help="fit a trained network's per-cloud calibration", formatter_class=_FORMAT,
                        description="Fit, on training clouds drawn as training draws them, the map of the\n"
                                    "network's margins that depends on each cloud's noise and size\n"
                                    "(o3dvis.nn.calibration), and write the calibrated network.\n\n"
@@ -210,7 +222,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="share of clouds given the normals normals='estimate' computes (as in train)")
     p.set_defaults(func=_calibrate)
 
-    p = sub.add_parser("fuse", help="fit a scene network's fusion with the surfel z-buffer", formatter_class=fmt,
+
+def _add_fuse(sub: argparse._SubParsersAction) -> None:
+    """``o3dvis fuse``: a scene network's fusion with the surfel z-buffer."""
+    p = sub.add_parser("fuse", help="fit a scene network's fusion with the surfel z-buffer", formatter_class=_FORMAT,
                        description="Fit, on scene clouds seen from cameras inside them, the MLP that fuses the\n"
                                    "network's margins with the surfel z-buffer's test (o3dvis.nn.fusion), and\n"
                                    "write the fused network.\n\n"
@@ -227,7 +242,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--hidden", type=int, default=32, help="width of the fusion's hidden layer (default 32)")
     p.set_defaults(func=_fuse)
 
-    p = sub.add_parser("publish", help="install a checkpoint as a shipped model", formatter_class=fmt,
+
+def _add_publish(sub: argparse._SubParsersAction) -> None:
+    """``o3dvis publish``: a checkpoint installed as a shipped model."""
+    p = sub.add_parser("publish", help="install a checkpoint as a shipped model", formatter_class=_FORMAT,
                        description="Copy a checkpoint into o3dvis/weights/ and write its model-card entry\n"
                                    "(architecture, data licences, steps, validation, sha256).\n\n"
                                    "example:\n  o3dvis publish runs/default/best.safetensors --name default "
@@ -242,3 +260,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--root", help="folder the card's paths are made relative to "
                                   "(default: the current directory)")
     p.set_defaults(func=_publish)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Adds the commands that make models: shapes, prepare, train, calibrate, fuse, publish."""
+    for add in (_add_shapes, _add_prepare, _add_train, _add_calibrate, _add_fuse, _add_publish):
+        add(sub)

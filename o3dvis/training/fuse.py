@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -23,6 +24,10 @@ from ..nn.network import NetworkConfig, VisibilityNetwork
 from ..nn.zbuffer import surfel_zbuffer
 from .data.sample import list_samples, load_sample
 from .publish import portable_path
+
+if TYPE_CHECKING:
+    from ..evaluation.evaluate import EvalCloud
+    from ..neural import NeuralVisibility
 
 __all__ = ["fuse", "fit_fusion"]
 
@@ -59,6 +64,36 @@ def fit_fusion(margins: torch.Tensor, zbuffers: torch.Tensor, noise: torch.Tenso
         before = loss(margins.clamp(-15, 15), labels).item()
         after = loss(fusion(margins, inputs, noise), labels).item()
     return fusion, before, after
+
+
+def _cloud_pairs(vis: NeuralVisibility, cloud: EvalCloud, rng: np.random.Generator, keep: int
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """What the fusion is fitted on, for ``keep`` random (camera, point) pairs of one cloud.
+
+    Args:
+        vis: the frozen network.
+        cloud: a cloud with its labels.
+        rng: draws the pairs.
+        keep: pairs kept (all, when the cloud has fewer).
+
+    Returns:
+        The pairs' margins (M,), z-buffer answers (M, 4), the cloud's noise cues (M, 2) and the
+        labels (M,).
+    """
+    field = vis.encode(cloud.points)
+    p = field.probabilities(cloud.cameras).double().clamp(1e-7, 1 - 1e-7)
+    margin = torch.log(p) - torch.log1p(-p)
+    cameras = field.frame.to_unit(torch.as_tensor(cloud.cameras)).to(field.points.dtype)
+    with torch.inference_mode():  # as the fused network's field computes them (C kernels, where built)
+        surfels = point_surfels(field.points, areas=True)
+        answers = torch.stack([surfel_zbuffer(field.points, surfels, c) for c in cameras])
+        cues = (field.noise if field.noise is not None  # the field's own, when its network reads them
+                else VisibilityNetwork.cloud_noise(field.points, ordered=True)[0]).float()
+    if field.rank is not None:
+        answers = answers[:, field.rank]
+    rows = torch.from_numpy(rng.choice(margin.numel(), min(margin.numel(), keep), replace=False))
+    return (margin.reshape(-1)[rows].float(), answers.reshape(-1, answers.shape[-1])[rows],
+            cues.expand(len(rows), -1), torch.from_numpy(cloud.labels).reshape(-1)[rows])
 
 
 def fuse(checkpoint: str | Path, data: list[str | Path], out: str | Path, clouds: int = 400, keep: int = 20000,
@@ -113,22 +148,8 @@ def fuse(checkpoint: str | Path, data: list[str | Path], out: str | Path, clouds
         size = int(round(math.exp(rng.uniform(math.log(min_points), math.log(max_points)))))
         level = float(rng.uniform(0, noise)) if rng.random() < noise_prob else 0.0
         cloud = eval_cloud(sample, size, level, seed=int(rng.integers(1 << 31)), inside=True)
-        field = vis.encode(cloud.points)
-        p = field.probabilities(cloud.cameras).double().clamp(1e-7, 1 - 1e-7)
-        margin = torch.log(p) - torch.log1p(-p)
-        cameras = field.frame.to_unit(torch.as_tensor(cloud.cameras)).to(field.points.dtype)
-        with torch.inference_mode():  # as the fused network's field computes them (C kernels, where built)
-            surfels = point_surfels(field.points, areas=True)
-            answers = torch.stack([surfel_zbuffer(field.points, surfels, c) for c in cameras])
-            cues = (field.noise if field.noise is not None  # the field's own, when its network reads them
-                    else VisibilityNetwork.cloud_noise(field.points, ordered=True)[0]).float()
-        if field.rank is not None:
-            answers = answers[:, field.rank]
-        rows = torch.from_numpy(rng.choice(margin.numel(), min(margin.numel(), keep), replace=False))
-        margins.append(margin.reshape(-1)[rows].float())
-        zbuffers.append(answers.reshape(-1, answers.shape[-1])[rows])
-        cloud_cues.append(cues.expand(len(rows), -1))
-        labels.append(torch.from_numpy(cloud.labels).reshape(-1)[rows])
+        for kept, rows in zip((margins, zbuffers, cloud_cues, labels), _cloud_pairs(vis, cloud, rng, keep)):
+            kept.append(rows)
         bar.update()
     bar.close()
     fusion, before, after = fit_fusion(torch.cat(margins), torch.cat(zbuffers), torch.cat(cloud_cues),

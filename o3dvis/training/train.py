@@ -203,10 +203,9 @@ def _out_of_time(limit: float | None, start: float, world: int, device: torch.de
     return late
 
 
-def train(cfg: TrainConfig, progress: bool = True) -> Path:
-    """Runs (or resumes) a training run; returns the path of the best checkpoint."""
-    from tqdm import tqdm
-
+def _process_group(cfg: TrainConfig) -> tuple[int, int, torch.device]:
+    """The number of processes, this one's rank and its device; joins the process group when there
+    are several (``torchrun`` sets ``WORLD_SIZE``, ``RANK`` and ``LOCAL_RANK``)."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     device = torch.device(cfg.device)
@@ -217,6 +216,38 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
         if device.type == "cuda":
             device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
             torch.cuda.set_device(device)
+    return world, rank, device
+
+
+def _resume(out: Path, net: VisibilityNetwork, encoder: _Encoder, opt: torch.optim.Optimizer, sched,
+            device: torch.device) -> tuple[int, float]:
+    """Loads the run's last state into the network, the orientation head, the optimiser and the
+    schedule; returns the step it was saved at and the best validation accuracy so far."""
+    state = torch.load(out / "last_state.pt", map_location=device, weights_only=True)
+    net.load_state_dict(state["model"] if "model" in state else  # a state without the weights: last.safetensors
+                        VisibilityNetwork.load(out / "last.safetensors", device).state_dict())
+    if encoder.orientation is not None:
+        encoder.orientation.load_state_dict(state["orientation"])
+    opt.load_state_dict(state["optimizer"])
+    sched.load_state_dict(state["scheduler"])
+    return int(state["step"]), float(state["best"])
+
+
+def _save_state(out: Path, net: VisibilityNetwork, encoder: _Encoder, opt: torch.optim.Optimizer, sched,
+                step: int, best: float) -> None:
+    """Writes ``last.safetensors`` and ``last_state.pt`` (what :func:`_resume` reads), each atomically."""
+    _atomic(out / "last.safetensors", lambda tmp: net.save(tmp, {"step": step}))
+    _atomic(out / "last_state.pt", lambda tmp: torch.save(
+        {"model": net.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+         "step": step, "best": best,
+         **({} if encoder.orientation is None else {"orientation": encoder.orientation.state_dict()})}, tmp))
+
+
+def train(cfg: TrainConfig, progress: bool = True) -> Path:
+    """Runs (or resumes) a training run; returns the path of the best checkpoint."""
+    from tqdm import tqdm
+
+    world, rank, device = _process_group(cfg)
     files, val_files = _files(cfg.data), (_files([cfg.val]) if cfg.val else [])
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -233,14 +264,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_at)
     start, best = 0, -1.0
     if (out / "last_state.pt").exists():
-        state = torch.load(out / "last_state.pt", map_location=device, weights_only=True)
-        net.load_state_dict(state["model"] if "model" in state else  # runs from before weights were in it
-                            VisibilityNetwork.load(out / "last.safetensors", device).state_dict())
-        if encoder.orientation is not None:
-            encoder.orientation.load_state_dict(state["orientation"])
-        opt.load_state_dict(state["optimizer"])
-        sched.load_state_dict(state["scheduler"])
-        start, best = int(state["step"]), float(state["best"])
+        start, best = _resume(out, net, encoder, opt, sched, device)
         if rank == 0:
             _truncate_log(out / "log.jsonl", start)
     elif cfg.init:
@@ -291,11 +315,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
             if val_files and record["val_acc"] > best:
                 best = record["val_acc"]
                 _atomic(out / "best.safetensors", lambda tmp: net.save(tmp, {"step": step, "val_acc": best}))
-            _atomic(out / "last.safetensors", lambda tmp: net.save(tmp, {"step": step}))
-            _atomic(out / "last_state.pt", lambda tmp: torch.save(
-                {"model": net.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-                 "step": step, "best": best,
-                 **({} if encoder.orientation is None else {"orientation": encoder.orientation.state_dict()})}, tmp))
+            _save_state(out, net, encoder, opt, sched, step, best)
             bar.write(json.dumps(record))
         if out_of_time:
             break

@@ -8,7 +8,7 @@ checkpoint path, an ``o3dvis.NeuralVisibility`` or ``VisibilityNetwork``, a
 ``VisibilityField`` already encoded for the same points, or any visibility
 method (:func:`ground_truth_method`, the HPR methods of :mod:`o3dvis.baselines`);
 :func:`resolve_method` checks and adapts it. The benchmark's registry of named
-methods is :mod:`o3dvis.training.methods`.
+methods is :mod:`o3dvis.evaluation.methods`.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ __all__ = ["resolve_method", "resolve_soft_method", "ground_truth_method"]
 def _neural(model):
     """``model`` as a NeuralVisibility or VisibilityField when it names or is a network (None: the
     pretrained one, loaded once per process; a name or path: that model; the benchmark's
-    :class:`~o3dvis.training.methods.NeuralMethod` gives its NeuralVisibility), else None."""
+    :class:`~o3dvis.evaluation.methods.NeuralMethod` gives its NeuralVisibility), else None."""
     from .field import VisibilityField
     from .models import torch_device
     from .neural import NeuralVisibility

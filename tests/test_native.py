@@ -90,10 +90,10 @@ needs_kernels = pytest.mark.skipif(not native.available(), reason="C kernels tur
 @pytest.fixture(params=clib.runnable_variants())
 def variant(request, monkeypatch) -> str:
     """Each variant of the kernels that this CPU runs, in turn, in place of the widest."""
-    library = clib.load("o3dvis.nn._kernels", native._SIGNATURES, request.param)
+    library = clib.load("o3dvis.nn._kernels", native._library.SIGNATURES, request.param)
     if library is None or library.variant != request.param:
         pytest.skip(f"the {request.param} kernels are not built")
-    monkeypatch.setattr(native, "_LIBRARY", library)
+    monkeypatch.setattr(native._library, "LIBRARY", library)
     return request.param
 
 
@@ -122,11 +122,11 @@ def test_every_variant_this_cpu_runs_is_built():
     """The package's build made them all (CI builds where there is a C compiler), and the widest
     is the one loaded."""
     for variant in clib.runnable_variants():
-        library = clib.load("o3dvis.nn._kernels", native._SIGNATURES, variant)
+        library = clib.load("o3dvis.nn._kernels", native._library.SIGNATURES, variant)
         assert getattr(library, "variant", None) == variant, (
             f"the {variant} kernels are not built: in a source checkout run `pip install -e .` or "
             "`python setup.py build_ext --inplace`")
-    assert native._LIBRARY.variant == clib.runnable_variants()[-1]
+    assert native.variant() == clib.runnable_variants()[-1]
 
 
 @needs_kernels
@@ -704,7 +704,7 @@ def test_kernels_share_their_blocks_among_threads_with_the_same_answers(variant,
     points = _points()
     fast, _ = _views(points, camera=_CAMERA)
     projected = torch.randn(network.predictor.embedding.dim, len(points), generator=g).T
-    monkeypatch.setattr(native, "usable_cores", lambda: 8)  # the threads torch is given, whatever the cores
+    monkeypatch.setattr(native.threads, "usable_cores", lambda: 8)  # the threads torch is given, whatever the cores
     with torch_threads(3):  # by default, torch's count for calls of work enough, one for the others
         assert native.kernel_threads() == native.kernel_threads(work=native.SHARED_WORK) == 3
         assert native.kernel_threads(work=native.SHARED_WORK - 1) == 1 and native.kernel_threads(2, work=1) == 2
@@ -878,9 +878,9 @@ def test_a_variant_this_cpu_cannot_run_is_never_loaded(monkeypatch):
     monkeypatch.setattr(clib, "_warned", threading.Lock())
     assert clib.runnable_variants() == ["base"]
     with pytest.warns(RuntimeWarning, match="cannot run the avx2 variant"):
-        assert clib.load("o3dvis.nn._kernels", native._SIGNATURES, "avx2") is None
+        assert clib.load("o3dvis.nn._kernels", native._library.SIGNATURES, "avx2") is None
     if native.available():
-        assert clib.load("o3dvis.nn._kernels", native._SIGNATURES).variant == "base"
+        assert clib.load("o3dvis.nn._kernels", native._library.SIGNATURES).variant == "base"
 
 
 def test_the_build_goes_on_without_a_compiler(tmp_path):

@@ -306,7 +306,7 @@ def test_the_unit_frame_in_c_equals_the_torch_ops(n):
     """Bounds, normalised float32 points and their Morton keys by two passes of C: equal to
     bounding_box, normalize_points, .float() and cell_keys by torch ops, point for point; the
     scatter matrix and the sums to rounding; the bounds NaN where an axis has one, as torch's."""
-    from o3dvis.neural import _unit_frame
+    from o3dvis.nn.frame import CloudFrame
     from o3dvis.nn.octree import MORTON_DEPTH, cell_keys, cube_frame, normalize_points
 
     g = torch.Generator().manual_seed(n)
@@ -325,10 +325,10 @@ def test_the_unit_frame_in_c_equals_the_torch_ops(n):
     assert torch.equal(normalised, expected.float())
     assert torch.equal(keys, cell_keys(expected.float(), MORTON_DEPTH))
     torch.testing.assert_close(scatter, (expected - mean).T @ (expected - mean), rtol=1e-9, atol=1e-12)
-    frame = _unit_frame(points)
-    assert torch.equal(frame[0], expected.float() if n > 1 else torch.zeros(1, 3))  # one point: at the origin
-    assert torch.equal(frame[1], keys) if n > 1 else frame[1] is None
-    assert (frame[5] is None) == (n > 3)  # up to 3 points: flat
+    unit, unit_keys, frame = CloudFrame.of(points)
+    assert torch.equal(unit, expected.float() if n > 1 else torch.zeros(1, 3))  # one point: at the origin
+    assert torch.equal(unit_keys, keys) if n > 1 else unit_keys is None
+    assert (frame.hull is None) == (n > 3)  # up to 3 points: flat
     nan = points.clone()
     nan[n // 2, 1] = float("nan")
     for got, want in zip(native.bounds(nan)[:2], (nan.min(dim=0).values, nan.max(dim=0).values)):
@@ -341,21 +341,21 @@ def test_the_unit_frame_in_c_equals_the_torch_ops(n):
 def test_the_unit_frame_of_flat_and_degenerate_clouds_is_the_torch_one():
     """A plane, a line and one point repeated: the flat hull (its float64 points made only then)
     and the normalised points as the torch path gives them."""
-    from o3dvis import neural
+    from o3dvis.nn.frame import CloudFrame
 
     g = torch.Generator().manual_seed(5)
     plane = torch.randn(3000, 3, generator=g, dtype=torch.float64)
     plane[:, 2] = 0.25
     line = torch.randn(500, 1, generator=g, dtype=torch.float64) * torch.tensor([[1.0, 2.0, -1.0]])
     for points in (plane, line, torch.full((40, 3), 3.0, dtype=torch.float64)):
-        got = neural._unit_frame(points)
+        got = CloudFrame.of(points)
         with pytest.MonkeyPatch.context() as mp:
             mp.setattr(native, "available", lambda: False)
-            want = neural._unit_frame(points)
+            want = CloudFrame.of(points)
         assert torch.equal(got[0], want[0]) and got[1] is not None or len(points) == 40
-        assert all(torch.equal(a, b) for a, b in zip(got[2:4], want[2:4]))
-        assert got[5] is not None and want[5] is not None
-        assert all(torch.equal(a, b) for a, b in zip(got[5], want[5]))
+        assert torch.equal(got[2].center, want[2].center) and torch.equal(got[2].scale, want[2].scale)
+        assert got[2].hull is not None and want[2].hull is not None
+        assert all(torch.equal(a, b) for a, b in zip(got[2].hull, want[2].hull))
 
 
 @needs_kernels

@@ -19,14 +19,18 @@ from setuptools.command.build_ext import build_ext
 
 _HERE = Path(__file__).resolve().parent
 _CLIB = runpy.run_path(str(_HERE / "o3dvis" / "clib.py"))
-# module: (source, compiler flags, variants). -ffp-contract=off: rounding follows the Python
-# fallbacks' op order; the kernels' loops vectorise with no errno and no traps. The Delaunay
-# sweep's integer predicates and branches run no faster with wider vectors: baseline only
+_KERNELS = "o3dvis/nn/csrc"
+# module: (sources, headers, compiler flags, variants), paths relative to this file, as setuptools
+# takes them. The kernels are one library built from the C files of their folder, by concept, that
+# share one header. -ffp-contract=off: rounding follows the Python fallbacks' op order; the
+# kernels' loops vectorise with no errno and no traps. The Delaunay sweep's integer predicates and
+# branches run no faster with wider vectors: baseline only
 _LIBRARIES = {
-    "o3dvis.nn._kernels": ("o3dvis/nn/kernels.c",
+    "o3dvis.nn._kernels": (sorted(p.relative_to(_HERE).as_posix() for p in (_HERE / _KERNELS).glob("*.c")),
+                           [f"{_KERNELS}/kernels.h"],
                            ["-O3", "-fno-math-errno", "-fno-trapping-math", "-ffp-contract=off"],
                            tuple(_CLIB["VARIANTS"])),
-    "o3dvis.apps._delaunay": ("o3dvis/apps/delaunay.c", ["-O3", "-ffp-contract=off"], ("base",)),
+    "o3dvis.apps._delaunay": (["o3dvis/apps/delaunay.c"], [], ["-O3", "-ffp-contract=off"], ("base",)),
 }
 # free-threaded CPython before 3.15 has no stable ABI
 _ABI3 = not sysconfig.get_config_var("Py_GIL_DISABLED")
@@ -36,9 +40,10 @@ def _extensions() -> list[Extension]:
     x86 = _CLIB["is_x86"]()
     variants = {name: [*(_CLIB["X86_64_ARGS"] if x86 else ()), *variant.compile_args]
                 for name, variant in _CLIB["VARIANTS"].items() if name == "base" or x86}
-    return [Extension(f"{module}_{name}", [source], extra_compile_args=["-pthread", *flags, *variants[name]],
-                      extra_link_args=["-pthread"], libraries=["m"], optional=True, py_limited_api=_ABI3)
-            for module, (source, flags, built) in _LIBRARIES.items() for name in built if name in variants]
+    return [Extension(f"{module}_{name}", sources, depends=headers,
+                      extra_compile_args=["-pthread", *flags, *variants[name]], extra_link_args=["-pthread"],
+                      libraries=["m"], optional=True, py_limited_api=_ABI3)
+            for module, (sources, headers, flags, built) in _LIBRARIES.items() for name in built if name in variants]
 
 
 class _BuildExt(build_ext):

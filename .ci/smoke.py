@@ -25,8 +25,8 @@ package = Path(o3dvis.__file__).resolve().parent
 assert package.is_relative_to(Path(sys.prefix).resolve()), f"o3dvis imported from {package}, not {sys.prefix}"
 assert not any(shutil.which(cc) for cc in ("cc", "gcc", "clang")), "a C compiler is on PATH"
 assert native.available() and delaunay.available(), "the C libraries are not active"
-assert native._LIBRARY.variant == clib.runnable_variants()[-1], native._LIBRARY.variant
-for library, folder in ((native._LIBRARY, "nn"), (delaunay._LIBRARY, "apps")):
+assert native.variant() == clib.runnable_variants()[-1], native.variant()
+for library, folder in ((native._library.LIBRARY, "nn"), (delaunay._LIBRARY, "apps")):
     assert Path(library._name).resolve().parent == package / folder, library._name
 distribution = importlib.metadata.distribution("o3dvis")
 tags = [line.partition(": ")[2] for line in distribution.read_text("WHEEL").splitlines() if line.startswith("Tag: ")]
@@ -54,6 +54,6 @@ with tempfile.TemporaryDirectory() as out:
     assert demo.returncode == 0 and (Path(out) / "demo.png").is_file(), demo.stderr
 print(f"wheel smoke test: o3dvis {o3dvis.__version__} ({', '.join(tags)}) from {package} on Python "
       f"{platform.python_version()}, torch {torch.__version__}, Open3D {o3d.__version__}, numpy {np.__version__}; "
-      f"C kernels {native._LIBRARY.variant}, Delaunay {delaunay._LIBRARY.variant}; sphere of {len(truth)} points "
+      f"C kernels {native.variant()}, Delaunay {delaunay._LIBRARY.variant}; sphere of {len(truth)} points "
       f"from {camera.tolist()}: {mask.sum()} visible, ray casting {truth.sum()}, accuracy {100 * accuracy:.2f} %, "
       f"{100 * agreement:.3f} % of points answered otherwise by the torch path; demo ran")

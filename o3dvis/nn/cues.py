@@ -279,7 +279,7 @@ def _madd(a: Tensor, b: Tensor, c: float, fused: bool) -> Tensor:
 
 
 def atan2_pos(s: Tensor, z: Tensor) -> Tensor:
-    """``atan2(s, z)`` for ``s >= 0`` as the C kernels compute it (``atan2_pos`` of ``kernels.c``: the
+    """``atan2(s, z)`` for ``s >= 0`` as the C kernels compute it (``atan2_pos`` of ``csrc/kernels.h``: the
     octant reduction, then Cephes' polynomial, its multiply-adds fused where the loaded kernels fuse
     them: every variant but x86-64's base), so that the points fall into the kernels' pixels."""
     fused = native.available() and (native.variant() != "base" or platform.machine().lower() in ("aarch64", "arm64"))

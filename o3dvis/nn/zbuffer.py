@@ -56,7 +56,7 @@ def _pixel_rays(rows: int, pi: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
 
 
 def _surfel_zbuffer_torch(points: Tensor, surfels: Tensor, camera: Tensor, rows: int) -> Tensor:
-    """:func:`surfel_zbuffer` in torch ops, rounded as ``o3dvis_surfel_zbuffer`` of ``kernels.c`` rounds
+    """:func:`surfel_zbuffer` in torch ops, rounded as ``o3dvis_surfel_zbuffer`` of ``csrc/zbuffer.c`` rounds
     (its sums in its order, its arctangent, its tables of the pixels' rays): each point and disc in
     the kernels' pixels, the same front disc of every pixel."""
     cols, n, device = 2 * rows, len(points), points.device
@@ -69,7 +69,7 @@ def _surfel_zbuffer_torch(points: Tensor, surfels: Tensor, camera: Tensor, rows:
     col_f = torch.where(y >= 0, pi + atan2_pos(y, x), pi - atan2_pos(-y, x)) * rows / pi
     own_row, own_col = row_f.long().clamp_max(rows - 1), col_f.long()
     own = own_row * cols + own_col % cols
-    # the pixels whose centres the disc may cover (see kernels.c): its reach along the meridian, in
+    # the pixels whose centres the disc may cover (see csrc/zbuffer.c): its reach along the meridian, in
     # rows, and along the parallel, in columns
     radius, normals = surfels[:, 4], surfels[:, 1:4]
     reach = torch.where(radius < dist, radius / (dist - radius) / pixel, torch.full_like(dist, _MAX_HALF))

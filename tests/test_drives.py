@@ -129,6 +129,8 @@ def test_o3dvis_answers_a_frame_of_the_map(log, vis):
     seen = o3dvis_frame(vis, log.points, log.frames[1], 40.0)
     assert np.isin(seen, indices).all() and len(seen) > 0.5 * truth.sum()
     assert (np.isin(indices, seen) == truth).mean() > 0.8
+    with pytest.raises(ValueError, match="crop"):
+        o3dvis_frame(vis, log.points, log.frames[1], 40.0, crop=30.0)
     far = log.points + np.float32(1000.0)  # nothing within range of the camera
     assert len(o3dvis_frame(vis, far, log.frames[1], 40.0)) == 0
 

@@ -80,14 +80,19 @@ def o3dvis_frame(model, points: np.ndarray, frame, max_range: float, crop: float
         points: (N, 3) the map.
         frame: ``o3d.camera.PinholeCameraParameters`` with an image size.
         max_range: metres; farther points are not the frame's.
-        crop: radius of the encoded crop (default: ``max_range``).
+        crop: radius of the encoded crop, at least ``max_range`` (default: ``max_range``).
 
     Returns:
         (M,) int64 ascending indices into ``points``.
+
+    Raises:
+        ValueError: a crop smaller than the range (points in range would go unanswered).
     """
+    crop = max_range if crop is None else crop
+    if crop < max_range:
+        raise ValueError(f"the crop ({crop:g} m) must reach as far as the range ({max_range:g} m)")
     camera = camera_location_of(frame)
-    near = within_range(torch.from_numpy(points), torch.from_numpy(camera.astype(points.dtype)),
-                        max_range if crop is None else crop).numpy()
+    near = within_range(torch.from_numpy(points), torch.from_numpy(camera.astype(points.dtype)), crop).numpy()
     if not len(near):
         return near
     field = model.encode(points[near].astype(np.float64), views=frame)

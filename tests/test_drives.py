@@ -164,5 +164,8 @@ def test_command_writes_the_tables(tmp_path, capsys):
                  "everything,pixel-zbuffer", "--points-per-metre", "300", "-o", str(out)]) == 0
     report = json.loads(out.read_text())
     assert report["settings"]["lengths"] == [20.0] and len(report["frames"]) == 1
-    assert "| everything | 50.0 / " in out.with_suffix(".md").read_text()
+    markdown = out.with_suffix(".md").read_text()
+    assert "| everything | 50.0 / " in markdown
+    assert ("Made by `o3dvis eval-drives --lengths 20 --noise 0 --frames 1 --seeds 0 --range 40 --points-per-metre "
+            "300 --heading 0 --methods everything,pixel-zbuffer`") in markdown
     assert main(["eval-drives", "--lengths", "20", "--frames", "0"]) == 2

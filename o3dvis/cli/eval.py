@@ -239,6 +239,20 @@ def _drop_refusing(methods: dict, absent: dict, path: Path, points: int, views: 
     return False
 
 
+def _drives_command(args, seeds: list[int], max_range: float) -> str:
+    """The ``o3dvis eval-drives`` command line that repeats this run (every setting spelled out)."""
+    def joined(values) -> str:
+        return ",".join(f"{v:g}" if isinstance(v, float) else str(v) for v in values)
+
+    command = (f"o3dvis eval-drives --lengths {joined(args.lengths)} --noise {joined(args.noise)} "
+               f"--frames {args.frames} --seeds {joined(seeds)} --range {max_range:g} "
+               f"--points-per-metre {args.points_per_metre:g} --heading {args.heading:g}")
+    for flag, value in (("--methods", args.methods), ("--hpr-k", args.hpr_k), ("--splat", args.splat),
+                        ("--model", args.checkpoint and [args.checkpoint])):
+        command += f" {flag} {joined(value)}" if value else ""
+    return command
+
+
 def run_drives(args) -> int:
     """``o3dvis eval-drives``: prints the Markdown tables; ``--out`` also writes JSON."""
     import torch
@@ -262,7 +276,8 @@ def run_drives(args) -> int:
     per_frame = evaluate_drives(args.lengths, args.noise, methods, seeds, args.frames, max_range, options)
     summary = summarize_drives(per_frame, methods, args.noise)
     settings = {"lengths": args.lengths, "noise": args.noise, "seeds": seeds, "frames": args.frames,
-                "max_range": max_range, "log": options, "sweeps": {m: list(s) for m, s in methods.items()}}
+                "max_range": max_range, "log": options, "sweeps": {m: list(s) for m, s in methods.items()},
+                "command": _drives_command(args, seeds, max_range)}
     report = {"settings": settings, "absent": absent, "results": summary, "frames": per_frame}
     _write(args.out, report, drives_table(summary, settings, absent))
     return 0

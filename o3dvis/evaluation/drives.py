@@ -313,12 +313,14 @@ def _growth(rows: list[dict]) -> list[str]:
 
 
 def drives_table(summary: dict[str, list[dict]], settings: dict, absent: dict[str, str] | None = None) -> str:
-    """Markdown of :func:`summarize_drives`: the frames along each log, the first frames in every log, and
-    the balanced accuracy each method loses on the first frames from the shortest log to the longest.
+    """Markdown of :func:`summarize_drives`: the frames along each log and, with several lengths, the first
+    frames in every log and the balanced accuracy each method loses on them from the shortest log to the
+    longest.
 
     Args:
         summary: from :func:`summarize_drives`.
-        settings: the run's settings (``seeds``, ``frames``, ``max_range``, ``lengths``), for the captions.
+        settings: the run's settings (``seeds``, ``frames``, ``max_range``, ``lengths``), for the captions,
+            and the ``command`` that made it, if known.
         absent: methods that could not run, with the reason.
     """
     lengths = sorted(settings["lengths"])
@@ -328,12 +330,14 @@ def drives_table(summary: dict[str, list[dict]], settings: dict, absent: dict[st
              "set per column, for each score separately (in brackets); differences in points.", "",
              f"### {settings['frames']} frames evenly spaced along each log", ""]
     lines += _group_table(summary["along"])
-    lines += ["", f"### The frames of the {lengths[0]:g} m log, in every log", ""]
-    lines += _group_table(summary["first"])
     if len(lengths) > 1:
+        lines += ["", f"### The frames of the {lengths[0]:g} m log, in every log", ""]
+        lines += _group_table(summary["first"])
         lines += ["", f"### Balanced accuracy lost on those frames from the {lengths[0]:g} m log to the "
                   f"{lengths[-1]:g} m log (points; negative: gained)", ""]
         lines += _growth(summary["first"])
     for name, reason in (absent or {}).items():
         lines.append(f"\n{name}: absent ({reason})")
+    if settings.get("command"):
+        lines += ["", f"Made by `{settings['command']}`."]
     return "\n".join(lines) + "\n"

@@ -70,7 +70,7 @@ class DriveLog:
     sweeps: np.ndarray
     points: np.ndarray
     sweep_of: np.ndarray
-    frames: list
+    frames: list[o3d.camera.PinholeCameraParameters]
     frame_distance: np.ndarray
     length: float
     lidar_range: float

@@ -17,7 +17,7 @@ from o3dvis.cli import _common
 
 _ROOT = Path(__file__).resolve().parent.parent
 _USER_COMMANDS = ["visible", "normals", "reconstruct", "shadow", "best-view", "render", "demo"]
-_TRAINING_COMMANDS = ["shapes", "prepare", "train", "calibrate", "fuse", "publish", "eval", "bench"]
+_TRAINING_COMMANDS = ["shapes", "prepare", "train", "calibrate", "fuse", "publish", "eval", "eval-drives", "bench"]
 
 
 def _o3dvis(*argv: str, python: tuple[str, ...] = ()) -> subprocess.CompletedProcess:

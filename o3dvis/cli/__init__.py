@@ -17,7 +17,7 @@ _DESCRIPTION = """Neural visibility of point sets, for Open3D users.
 
 Commands on your files: visible, normals, reconstruct, shadow, best-view, render, demo.
 Commands that make and measure models: shapes, prepare, train, calibrate, fuse, publish, eval,
-bench.
+eval-drives, bench.
 'o3dvis COMMAND --help' tells what one does."""
 
 

@@ -1,4 +1,5 @@
-"""``o3dvis eval`` (accuracy tables) and ``o3dvis bench`` (timing against Open3D HPR)."""
+"""``o3dvis eval`` (accuracy tables), ``o3dvis eval-drives`` (accuracy on driving logs) and ``o3dvis bench``
+(timing against Open3D HPR)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from pathlib import Path
 
 from ._common import check_output, floats, positive_ints
 
-__all__ = ["register", "run_eval", "run_bench"]
+__all__ = ["register", "run_eval", "run_drives", "run_bench"]
 
 _EVAL_EXAMPLE = """example:
   o3dvis eval --data data/val --points 2048,8192,32768,81920 --noise 0,0.01,0.02 \\
@@ -27,6 +28,17 @@ Scenes (from `o3dvis prepare --scenes`), cameras inside the cloud only:
 With --scenes, noise is relative to the median camera-to-point distance, each
 sampling is its own table, baselines are tuned per column for accuracy and for
 balanced accuracy, and a network that refuses cameras inside is reported absent."""
+
+_DRIVES_EXAMPLE = """example (the table of benchmarks/results/drives.md):
+  o3dvis eval-drives --lengths 100,300,1000 --noise 0,0.01 --frames 6 --seeds 0 \\
+      --out benchmarks/results/drives.json
+
+Each seed and length is a procedural log (a street network, LiDAR sweeps every 5 m
+accumulated into one map, a forward 640 x 480 frame of 90 degrees every 5 m); a frame's
+points are the map's within --range of its camera and inside its image, labelled by ray
+casting. Noise moves each map point by up to that fraction of its range from its sweep.
+o3dvis variants: o3dvis-whole (the whole map encoded once), o3dvis-crop60 (a 60 m crop
+encoded), o3dvis-x4 (4 rotations), o3dvis-object (no scene model)."""
 
 _BENCH_EXAMPLE = """example:
   o3dvis bench --points 2048,8192,32768 --views 1,26 --methods hpr,hpr-exp,neural
@@ -88,6 +100,8 @@ def register(subparsers) -> None:
                         "(empty it after changing a baseline)")
     p.set_defaults(func=run_eval)
 
+    _register_drives(subparsers, fmt)
+
     p = subparsers.add_parser("bench", help="timing against Open3D's hidden_point_removal",
                               description="Times visibility methods and Open3D HPR on the same procedural "
                                           "clouds and cameras.",
@@ -100,6 +114,36 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the cloud and cameras (default: 0)")
     p.add_argument("-o", "--out", type=Path, default=None, help="write JSON here and the Markdown next to it (.md)")
     p.set_defaults(func=run_bench)
+
+
+def _register_drives(subparsers, fmt) -> None:
+    p = subparsers.add_parser("eval-drives", help="accuracy of visibility methods on procedural driving logs",
+                              description="Accuracy and balanced accuracy of visibility methods on the pinhole "
+                                          "frames of procedural driving logs, against ray casting, per log "
+                                          "length and noise level, and as logs grow.",
+                              epilog=_DRIVES_EXAMPLE, formatter_class=fmt)
+    p.add_argument("--lengths", type=floats, default=[100.0, 300.0, 1000.0],
+                   help="log lengths in metres (default: 100,300,1000)")
+    p.add_argument("--noise", type=floats, default=[0.0, 0.01],
+                   help="noise levels, fractions of each point's range from its sweep (default: 0,0.01)")
+    p.add_argument("--methods", type=_names, default=None,
+                   help="comma-separated: o3dvis (and its variants), hpr, zbuffer, pixel-zbuffer, everything "
+                        "(default: all five)")
+    p.add_argument("--model", "--checkpoint", dest="checkpoint", default=None, metavar="MODEL",
+                   help="shipped model name or .safetensors checkpoint for o3dvis (default: the shipped models)")
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads (default: 2)")
+    p.add_argument("--seeds", type=floats, default=[0], help="one log of each length per seed (default: 0)")
+    p.add_argument("--frames", type=int, default=6, help="frames evaluated along each log (default: 6)")
+    p.add_argument("--range", dest="max_range", type=float, default=None,
+                   help="a frame's range in metres (default: 40)")
+    p.add_argument("--points-per-metre", type=float, default=3400.0,
+                   help="map points per metre of log (default: 3400, 400 k points over 120 m)")
+    p.add_argument("--heading", type=float, default=0.0,
+                   help="turn of the map about z, degrees (default: 0, the main road along x)")
+    p.add_argument("--hpr-k", type=floats, default=None, help="HPR sweep: radius = diagonal * 10^k")
+    p.add_argument("--splat", type=floats, default=None, help="zbuffer sweep of the disc radius, in point spacings")
+    p.add_argument("-o", "--out", type=Path, default=None, help="write JSON here and the Markdown next to it (.md)")
+    p.set_defaults(func=run_drives)
 
 
 def _write(out: Path | None, report: dict, markdown: str) -> None:
@@ -193,6 +237,50 @@ def _drop_refusing(methods: dict, absent: dict, path: Path, points: int, views: 
             del methods[name]
             print(f"{name}: absent ({absent[name]})", file=sys.stderr)
     return False
+
+
+def _drives_command(args, seeds: list[int], max_range: float) -> str:
+    """The ``o3dvis eval-drives`` command line that repeats this run (every setting spelled out)."""
+    def joined(values) -> str:
+        return ",".join(f"{v:g}" if isinstance(v, float) else str(v) for v in values)
+
+    command = (f"o3dvis eval-drives --lengths {joined(args.lengths)} --noise {joined(args.noise)} "
+               f"--frames {args.frames} --seeds {joined(seeds)} --range {max_range:g} "
+               f"--points-per-metre {args.points_per_metre:g} --heading {args.heading:g}")
+    for flag, value in (("--methods", args.methods), ("--hpr-k", args.hpr_k), ("--splat", args.splat),
+                        ("--model", args.checkpoint and [args.checkpoint])):
+        command += f" {flag} {joined(value)}" if value else ""
+    return command
+
+
+def run_drives(args) -> int:
+    """``o3dvis eval-drives``: prints the Markdown tables; ``--out`` also writes JSON."""
+    import torch
+
+    from ..evaluation.drives import (FRAME_RANGE, METHOD_NAMES, drive_methods, drives_table, evaluate_drives,
+                                     summarize_drives)
+
+    check_output(args.out, "--out")
+    if args.frames < 1 or any(s < 0 or s != int(s) for s in args.seeds):
+        raise ValueError("--frames must be >= 1 and --seeds integers >= 0")
+    torch.set_num_threads(max(1, args.threads))
+    methods, absent = drive_methods(args.methods or METHOD_NAMES, _checkpoint(args.checkpoint), args.hpr_k,
+                                    args.splat)
+    for name, reason in absent.items():
+        print(f"{name}: absent ({reason})", file=sys.stderr)
+    if not methods:
+        print("no method can run", file=sys.stderr)
+        return 1
+    seeds, max_range = [int(s) for s in args.seeds], FRAME_RANGE if args.max_range is None else args.max_range
+    options = {"points_per_metre": args.points_per_metre, "heading": args.heading}
+    per_frame = evaluate_drives(args.lengths, args.noise, methods, seeds, args.frames, max_range, options)
+    summary = summarize_drives(per_frame, methods, args.noise)
+    settings = {"lengths": args.lengths, "noise": args.noise, "seeds": seeds, "frames": args.frames,
+                "max_range": max_range, "log": options, "sweeps": {m: list(s) for m, s in methods.items()},
+                "command": _drives_command(args, seeds, max_range)}
+    report = {"settings": settings, "absent": absent, "results": summary, "frames": per_frame}
+    _write(args.out, report, drives_table(summary, settings, absent))
+    return 0
 
 
 def run_bench(args) -> int:

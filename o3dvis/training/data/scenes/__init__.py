@@ -15,6 +15,9 @@
   a few sensor positions: density falls with range, surfaces no sensor saw have no
   points) and :func:`scene_sample` (a labelled :class:`~o3dvis.training.data.sample.Sample`
   of a scene: points, normals, cameras inside and outside, ray-cast visibility).
+* :func:`drive_log` (:mod:`.drives`): a driving log over a street network with side streets, a
+  LiDAR map accumulated from sweeps along the trajectory, pinhole frames, and
+  :func:`frame_truth`, what each frame sees by ray casting.
 * :func:`random_scene`: a scene of one of the :data:`KINDS`.
 
 Everything is a function of the random generator passed in.
@@ -28,13 +31,15 @@ from pathlib import Path
 import numpy as np
 
 from ..shapes import DEFAULT_PRIMITIVES
+from .drives import DriveLog, drive_log, frame_truth, frame_view
 from .rooms import random_rooms
 from .sampling import SAMPLINGS, free_positions, sample_lidar, sample_uniform, scene_sample
 from .scene import HeightField, Scene, box_scene
 from .streets import random_street
 
 __all__ = ["Scene", "HeightField", "SAMPLINGS", "KINDS", "box_scene", "random_rooms", "random_street",
-           "random_scene", "free_positions", "sample_uniform", "sample_lidar", "scene_sample"]
+           "random_scene", "free_positions", "sample_uniform", "sample_lidar", "scene_sample",
+           "DriveLog", "drive_log", "frame_view", "frame_truth"]
 
 KINDS = ("rooms", "street")
 """The scene generators of :func:`random_scene`."""

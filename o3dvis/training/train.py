@@ -249,8 +249,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
 
     world, rank, device = _process_group(cfg)
     files, val_files = _files(cfg.data), (_files([cfg.val]) if cfg.val else [])
-    out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
+    (out := Path(cfg.out)).mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     net = VisibilityNetwork(NetworkConfig.from_dict(cfg.network)).to(device)
     encoder = _Encoder(net, orientation=cfg.orientation_weight > 0).to(device)

@@ -27,7 +27,7 @@ from ....geometry import within_range
 from ..perturb import add_noise
 from .scene import HeightField, Scene, SceneBuilder
 from .sampling import sample_lidar
-from .streets import _building, _car, _row
+from .streets import add_building, add_car, building_plots
 
 __all__ = ["DriveLog", "drive_log", "frame_view", "frame_truth", "SEGMENT", "LIDAR_HEIGHT", "CAMERA_HEIGHT"]
 
@@ -165,7 +165,7 @@ def _kerb(b: SceneBuilder, rng: np.random.Generator, ground: HeightField, start:
     u = start + rng.uniform(0, 5)
     while u < stop - 6:
         if rng.random() < 0.6 and clear(u, u + 5.5):
-            _car(b, rng, ground, at(u + 2.75, kerb - side * 1.15), axis == 0)
+            add_car(b, rng, ground, at(u + 2.75, kerb - side * 1.15), axis == 0)
         u += 5.5 + (rng.uniform(0.5, 4) if rng.random() < 0.5 else 0.3)
     u = start + rng.uniform(2, 10)
     while u < stop - 2:
@@ -184,13 +184,13 @@ def _frontage(b: SceneBuilder, rng: np.random.Generator, ground: HeightField, sp
     """A row of buildings along ``axis`` over ``span`` (gaps at random, none across ``skip``), their fronts
     ``near`` (+ a setback of up to 2 m) from the road's axis at ``centre``, on the ``side`` sign, as deep
     as ``depth`` draws."""
-    for u0, u1 in _row(rng, *span, skip):
+    for u0, u1 in building_plots(rng, *span, skip):
         front = near + rng.uniform(0, 2)
         across = sorted((centre + side * front, centre + side * (front + rng.uniform(*depth))))
         lo, hi = np.zeros(2), np.zeros(2)
         lo[axis], hi[axis] = u0, u1
         lo[1 - axis], hi[1 - axis] = across
-        _building(b, rng, ground, lo, hi)
+        add_building(b, rng, ground, lo, hi)
 
 
 def _side_street(b: SceneBuilder, rng: np.random.Generator, ground: HeightField, x0: float, axis_x: float,

@@ -31,7 +31,7 @@ def _ground(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray) -> HeightF
     return HeightField(np.asarray(lo, dtype=np.float64), spacing, heights)
 
 
-def _row(rng: np.random.Generator, start: float, stop: float, skip: tuple[float, float] | None
+def building_plots(rng: np.random.Generator, start: float, stop: float, skip: tuple[float, float] | None
          ) -> list[tuple[float, float]]:
     """Building frontages (u0, u1) along a row, with random gaps, avoiding the span ``skip``."""
     out, u = [], start + rng.uniform(0, 4)
@@ -43,7 +43,7 @@ def _row(rng: np.random.Generator, start: float, stop: float, skip: tuple[float,
     return out
 
 
-def _car(b: SceneBuilder, rng: np.random.Generator, ground: HeightField, centre: np.ndarray, along_x: bool) -> None:
+def add_car(b: SceneBuilder, rng: np.random.Generator, ground: HeightField, centre: np.ndarray, along_x: bool) -> None:
     length, width = rng.uniform(3.8, 4.8), rng.uniform(1.7, 1.9)
     size = np.array([length, width] if along_x else [width, length])
     lo_xy = centre - size / 2
@@ -90,7 +90,7 @@ def _street_object(b: SceneBuilder, rng: np.random.Generator, ground: HeightFiel
     b.thing(vertices + np.array([*corner, ground.height(footprint).max()]), triangles)
 
 
-def _building(b: SceneBuilder, rng: np.random.Generator, ground: HeightField, lo: np.ndarray, hi: np.ndarray) -> None:
+def add_building(b: SceneBuilder, rng: np.random.Generator, ground: HeightField, lo: np.ndarray, hi: np.ndarray) -> None:
     """A block (sometimes with a narrower upper storey) from below the ground to 4-30 m above it."""
     grid = np.stack(np.meshgrid(np.linspace(lo[0], hi[0], 6), np.linspace(lo[1], hi[1], 6)), -1).reshape(-1, 2)
     heights = ground.height(grid)
@@ -133,13 +133,13 @@ def random_street(rng: np.random.Generator, meshes: Sequence[str | Path] = (),
         cross = (c - open_half[1], c + open_half[1])
     for axis, side in rows:
         span = open_half[axis]
-        for u0, u1 in _row(rng, -span, span, cross):
+        for u0, u1 in building_plots(rng, -span, span, cross):
             d = depth * rng.uniform(0.6, 1.0)
             near = open_half[1 - axis] + setback
             lo, hi = np.zeros(2), np.zeros(2)
             lo[axis], hi[axis] = u0, u1
             lo[1 - axis], hi[1 - axis] = (near, near + d) if side > 0 else (-near - d, -near)
-            _building(b, rng, ground, lo, hi)
+            add_building(b, rng, ground, lo, hi)
     taken: list[np.ndarray] = []
     # cars: parked along the kerbs of a street, anywhere in a yard; axis-aligned so that they are solid boxes
     for _ in range(int(rng.integers(2, 4 + int(open_half.prod() / 60)))):
@@ -154,7 +154,7 @@ def random_street(rng: np.random.Generator, meshes: Sequence[str | Path] = (),
             hi_xy = np.array([open_half[0] - 1, y + size[1] / 2 + 0.1])
         corner = place_footprint(rng, lo_xy, hi_xy, size, taken)
         if corner is not None:
-            _car(b, rng, ground, corner + size / 2, along_x)
+            add_car(b, rng, ground, corner + size / 2, along_x)
     for _ in range(int(rng.integers(2, 4 + int(open_half.prod() / 80)))):
         corner = place_footprint(rng, -open_half + 0.5, open_half - 0.5, np.full(2, 1.0), taken)
         if corner is not None:

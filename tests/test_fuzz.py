@@ -240,7 +240,7 @@ def test_hpr_baselines_answer_any_cloud(cloud, data):
 def test_delaunay_triangulates_any_plane_cloud(cloud, data):
     """The C Delaunay (o3dvis/apps/delaunay.c) on the clouds above seen along an axis: repeated
     points, lines, clusters, any scale; exactly Delaunay, or no triangle where none can be."""
-    from test_delaunay import _check_triangulation
+    from conftest import _check_triangulation
 
     from o3dvis.apps.delaunay import delaunay_triangles
 

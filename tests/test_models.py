@@ -1,10 +1,12 @@
-"""Checkpoint loading: model card, sha256, tampered/truncated files, no pickle execution."""
+"""Checkpoints (``o3dvis.models``): the model card, sha256, tampered and truncated files refused, no pickle
+executed, ``NeuralVisibility.pretrained`` from a weights folder, a path's model loaded once."""
 
 from __future__ import annotations
 
 import json
 import pickle
 import struct
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d

@@ -7,37 +7,18 @@ import sys
 
 import numpy as np
 import pytest
-from scipy.spatial import ConvexHull, Delaunay
+from scipy.spatial import Delaunay
 
 from o3dvis.apps import delaunay
 from o3dvis.apps.delaunay import delaunay_triangles
+
+from conftest import _check_triangulation, _signed_areas
 
 native = pytest.mark.skipif(os.environ.get("O3DVIS_NATIVE") == "0", reason="C kernels turned off (O3DVIS_NATIVE=0)")
 
 
 def _set(triangles: np.ndarray) -> set[tuple[int, ...]]:
     return set(map(tuple, np.sort(triangles, axis=1).tolist()))
-
-
-def _signed_areas(xy: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    a, b, c = (xy[triangles[:, i]] for i in range(3))
-    return ((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0]) / 2
-
-
-def _check_triangulation(xy: np.ndarray, triangles: np.ndarray) -> None:
-    """Counter-clockwise, no overlap or gap (the areas sum to the hull's), every distinct point a
-    corner, and no point strictly inside a triangle's circumcircle (exact: integer coordinates)."""
-    distinct = np.unique(xy, axis=0)
-    areas = _signed_areas(xy, triangles)
-    assert (areas > 0).all()
-    assert areas.sum() == pytest.approx(ConvexHull(distinct).volume, rel=1e-12)
-    assert len(np.unique(xy[np.unique(triangles)], axis=0)) == len(distinct)
-    p = xy.astype(np.int64)
-    d = p[None, :, :] - p[triangles][:, :, None, :]  # (T, 3, N, 2): each corner minus each point
-    lift = (d ** 2).sum(-1)
-    cross = lambda i, j: d[:, i, :, 0] * d[:, j, :, 1] - d[:, j, :, 0] * d[:, i, :, 1]  # noqa: E731
-    in_circle = lift[:, 0] * cross(1, 2) - lift[:, 1] * cross(0, 2) + lift[:, 2] * cross(0, 1)
-    assert (in_circle <= 0).all()
 
 
 @native

@@ -18,7 +18,7 @@ from o3dvis import models
 from o3dvis.models import check_safetensors, file_sha256, load_model, read_model_card
 from o3dvis.nn import NetworkConfig, VisibilityNetwork
 
-SMALL = dict(depth=5, full_depth=2, channels=(8, 16), feature_channels=8, num_frequencies=2, hidden=(16,))
+from conftest import SMALL
 
 
 def _network(seed: int, use_normals: bool = False) -> VisibilityNetwork:

@@ -1,6 +1,8 @@
-"""A cloud's own normals reach the normals model only where they face out: normals that point either
-way (``estimate_normals``), flipped at random or facing one sensor are estimated anew, with a warning;
-oriented ones, and normals the caller vouches for (``normals=True`` or an array), are used as given."""
+"""The two-pass encoding (``o3dvis.two_pass``): normals estimated in a first pass for dense, clean
+clouds; and a cloud's own normals reach the normals model only where they face out: normals that
+point either way (``estimate_normals``), flipped at random or facing one sensor are estimated anew,
+with a warning; oriented ones, and normals the caller vouches for (``normals=True`` or an array), are
+used as given."""
 
 from __future__ import annotations
 
@@ -12,6 +14,53 @@ import pytest
 import torch
 
 import o3dvis
+from o3dvis.cameras import viewpoints_around
+from o3dvis.nn import NetworkConfig, VisibilityNetwork
+from o3dvis.orientation import voted_normals
+from o3dvis.two_pass import first_pass_normals
+
+from conftest import SMALL, _camera
+
+
+def test_normals_estimated_in_a_first_pass_for_dense_clean_clouds(network):
+    torch.manual_seed(5)
+    normals_net = VisibilityNetwork(NetworkConfig(**SMALL, use_normals=True))
+    paired = o3dvis.NeuralVisibility(network, normals_net)
+    rng = np.random.default_rng(0)
+    sphere = rng.normal(size=(20_000, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    field = paired.encode(sphere, normals="estimate")
+    assert field.network is normals_net
+    cameras = viewpoints_around(sphere, 14)  # the first pass's probabilities orient the normals
+    expected = voted_normals(sphere, cameras, paired.encode(sphere, normals=False).probabilities(cameras).numpy())
+    np.testing.assert_allclose(field.normals[field.rank].numpy(), expected, atol=1e-6)
+    first, rank = paired.encode(sphere, normals=False), field.rank.numpy()
+    np.testing.assert_array_equal(first_pass_normals(first, sphere[np.argsort(rank)], stored=True)[rank],
+                                  first_pass_normals(first, sphere))  # in the field's order or the cloud's
+    given = paired.encode(sphere, normals=field.normals[field.rank].double().numpy())  # the passes share
+    torch.testing.assert_close(field.probabilities(cameras), given.probabilities(cameras))  # octree, noise
+    assert paired.encode(sphere).network is network  # by default: one pass for a cloud without normals
+    noisy = sphere * (1 + 0.05 * rng.uniform(-1, 1, (len(sphere), 1)))
+    assert paired.encode(noisy, normals="estimate").network is network  # rough neighbourhoods: one pass
+    assert paired.encode(sphere[:900], normals="estimate").network is network  # too sparse
+    plane = sphere * [1, 1, 0]
+    assert paired.encode(plane, normals="estimate").network is network  # flat: one pass is exact
+    corners = np.repeat(np.eye(4, 3), 500, axis=0)  # 3-D, but every neighbourhood one point repeated
+    assert paired.encode(corners, normals="estimate").network is network
+    with pytest.raises(ValueError, match="needs a normals model"):
+        o3dvis.NeuralVisibility(network).encode(sphere, normals="estimate")
+    with pytest.raises(ValueError, match="got 'estimated'"):
+        paired.encode(sphere, normals="estimated")
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sphere))
+    camera = _camera(sphere)
+    _, two = o3dvis.hidden_point_removal_neural(cloud, camera, model=paired, normals="estimate")
+    assert two == np.flatnonzero(field.query(camera)[0]).tolist()
+    assert len(o3dvis.select_visible(cloud, camera, model=paired, normals="estimate").points) == len(two)
+    _, cropped = o3dvis.hidden_point_removal_neural(cloud, camera, model=paired, normals="estimate", max_range=10.0)
+    assert cropped == two  # a range that keeps every point changes nothing
+
+
+# ---------------------------------------------------------------- a cloud's own normals
 
 CAMERA = np.array([0.4, -0.3, 3.5])
 

@@ -1,24 +1,21 @@
-"""Oriented normals from visibility: planes through neighbours, voted by the cameras that see them."""
+"""Oriented normals from visibility (``o3dvis.orientation``): planes through neighbours, in closed
+form and in C, voted by the cameras that see them, sides of thin walls, the visibility affinity."""
 
 from __future__ import annotations
 
 import numpy as np
+import open3d as o3d
 import pytest
-
 import torch
-from scipy.spatial import cKDTree
 
+from o3dvis.apps.normals import neighbourhoods
 from o3dvis.cameras import viewpoints_around
-from o3dvis.nn import native
-from o3dvis.nn.octree import morton_order, normalize_points
 from o3dvis.neighbours import nearest_neighbours
-from o3dvis.orientation import (layer_sides, surface_variation, visibility_affinity, vote,
-                                voted_normals)
+from o3dvis.nn import native
+from o3dvis.orientation import (fit_planes, layer_sides, smallest_eigenvectors, surface_variation,
+                                visibility_affinity, vote, voted_normals)
 
-
-def _sphere(count: int, seed: int = 0) -> np.ndarray:
-    points = np.random.default_rng(seed).normal(size=(count, 3))
-    return points / np.linalg.norm(points, axis=1, keepdims=True)
+from conftest import _sphere
 
 
 def _seen(points: np.ndarray, cameras: np.ndarray) -> np.ndarray:
@@ -170,113 +167,6 @@ def test_no_plane_to_fit_is_a_clear_error():
         voted_normals(_sphere(100), cameras, np.ones((1, 100), dtype=bool), neighbours=2)
 
 
-def _clouds() -> dict[str, np.ndarray]:
-    rng = np.random.default_rng(3)
-    line = np.c_[np.linspace(0, 1, 6000), np.zeros((6000, 2))]
-    sphere = _sphere(20000, seed=4)
-    along_curve = sphere[morton_order(normalize_points(torch.from_numpy(sphere))[0].float()).numpy()]
-    return {"sphere": sphere, "sphere in an encoding's order": along_curve, "cube": rng.random((8000, 3)),
-            "repeated": np.repeat(rng.random((3000, 3)), 3, axis=0),  # ties everywhere
-            "line and far points": np.concatenate([line, rng.random((5, 3)) * 100]),  # searched again
-            "a dense blob": np.concatenate([rng.normal(size=(2000, 3)) * 1e-4 + 0.5, rng.random((1000, 3))]),
-            "clusters": np.concatenate([rng.normal(size=(5000, 3)) * 1e-3 + c for c in np.eye(3) * 1e3])}
-
-
-@pytest.fixture
-def grid_search(monkeypatch):
-    """The grid search for clouds of every size (it takes only large ones)."""
-    monkeypatch.setattr("o3dvis.neighbours._GRID_MIN_POINTS", 1)
-
-
-@pytest.mark.parametrize("name", list(_clouds()))
-@pytest.mark.parametrize("k", [1, 8, 64])
-def test_nearest_neighbours_are_those_of_a_kd_tree(grid_search, name, k):
-    """As far as the distances go (equally near points may come in another order)."""
-    points = _clouds()[name]
-    near = nearest_neighbours(points, k)
-    distance, _ = cKDTree(points).query(points, k=k)
-    found = np.linalg.norm(points[near] - points[:, None], axis=2)
-    assert near.shape == (len(points), k) and near.dtype == np.int64
-    np.testing.assert_allclose(found, distance.reshape(len(points), k), rtol=0, atol=1e-12)
-
-
-@pytest.mark.parametrize("by_tree", [False, True])
-def test_nearest_neighbours_search_again_where_the_grid_is_too_coarse(grid_search, monkeypatch, by_tree):
-    """A dense cluster and a sparse shell: the shell's points have no k neighbours in the 27 cells
-    around them, and get their exact ones all the same (by distances to all points, or with many
-    such points by a k-d tree)."""
-    monkeypatch.setattr("o3dvis.neighbours._BRUTE_FORCE_PAIRS", 0 if by_tree else 1 << 40)
-    rng = np.random.default_rng(5)
-    points = np.concatenate([rng.normal(size=(20000, 3)) * 0.01, _sphere(300, seed=6) * 10])
-    near = nearest_neighbours(points, 8)
-    distance, _ = cKDTree(points).query(points, k=8)
-    np.testing.assert_allclose(np.linalg.norm(points[near] - points[:, None], axis=2), distance, atol=1e-12)
-
-
-@pytest.mark.parametrize("grid", [False, True])
-@pytest.mark.parametrize("shuffled", [False, True])
-def test_a_search_asked_for_some_points_answers_as_for_all(monkeypatch, grid, shuffled):
-    """NeighbourSearch.query of some rows (the grid's cells of those rows only, the rows alone in
-    them; or the k-d tree) gives the rows of the query of all points: in a dense cluster, and in a
-    sparse shell whose points the grid cannot answer (searched again among all points)."""
-    from o3dvis.neighbours import NeighbourSearch
-
-    if grid:
-        monkeypatch.setattr("o3dvis.neighbours._GRID_MIN_POINTS", 1)
-    rng = np.random.default_rng(7)
-    points = np.concatenate([rng.normal(size=(20000, 3)) * 0.01, _sphere(300, seed=6) * 10])
-    order = (rng.permutation(len(points)) if shuffled else
-             morton_order(normalize_points(torch.from_numpy(points))[0].float()).numpy())  # as an encoding's
-    points = points[order]
-    search = NeighbourSearch(points)
-    every = search.query(16)
-    rows = np.sort(rng.choice(len(points), 700, replace=False))
-    some = search.query(16, rows)
-    distance = lambda near, at: np.linalg.norm(points[near] - points[at][:, None], axis=2)  # noqa: E731
-    np.testing.assert_allclose(distance(some, rows), distance(every[rows], rows), atol=1e-12)
-    np.testing.assert_allclose(distance(some, rows), cKDTree(points).query(points[rows], k=16)[0], atol=1e-12)
-    assert search.query(8).shape == (len(points), 8) and search.query(4, np.array([], dtype=np.int64)).shape == (0, 4)
-
-
-@pytest.mark.skipif(not native.available(), reason="C kernels turned off (O3DVIS_NATIVE=0)")
-def test_brute_force_search_finds_the_nearest_and_checks_its_arguments():
-    rng = np.random.default_rng(8)
-    points = torch.from_numpy(rng.random((3000, 3)))
-    rows = torch.tensor([0, 17, 2999])
-    near = native.brute_knn(points, rows, 12).numpy()
-    distance, _ = cKDTree(points.numpy()).query(points.numpy()[rows.numpy()], k=12)
-    np.testing.assert_allclose(np.linalg.norm(points.numpy()[near] - points.numpy()[rows.numpy()][:, None], axis=2),
-                               distance, atol=1e-12)
-    assert (near[:, 0] == rows.numpy()).all()
-    with pytest.raises(ValueError, match="k must lie"):
-        native.brute_knn(points, rows, 65)
-    with pytest.raises(IndexError, match="rows must lie"):
-        native.brute_knn(points, rows + 1, 4)
-
-
-@pytest.mark.skipif(not native.available(), reason="C kernels turned off (O3DVIS_NATIVE=0)")
-def test_grid_search_checks_its_arguments():
-    long = torch.zeros(2, dtype=torch.long)
-    args = (torch.zeros(1, 3, dtype=torch.float64), torch.zeros(1, 3, dtype=torch.long), long[:1], long)
-    table = native.key_table(long[:1])
-    out = (torch.empty(1, 8, dtype=torch.long), torch.empty(1, dtype=torch.uint8))
-    with pytest.raises(ValueError, match="k must lie"):
-        native.grid_knn(*args, table, 1, torch.zeros(3, dtype=torch.float64), 1.0, 0.0, 65, (0, 1), *out)
-    with pytest.raises(ValueError, match="power of two"):
-        native.grid_knn(*args, table[:1], 1, torch.zeros(3, dtype=torch.float64), 1.0, 0.0, 8, (0, 1), *out)
-    with pytest.raises(ValueError, match="cell range"):
-        native.grid_knn(*args, table, 1, torch.zeros(3, dtype=torch.float64), 1.0, 0.0, 8, (0, 2), *out)
-    with pytest.raises(ValueError, match="points must be"):
-        native.grid_knn(args[0].float(), *args[1:], table, 1, torch.zeros(3, dtype=torch.float64), 1.0, 0.0, 8,
-                        (0, 1), *out)
-    with pytest.raises(ValueError, match="cell_list must lie"):
-        native.grid_knn(*args, table, 1, torch.zeros(3, dtype=torch.float64), 1.0, 0.0, 8, (0, 1), *out,
-                        torch.tensor([1]))
-    with pytest.raises(ValueError, match="wanted must be"):
-        native.grid_knn(*args, table, 1, torch.zeros(3, dtype=torch.float64), 1.0, 0.0, 8, (0, 1), *out,
-                        torch.tensor([0]), torch.ones(2, dtype=torch.bool))
-
-
 @pytest.mark.skipif(not native.available(), reason="C kernels turned off (O3DVIS_NATIVE=0)")
 @pytest.mark.parametrize("cameras", [1, 14, 16, 33])
 def test_affinity_kernel_matches_the_numpy_ops(monkeypatch, cameras):
@@ -305,25 +195,90 @@ def test_affinity_kernel_checks_its_arguments():
         native.visibility_affinity(table, 3, near + 10, 0, 0.1, 0.01)
 
 
-def test_training_draws_the_first_pass_normals_for_the_share_asked(tmp_path):
-    """Augmentation(estimated_normals=1) gives each cloud the normals normals='estimate' computes
-    (unit, mostly on the side of the exact ones, not equal to them: 5 000 points of a procedural
-    shape); the points, cameras and labels are the draw of estimated_normals=0, which draws as before."""
-    torch = pytest.importorskip("torch")
-    from o3dvis.training.data.dataset import Augmentation, VisibilityDataset
-    from o3dvis.training.data.prepare import label_mesh
-    from o3dvis.training.data.sample import save_sample
-    from o3dvis.training.data.shapes import write_shapes
+def _scatters(points: np.ndarray) -> np.ndarray:
+    centred = points - points.mean(axis=1, keepdims=True)
+    return np.matmul(centred.transpose(0, 2, 1), centred)
 
-    mesh = write_shapes(str(tmp_path / "meshes"), 1, seed=6)[0]
-    sample = label_mesh(mesh, num_points=6000, num_views=4)
-    save_sample(sample, tmp_path / "s.npz")
-    draw = dict(min_points=5000, max_points=5001, noise_prob=0.0)
-    exact = VisibilityDataset([tmp_path / "s.npz"], Augmentation(**draw), seed=2, length=2)
-    estimated = VisibilityDataset([tmp_path / "s.npz"], Augmentation(**draw, estimated_normals=1.0), seed=2, length=2)
-    for k in range(2):
-        (p0, n0, c0, l0), (p1, n1, c1, l1) = exact[k], estimated[k]
-        assert torch.equal(p0, p1) and torch.equal(c0, c1) and torch.equal(l0, l1)
-        torch.testing.assert_close(n1.norm(dim=1), torch.ones(len(n1)), rtol=0, atol=1e-5)
-        cosine = (n0 * n1).sum(dim=1)
-        assert not torch.allclose(n0, n1, atol=1e-3) and (cosine > 0).float().mean() > 0.7  # random: 0.5
+
+@pytest.mark.parametrize("scale", [1e-150, 1.0, 1e150])
+def test_closed_form_eigenvectors_match_eigh(scale):
+    rng = np.random.default_rng(3)
+    rotation = np.linalg.qr(rng.normal(size=(3000, 3, 3)))[0]
+    # neighbourhoods of every shape: blobs, noisy planes, strips, near-lines
+    extents = np.concatenate([np.ones((1000, 3)), [[1, 1, 1e-3]] * 500, [[1, 0.3, 1e-6]] * 500,
+                              [[1, 1e-3, 1e-9]] * 500, [[1, 0.999, 0.998]] * 500])
+    matrices = _scatters(rng.normal(size=(3000, 16, 3)) * extents[:, None] @ rotation) * scale
+    vectors, planar = smallest_eigenvectors(matrices)
+    values, reference = np.linalg.eigh(matrices)
+    assert np.allclose(np.linalg.norm(vectors, axis=1), 1)
+    separated = (values[:, 1] - values[:, 0]) > 1e-8 * values[:, 2]
+    assert separated.mean() > 0.99
+    cos = np.abs(np.einsum("ij,ij->i", vectors, reference[:, :, 0]))
+    assert cos[separated].min() > 1 - 1e-12
+    assert planar.all()
+
+
+def test_closed_form_eigenvectors_of_degenerate_matrices():
+    rng = np.random.default_rng(4)
+    line = rng.normal(size=(1, 16, 1)) * np.array([0.6, 0.0, 0.8]) + 5.0
+    matrices = np.concatenate([np.zeros((1, 3, 3)), _scatters(line), np.eye(3)[None],
+                               np.diag([2.0, 2.0, 1.0])[None], np.diag([2.0, 1.0, 1.0])[None]])
+    vectors, planar = smallest_eigenvectors(matrices)
+    assert np.isfinite(vectors).all() and np.allclose(np.linalg.norm(vectors, axis=1), 1)
+    assert planar.tolist() == [False, False, True, True, True]  # a line or a point has no plane
+    assert abs(vectors[1] @ [0.6, 0.0, 0.8]) < 1e-9  # any normal of a line is across it
+    assert abs(vectors[3][2]) == pytest.approx(1)  # the disk's axis
+    assert abs(vectors[4][0]) < 1e-12  # any vector of the cigar's round section
+
+
+def test_native_plane_fits_match_the_numpy_ones(monkeypatch):
+    """The plane fits in C against the numpy ops they follow, degenerate neighbourhoods included:
+    duplicates, collinear points, rows without three positive weights."""
+    import o3dvis.orientation as orientation
+
+    if not orientation.native.available():
+        pytest.skip("the C kernels are not built")
+    rng = np.random.default_rng(8)
+    points = np.concatenate([rng.normal(size=(5000, 3)) * [1.0, 1.0, 0.05],
+                             np.zeros((4, 3)), np.outer(np.arange(4.0), [0.6, 0.0, 0.8]) + 1e6])
+    neighbours = rng.integers(0, 5000, size=(6000, 8))
+    neighbours[:4] = 5000 + np.arange(4)[:, None] % 4  # a point's duplicates
+    neighbours[4:8] = 5004 + np.arange(8) % 4  # a line, far from the origin
+    neighbours[12:20, 5:] = len(points)  # no point, of no weight (the padding of covisible fits)
+    weight = rng.random(neighbours.shape)
+    weight[8:12, 2:] = 0  # two neighbours that count
+    weight[12:20, 5:] = 0
+    fast, fast_fitted = fit_planes(points, neighbours, weight)
+    monkeypatch.setattr(orientation.native, "available", lambda: False)
+    slow, slow_fitted = fit_planes(points, neighbours, weight)
+    assert np.array_equal(fast_fitted, slow_fitted) and not fast_fitted[:12].any() and fast_fitted[12:].all()
+    assert np.isfinite(fast).all() and np.allclose(np.linalg.norm(fast, axis=1), 1)
+    assert np.abs(np.einsum("ij,ij->i", fast, slow))[12:].min() > 1 - 1e-9
+    monkeypatch.undo()
+    for unweighted, ones in zip(fit_planes(points, neighbours[20:]),  # None: every neighbour weighs 1
+                                fit_planes(points, neighbours[20:], np.ones((5980, 8)))):
+        assert np.array_equal(unweighted, ones)
+    with pytest.raises(IndexError, match="neighbours"):
+        orientation.native.fit_planes(torch.zeros(3, 3, dtype=torch.float64), torch.tensor([[0, 1, 4]]),
+                                      torch.ones(1, 3, dtype=torch.float64))
+
+
+def test_chunked_fit_and_vote_match_plain_formulas_across_chunks():
+    rng = np.random.default_rng(6)
+    points = rng.normal(size=(9000, 3)) * [1.0, 1.0, 0.05]  # more rows than one chunk
+    neighbours = neighbourhoods(points, o3d.geometry.KDTreeSearchParamKNN(10))
+    weight = rng.random(neighbours.shape)
+    normals, fitted = fit_planes(points, neighbours, weight)
+    near = points[neighbours]
+    centre = np.einsum("nk,nki->ni", weight, near) / weight.sum(axis=1, keepdims=True)
+    offset = near - centre[:, None]
+    values, vectors = np.linalg.eigh(np.einsum("nk,nki,nkj->nij", weight, offset, offset))
+    separated = values[:, 1] - values[:, 0] > 1e-6 * values[:, 2]
+    assert fitted.all() and separated.mean() > 0.99
+    assert np.abs(np.einsum("ij,ij->i", normals, vectors[:, :, 0]))[separated].min() > 1 - 1e-9
+
+    cameras = rng.normal(size=(5, 3)) * 10
+    visibility = rng.random((5, len(points))) < 0.5
+    towards = cameras[:, None] - points[None]
+    cos = np.einsum("vni,ni->vn", towards, normals) / np.linalg.norm(towards, axis=2)
+    assert np.allclose(vote(points, normals, cameras, visibility), (cos * visibility).sum(axis=0))

@@ -11,20 +11,14 @@ answer checked against an independent truth:
   float64 copy of the same float32 data; a list gives the answer of the array;
 * ``pairs``: a cloud listed twice gives both copies of a point the same answer.
 
-The command line's readers get their own matrix: crafted point cloud files (cut short, counts
-overstated, not points, folders, headers Open3D's reader misreads) through every command that reads a
-cloud, and bad checkpoints through ``calibrate`` and ``publish``: exit code != 0 and one line naming
-the problem, nothing created. PCD files that crash Open3D's reader go through a command in a child.
-
 Open3D and qhull calls (HPR baselines, triangulations, Poisson, ray casting) run in one child
 process, so a segfault or an abort fails the cell it happened in instead of killing pytest. Cells
-that tests/test_api.py or tests/test_baselines.py already cover are left out. The 10 M-point test
-runs only with ``O3DVIS_LARGE=1`` (see benchmarks/large_cloud.py for time and memory).
+that the tests of the model (tests/test_neural.py, test_field.py, test_cameras.py) or of the
+baselines (tests/test_baselines.py) already cover are left out.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import subprocess
@@ -40,15 +34,11 @@ import torch
 from scipy.spatial import cKDTree
 
 import o3dvis
-from o3dvis.apps import fibonacci_sphere
 
-from conftest import lzf_literal
+from conftest import SPHERE, as_cloud
+from .conftest import CAMERA, PLANE, _CHILD_TIMEOUT
 
-SPHERE = fibonacci_sphere(160)
-CAMERA = np.array([0.4, -0.3, 3.0])
 OFFSET = np.array([1e6, -1e6, 1e6])
-GRID = np.stack(np.meshgrid(np.linspace(0, 1, 12), np.linspace(0, 2, 12)), axis=-1).reshape(-1, 2)
-PLANE = np.c_[GRID, np.zeros(len(GRID))]
 LINE = np.c_[np.linspace(0, 1, 30), np.zeros(30), np.zeros(30)]
 SPHERE32 = (100 * SPHERE + OFFSET).astype(np.float32)
 HAIR_OFF_PLANE = PLANE + np.c_[np.zeros((len(PLANE), 2)), 1e-9 * np.random.default_rng(0).normal(size=len(PLANE))]
@@ -142,16 +132,6 @@ CASES: dict[str, Case] = {
 
 
 # ------------------------------------------------------------------------------ the functions
-
-def as_cloud(points):
-    """A float64 (N, 3) array as a legacy PointCloud, a float32 one as a tensor PointCloud, else as is."""
-    if isinstance(points, np.ndarray) and points.ndim == 2 and points.shape[1] == 3:
-        if points.dtype == np.float64:
-            return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-        if points.dtype == np.float32:
-            return o3d.t.geometry.PointCloud(o3d.core.Tensor(points))
-    return points
-
 
 def _tagged(cloud):
     """A copy of a cloud whose points carry their index (colour / attribute), to read back a selection."""
@@ -309,10 +289,11 @@ _NO_VOLUME = (ValueError, "no volume")
 _ARRAY_CHECKED_FIRST = {"points of shape (N, 2)": _SHAPE, "points of shape (1, N, 3)": _SHAPE,
                         "complex points": _REAL, "bool points": _REAL, "string points": _REAL}
 _TOO_FEW = (ValueError, "too few or all on one line")
-_TEST_API = frozenset({"empty cloud", "NaN point", "Inf point", "NaN camera", "Inf camera",
-                       "camera at a point", "camera inside the cloud", "points of shape (N, 2)",
-                       "points of shape (1, N, 3)", "complex points", "bool points", "points as a list",
-                       "camera of 2 numbers", "camera as a string"})
+# Cells the tests of the model cover (tests/test_neural.py, test_field.py, test_cameras.py).
+_TEST_MODEL = frozenset({"empty cloud", "NaN point", "Inf point", "NaN camera", "Inf camera",
+                         "camera at a point", "camera inside the cloud", "points of shape (N, 2)",
+                         "points of shape (1, N, 3)", "complex points", "bool points", "points as a list",
+                         "camera of 2 numbers", "camera as a string"})
 _TEST_BASELINES = frozenset({"empty cloud", "NaN point", "1 point", "2 points", "3 points",
                              "one point 10 times", "cloud listed twice", "planar", "collinear",
                              "a hair off planar (1e-9)", "camera 1e9 away",
@@ -330,10 +311,10 @@ FUNCS: dict[str, Func] = {
         method=False, risky=True),
     "NeuralVisibility.encode/VisibilityField.query": Func(
         "any", lambda c, cam, vis: vis.encode(c).query(cam), lambda r, p, o: _mask_answer(r, len(p)),
-        method=False, skip=_TEST_API | {"two cameras"}),
+        method=False, skip=_TEST_MODEL | {"two cameras"}),
     "VisibilityField.probabilities": Func(
         "any", lambda c, cam, vis: vis.encode(c).probabilities(cam),
-        lambda r, p, o: _probability_answer(r, len(p)), method=False, skip=_TEST_API | {"two cameras"}),
+        lambda r, p, o: _probability_answer(r, len(p)), method=False, skip=_TEST_MODEL | {"two cameras"}),
     "points_in_shadow": Func(
         "any", lambda c, cam, m: ~o3dvis.points_in_shadow(c, cam, m), lambda r, p, o: _mask_answer(r, len(p)),
         errors={"camera at a point": _LIGHT_ON_A_POINT}),
@@ -537,16 +518,14 @@ def test_bad_input(vis, func_name, case_name):
 
 # ------------------------------------------------------------------------------ Open3D/qhull in a child
 
-_CHILD_TIMEOUT = 240
-
-
 @pytest.fixture(scope="module")
 def child_results() -> tuple[dict, subprocess.CompletedProcess]:
     """Runs every risky cell in one child process; returns its per-cell results and the process."""
     cells = [p.values[:2] for p in _cells(risky=True)]
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
-    proc = subprocess.run([sys.executable, __file__, json.dumps(cells)], capture_output=True, text=True,
-                          env=env, timeout=_CHILD_TIMEOUT)
+    tests = Path(__file__).resolve().parents[1]  # the folder of this package and of its conftest
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tests.parent), str(tests)]))
+    proc = subprocess.run([sys.executable, "-m", f"robustness.{Path(__file__).stem}", json.dumps(cells)],
+                          capture_output=True, text=True, env=env, timeout=_CHILD_TIMEOUT)
     results = {}
     for line in proc.stdout.splitlines():
         if line.startswith("{"):
@@ -587,327 +566,3 @@ def _child(cells: list) -> None:
 
 if __name__ == "__main__":
     _child(json.loads(sys.argv[1]))
-
-
-# ------------------------------------------------------------------------------ 10 M points
-
-@pytest.mark.skipif(os.environ.get("O3DVIS_LARGE") != "1",
-                    reason="10 M points take minutes and ~5 GB: set O3DVIS_LARGE=1 (benchmarks/large_cloud.py "
-                           "prints time and memory)")
-def test_ten_million_points(vis):
-    points = fibonacci_sphere(10_000_000)
-    camera = np.array([0.3, -0.2, 3.0])
-    mask = vis.encode(points).query(camera)
-    assert mask.shape == (1, len(points)) and mask.dtype == bool
-    truth = points @ camera > 1.0  # on the unit sphere, p is visible from c exactly when p . c > |p|^2
-    assert (mask[0] == truth).mean() > 0.95
-
-
-def test_a_flat_cloud_is_all_visible_from_off_its_plane_and_left_to_the_network_in_it():
-    from o3dvis.nn import NetworkConfig, VisibilityNetwork
-
-    torch.manual_seed(1)
-    vis = o3dvis.NeuralVisibility(VisibilityNetwork(NetworkConfig(depth=5, channels=(8, 8, 8, 8),
-                                                                  feature_channels=8, hidden=(16,))))
-    tilted = PLANE @ o3d.geometry.get_rotation_matrix_from_xyz([0.3, -0.7, 1.1]).T + [5.0, -2.0, 7.0]
-    noisy = tilted + 1e-13 * np.random.default_rng(0).normal(size=tilted.shape)
-    normal = np.cross(tilted[1] - tilted[0], tilted[12] - tilted[0])
-    normal /= np.linalg.norm(normal)
-    in_plane = tilted.mean(axis=0) + 3 * (tilted[-1] - tilted[0])
-    for cloud in (tilted, noisy):
-        field = vis.encode(cloud)
-        raw = o3dvis.VisibilityField(field.network, field.features, field.points, None,
-                                     dataclasses.replace(field.frame, hull=None), rank=field.rank,
-                                     matmul_dtype=field.matmul_dtype)  # without the flat rule
-        off = [tilted.mean(axis=0) + 4 * normal, tilted.mean(axis=0) - 5 * normal]
-        assert (field.probabilities(off) == 1).all() and not (raw.probabilities(off) == 1).all()
-        torch.testing.assert_close(field.probabilities(in_plane), raw.probabilities(in_plane), rtol=0, atol=0)
-        assert (field.probabilities(direction=normal) == 1).all()
-        torch.testing.assert_close(field.probabilities(direction=tilted[1] - tilted[0]),
-                                   raw.probabilities(direction=tilted[1] - tilted[0]), rtol=0, atol=0)
-    sphere = vis.encode(SPHERE)
-    assert sphere.frame.hull is None and not (sphere.probabilities(CAMERA) == 1).all()
-
-
-# ------------------------------------------------------------------------------ the CLI's readers
-
-def _ply(fmt: str, count: int, body: bytes, props: str = "property float x\nproperty float y\nproperty float z\n"
-         ) -> bytes:
-    return (f"ply\nformat {fmt} 1.0\nelement vertex {count}\n{props}end_header\n").encode() + body
-
-
-def _pcd(data: str, points: int, body: bytes, fields: str = "x y z", sizes: str = "4 4 4", types: str = "F F F",
-         counts: str = "1 1 1") -> bytes:
-    return (f"VERSION 0.7\nFIELDS {fields}\nSIZE {sizes}\nTYPE {types}\nCOUNT {counts}\nWIDTH {points}\nHEIGHT 1\n"
-            f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {points}\nDATA {data}\n").encode() + body
-
-
-_XYZ = "".join(f"{x} {y} {z}\n" for x, y, z in SPHERE[:10]).encode()
-_FLOATS = SPHERE[:10].astype(np.float32).tobytes()
-_XYZ_PROPS = "property float x\nproperty float y\nproperty float z\n"
-
-FILE_CASES: dict[str, tuple[str, bytes | None, str]] = {
-    # name: (file name, content (None: the folder itself), the error's message)
-    "binary PLY declaring 100000 vertices, holding 30 floats": (
-        "lie.ply", _ply("binary_little_endian", 100_000, np.arange(30, dtype=np.float32).tobytes()),
-        "truncated PLY.*element vertex 100000"),
-    "binary PLY cut short": ("cut.ply", _ply("binary_little_endian", 10, _FLOATS[:-6]), "truncated PLY"),
-    "ASCII PLY cut short": ("cut_ascii.ply", _ply("ascii", 10, _XYZ[:len(_XYZ) // 2]), "truncated PLY"),
-    "PLY without end_header": ("open.ply", _ply("ascii", 10, b"").replace(b"end_header\n", b""), "end_header"),
-    "PLY with a negative count": ("negative.ply", _ply("ascii", -3, _XYZ), "bad count"),
-    "PLY of an unknown format": ("format.ply", _ply("binary_middle_endian", 10, _FLOATS), "unknown PLY format"),
-    "PLY without vertices": ("faces.ply", b"ply\nformat ascii 1.0\nelement face 0\n"
-                                          b"property list uchar int vertex_indices\nend_header\n", "no vertex"),
-    "binary PCD cut short": ("cut.pcd", _pcd("binary", 10, _FLOATS[:-5]), "truncated PCD"),
-    "ASCII PCD declaring 1000 points, holding 10": ("lie.pcd", _pcd("ascii", 1000, _XYZ), "truncated PCD.*1000"),
-    "compressed PCD cut short": ("cut_compressed.pcd", _pcd("binary_compressed", 10, b"\x40\0\0\0\x78\0\0\0"),
-                                 "compressed PCD"),
-    "PLY vertex without z": ("xy.ply", _ply("binary_little_endian", 10, SPHERE[:10, :2].astype(np.float32).tobytes(),
-                                            "property float x\nproperty float y\n"), "lacks z"),
-    "PLY vertex with x as a list": ("list.ply", _ply("binary_little_endian", 10, b"".join(
-        b"\x01" + row.tobytes() for row in SPHERE[:10].astype(np.float32)), "property list uchar float x\n"
-        "property float y\nproperty float z\n"), "'x' is a list"),
-    "PLY vertex with nx but no ny, nz": ("nx.ply", _ply("binary_little_endian", 10, np.c_[
-        SPHERE[:10], SPHERE[:10, :1]].astype(np.float32).tobytes(), _XYZ_PROPS + "property float nx\n"),
-        "lacks ny, nz"),
-    "PLY vertex with red but no green, blue": ("red.ply", _ply("binary_little_endian", 10, b"".join(
-        row.tobytes() + b"\x80" for row in SPHERE[:10].astype(np.float32)), _XYZ_PROPS + "property uchar red\n"),
-        "lacks green, blue"),
-    "PLY vertex declaring z before y": ("xzy.ply", _ply("binary_little_endian", 10, _FLOATS,
-                                                       "property float x\nproperty float z\nproperty float y\n"),
-                                        "'z' before x, y"),
-    "ASCII PLY with a word for a number": ("word.ply", _ply("ascii", 10, b"abc" + _XYZ[_XYZ.index(b" "):]),
-                                           "not lines of 3 numbers.*'abc'"),
-    "PCD of TYPE F SIZE 2": ("half.pcd", _pcd("binary", 10, SPHERE[:10].astype(np.float16).tobytes(), sizes="2 2 2"),
-                             "'x' is TYPE F SIZE 2"),
-    "PCD of TYPE F SIZE 1": ("byte.pcd", _pcd("binary", 10, bytes(30), sizes="1 1 1"), "'x' is TYPE F SIZE 1"),
-    "compressed PCD of TYPE F SIZE 8": ("double.pcd", _pcd("binary_compressed", 10, lzf_literal(
-        SPHERE[:10].tobytes()), sizes="8 8 8"), "'x' is TYPE F SIZE 8.*binary_compressed"),
-    "PCD with x of COUNT 2": ("count.pcd", _pcd("binary", 10, np.c_[SPHERE[:10, :1], SPHERE[:10]].astype(
-        np.float32).tobytes(), counts="2 1 1"), "'x' is TYPE F SIZE 4 COUNT 2"),
-    "PCD with a TYPE letter not F, I or U": ("type.pcd", _pcd("binary", 10, _FLOATS, types="F F Q"),
-                                             "unknown TYPE 'Q'"),
-    "PCD with 2 TYPE letters for 3 fields": ("types.pcd", _pcd("binary", 10, _FLOATS, types="F F"),
-                                             "TYPE line has 2 values for 3 fields"),
-    "PCD with COUNT before SIZE": ("order.pcd", _pcd("binary", 10, _FLOATS).replace(b"SIZE 4 4 4\n", b"").replace(
-        b"COUNT 1 1 1\n", b"COUNT 1 1 1\nSIZE 4 4 4\n"), "SIZE line comes before its COUNT"),
-    "PCD with DATA in upper case": ("upper.pcd", _pcd("BINARY", 10, _FLOATS), "unknown PCD data kind 'BINARY'"),
-    "ASCII PCD with a line of 2 numbers": ("short.pcd", _pcd("ascii", 2, b"1 2\n3 4 5 6\n"), "line 1 of its data"),
-    "compressed PCD with corrupted compressed data": ("lzf.pcd", _pcd("binary_compressed", 10, np.array(
-        [124, 120], dtype="<u4").tobytes() + b"\x20\x00" + bytes(122)), "corrupted compressed PCD"),
-    "PTS declaring 100 points, holding 10": ("lie.pts", b"100\n" + _XYZ, "declares 100 points but 10"),
-    "XYZ with a line of two numbers": ("short.xyz", _XYZ + b"1.5 2.5\n", "line 11 .* not a point"),
-    "XYZ with a line of words": ("words.xyz", b"x y z\n" + _XYZ, "line 1 .* not a point"),
-    "XYZN with points of 3 numbers": ("three.xyzn", _XYZ, "line 1 .* not a point of 6"),
-    "XYZ with a NaN point": ("nan.xyz", _XYZ + b"nan 0 0\n", "1 of 11 points have NaN"),
-    "empty XYZ": ("empty.xyz", b"", "no points"),
-    "unknown suffix": ("cloud.txt", _XYZ, "unknown point cloud format"),
-    "a folder": ("folder.ply", None, "is a folder"),
-    "a missing file": ("missing.ply", b"", "not found"),
-}
-"""Point cloud files the CLI must refuse: each command that reads a cloud prints one line naming the problem."""
-
-_NORMAL_X = {"fields": "x y z normal_x", "sizes": "4 4 4 4", "types": "F F F F", "counts": "1 1 1 1"}
-_NORMALS = {"fields": "x y z normal_x normal_y normal_z", "sizes": "4 4 4 4 4 4", "types": "F F F F F F",
-            "counts": "1 1 1 1 1 1"}
-CRASH_CASES: dict[str, tuple[str, bytes, str]] = {
-    "ASCII PCD with normal_x but no normal_y, normal_z": (
-        "normal_ascii.pcd", _pcd("ascii", 1, b"1 2 3 4\n", **_NORMAL_X), "lacks normal_y, normal_z"),
-    "binary PCD with normal_x but no normal_y, normal_z": (
-        "normal_binary.pcd", _pcd("binary", 1, np.float32([1, 2, 3, 4]).tobytes(), **_NORMAL_X),
-        "lacks normal_y, normal_z"),
-    "compressed PCD with normal_x but no normal_y, normal_z": (
-        "normal_compressed.pcd", _pcd("binary_compressed", 1, lzf_literal(np.float32([1, 2, 3, 4]).tobytes()),
-                                      **_NORMAL_X), "lacks normal_y, normal_z"),
-    "compressed PCD with one corrupted header byte (normal_Y)": (
-        "corrupted.pcd", _pcd("binary_compressed", 1, lzf_literal(np.float32([1, 2, 3, 0, 0, 1]).tobytes()), **_NORMALS
-                              ).replace(b"normal_y", b"normal_Y"), "lacks normal_y"),
-}
-"""PCD files Open3D's reader crashes the process on (SIGSEGV): refused by the command in a child process."""
-
-CLI_READERS = {
-    "visible": ["--camera", "0,0,3", "-o", "{out}.ply"],
-    "normals": ["-o", "{out}.ply"],
-    "reconstruct": ["-o", "{out}.ply"],
-    "shadow": ["--light", "0,0,3", "--camera", "0,3,0", "-o", "{out}.png"],
-    "best-view": [],
-    "render": ["--camera", "0,0,3", "-o", "{out}.png"],
-}
-
-
-def _write_case(folder: Path, name: str) -> Path:
-    file_name, content, _ = FILE_CASES[name]
-    path = folder / file_name
-    if content is None:
-        path.mkdir()
-    elif name != "a missing file":
-        path.write_bytes(content)
-    return path
-
-
-def _cli_error(capsys, *argv: str) -> str:
-    """Runs the ``o3dvis`` command; asserts it failed with one line and no traceback; returns that line."""
-    from o3dvis.cli import main
-
-    code = main(list(argv))
-    err = capsys.readouterr().err.strip().splitlines()
-    assert code != 0, "the command succeeded"
-    assert err and not any("Traceback" in line for line in err)
-    return err[-1]
-
-
-@pytest.mark.parametrize("command", CLI_READERS)
-@pytest.mark.parametrize("case", FILE_CASES)
-def test_cli_refuses_a_bad_point_cloud_file(tmp_path, capsys, command, case):
-    path = _write_case(tmp_path, case)
-    args = [a.format(out=tmp_path / "out") for a in CLI_READERS[command]]
-    line = _cli_error(capsys, command, str(path), *args)
-    assert line.startswith(f"o3dvis {command}: error: ")
-    assert __import__("re").search(FILE_CASES[case][2], line), line
-    assert sorted(p.name for p in tmp_path.iterdir()) == ([] if case == "a missing file" else [path.name])
-
-
-@pytest.mark.parametrize("case", CRASH_CASES)
-def test_cli_refuses_a_pcd_that_crashes_open3d_in_a_child_process(tmp_path, case):
-    file_name, content, message = CRASH_CASES[case]
-    path = tmp_path / file_name
-    path.write_bytes(content)
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
-    run = subprocess.run([sys.executable, "-m", "o3dvis", "visible", str(path), "--camera", "0,0,3", "-o",
-                          str(tmp_path / "out.ply")], capture_output=True, text=True, env=env, timeout=_CHILD_TIMEOUT)
-    assert run.returncode > 0, f"exit code {run.returncode}: {run.stderr[-2000:]}"  # < 0: killed by a signal
-    err = run.stderr.strip().splitlines()
-    assert err and "Traceback" not in run.stderr, run.stderr[-2000:]
-    assert err[-1].startswith("o3dvis visible: error: ") and __import__("re").search(message, err[-1]), err[-1]
-    assert sorted(p.name for p in tmp_path.iterdir()) == [file_name]
-
-
-@pytest.mark.parametrize("normals", ["F 8", "F 4", None])
-def test_a_binary_pcd_of_doubles_is_read_as_its_doubles(tmp_path, normals):
-    """Open3D reads binary 8-byte floats as zeros: the reader decodes the points' and normals' own."""
-    from o3dvis.io import read_point_cloud
-
-    rng = np.random.default_rng(4)
-    points, unit = rng.normal(size=(200, 3)), SPHERE[rng.integers(0, len(SPHERE), 200)]
-    names, sizes, columns = "x y z", "8 8 8", [points]
-    if normals is not None:
-        size = normals.split()[1]
-        names, sizes = names + " normal_x normal_y normal_z", f"{sizes} {size} {size} {size}"
-    layout = [("xyz", "<f8", (3,))] + ([("n", f"<f{normals.split()[1]}", (3,))] if normals else [])
-    table = np.zeros(len(points), layout)
-    table["xyz"] = points
-    if normals:
-        table["n"] = unit
-    count = len(names.split())
-    header = (f"VERSION 0.7\nFIELDS {names}\nSIZE {sizes}\nTYPE {' '.join(['F'] * count)}\n"
-              f"COUNT {' '.join(['1'] * count)}\nWIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
-              f"POINTS {len(points)}\nDATA binary\n")
-    path = tmp_path / "doubles.pcd"
-    path.write_bytes(header.encode() + table.tobytes())
-    read = read_point_cloud(path)
-    np.testing.assert_array_equal(np.asarray(read.points), points)
-    assert read.has_normals() == (normals is not None)
-    if normals:
-        np.testing.assert_array_equal(np.asarray(read.normals), table["n"].astype(np.float64))
-
-
-@pytest.mark.parametrize("suffix, options", [(".ply", {}), (".ply", {"write_ascii": True}), (".pcd", {}),
-                                             (".pcd", {"write_ascii": True}), (".pcd", {"compressed": True}),
-                                             (".xyz", {}), (".xyzn", {}), (".xyzrgb", {}), (".pts", {})])
-def test_the_reader_gives_what_open3d_wrote(tmp_path, suffix, options):
-    from o3dvis.io import read_point_cloud
-
-    rng = np.random.default_rng(3)
-    pcd = as_cloud(rng.normal(size=(500, 3)))
-    pcd.normals = o3d.utility.Vector3dVector(SPHERE[rng.integers(0, len(SPHERE), 500)])
-    pcd.colors = o3d.utility.Vector3dVector(rng.random((500, 3)))
-    path = tmp_path / f"cloud{suffix}"
-    assert o3d.io.write_point_cloud(str(path), pcd, **options)
-    read = read_point_cloud(path)
-    expected = o3d.io.read_point_cloud(str(path))
-    np.testing.assert_array_equal(np.asarray(read.points), np.asarray(expected.points))
-    np.testing.assert_allclose(np.asarray(read.points), np.asarray(pcd.points), atol=1e-5, rtol=1e-5)  # ASCII PLY: 6 digits
-    assert read.has_normals() == expected.has_normals() and read.has_colors() == expected.has_colors()
-
-
-@pytest.mark.parametrize("command", ["calibrate", "publish"])
-@pytest.mark.parametrize("what", ["not safetensors", "a folder"])
-def test_cli_checkpoint_commands_refuse_a_bad_file_in_one_line(tmp_path, capsys, command, what):
-    path = tmp_path / "ckpt.safetensors"
-    if what == "a folder":
-        path.mkdir()
-    else:
-        path.write_bytes(b"this is no checkpoint at all, just some text" * 10)
-    rest = [str(tmp_path), "-o", str(tmp_path / "out.safetensors")] if command == "calibrate" else [
-        "--name", "x", "--root", str(tmp_path)]
-    before = sorted(tmp_path.rglob("*"))
-    line = _cli_error(capsys, command, str(path), *rest)
-    assert __import__("re").search("is a folder" if what == "a folder" else "not a safetensors file", line), line
-    assert sorted(tmp_path.rglob("*")) == before
-
-
-def test_cli_bench_creates_no_folder_it_was_not_given(tmp_path, capsys):
-    out = tmp_path / "missing" / "b.json"
-    line = _cli_error(capsys, "bench", "--methods", "hpr", "--points", "200", "--views", "1", "-o", str(out))
-    assert "no folder" in line and str(out.parent) in line
-    assert not out.parent.exists()
-
-
-# ------------------------------------------------------------------------------ errors made clear
-
-def test_a_max_range_beyond_1e154_or_a_tiny_cloud_crops_by_true_distances(vis):
-    """Distances to the camera are compared, not their squares: a range of 1e200 crops nothing, and a
-    cloud of 1e-170 units (whose squared distances underflow) is cropped as the unit one."""
-    pcd = as_cloud(SPHERE)
-    whole = np.asarray(o3dvis.select_visible(pcd, CAMERA, model=vis, max_range=10.0).points)
-    np.testing.assert_array_equal(np.asarray(o3dvis.select_visible(pcd, CAMERA, model=vis, max_range=1e200).points),
-                                  whole)
-    np.testing.assert_array_equal(vis.encode(SPHERE).query(CAMERA, max_range=1e300),
-                                  vis.encode(SPHERE).query(CAMERA, max_range=10.0))
-    tiny = 1e-170
-    for max_range in (2.7, 3.2):  # a crop that cuts the sphere
-        unit = o3dvis.hidden_point_removal_neural(pcd, CAMERA, model=vis, max_range=max_range)[1]
-        small = o3dvis.hidden_point_removal_neural(as_cloud(SPHERE * tiny), CAMERA * tiny, model=vis,
-                                                   max_range=max_range * tiny)[1]
-        assert 0 < len(small) == len(unit) and small == unit
-        field = vis.encode(SPHERE * tiny).query(CAMERA * tiny, max_range=max_range * tiny)
-        np.testing.assert_array_equal(field, vis.encode(SPHERE).query(CAMERA, max_range=max_range))
-
-
-def test_select_visible_takes_a_tensor_that_requires_grad(vis):
-    points = torch.tensor(SPHERE, requires_grad=True)
-    visible = o3dvis.select_visible(points, CAMERA, model=vis)
-    np.testing.assert_array_equal(np.asarray(visible.points), np.asarray(o3dvis.select_visible(SPHERE, CAMERA,
-                                                                                                model=vis).points))
-
-
-def test_a_camera_on_a_point_is_reported_with_a_true_distance_and_a_light_as_the_light(vis):
-    """A camera 2.5 units from every point of a sphere stretched by an outlier 1e9 away is on its
-    points at the network's resolution (float32 coordinates of the normalised frame, some 100 units
-    here): refused, with a bound that holds the true distance. One 5e-7 off a point of the unit
-    sphere is refused with that distance; a light on a point is named the light."""
-    import re
-
-    stretched = np.r_[2.5 * SPHERE, [[1e9, 0.0, 0.0]]]
-    with pytest.raises(o3dvis.field.OnPointError, match=r"^camera 0 at \(0, 0, 0\) lies on a point") as error:
-        vis.encode(stretched).query(np.zeros(3))
-    assert float(re.search(r"nearest is within ([0-9.e+]+),", str(error.value))[1]) >= 2.5
-    off = SPHERE[7] * (1 - 5e-7)
-    with pytest.raises(ValueError, match="lies on a point") as error:
-        vis.encode(SPHERE).query([CAMERA, off])
-    assert error.value.view == 1 and error.value.args[0].startswith("camera 1 at")
-    assert float(re.search(r"nearest is ([0-9.e+-]+) away", str(error.value))[1]) == pytest.approx(5e-7, rel=0.5)
-    for shadows in (lambda: o3dvis.points_in_shadow(SPHERE, SPHERE[7], vis),
-                    lambda: o3dvis.render_with_shadows(as_cloud(SPHERE), SPHERE[7], CAMERA, 32, 24, vis)):
-        with pytest.raises(ValueError, match=r"^the light at .* lies on a point"):
-            shadows()
-
-
-@pytest.mark.parametrize("command", ["render", "shadow"])
-def test_cli_refuses_an_image_too_large_in_one_line(tmp_path, capsys, command):
-    path = tmp_path / "sphere.ply"
-    o3d.io.write_point_cloud(str(path), as_cloud(SPHERE))
-    args = [a.format(out=tmp_path / "out") for a in CLI_READERS[command]]
-    line = _cli_error(capsys, command, str(path), *args, "--width", "1000000", "--height", "1000000")
-    assert line.startswith(f"o3dvis {command}: error: ") and "1000000 x 1000000 image" in line
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["sphere.ply"]

@@ -24,7 +24,7 @@ from o3dvis.training.data import load_sample, prepare, write_shapes
 from o3dvis.nn import VisibilityNetwork
 from o3dvis.training.train import TrainConfig, train
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 MESHES = 6
 PREPARE = ["--points", "20000", "--views", "6", "--workers", "1", "--seed", "3"]
 TRAIN = ["--steps", "8", "--val-every", "2", "--batch-size", "2", "--min-points", "300", "--max-points", "600",

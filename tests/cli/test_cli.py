@@ -15,7 +15,7 @@ import pytest
 import o3dvis
 from o3dvis.cli import _common
 
-_ROOT = Path(__file__).resolve().parent.parent
+_ROOT = Path(__file__).resolve().parents[2]
 _USER_COMMANDS = ["visible", "normals", "reconstruct", "shadow", "best-view", "render", "demo"]
 _TRAINING_COMMANDS = ["shapes", "prepare", "train", "calibrate", "fuse", "publish", "eval", "eval-drives", "bench"]
 

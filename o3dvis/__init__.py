@@ -8,6 +8,8 @@ Main entry points::
     mask = field.query(cameras)                      # (V, N) bool
     prob = field.probabilities(cameras)              # (V, N) torch, differentiable in the cameras
     visible = o3dvis.select_visible(pcd, camera)     # a PointCloud with colours and normals
+    frame = o3dvis.visible_in_frame(pcd, params)     # a pinhole frame: visible indices, pixels, depths
+    for frame in o3dvis.frames(pcd, trajectory):     # a trajectory of frames over one map
     o3dvis.set_num_threads(1)                        # fixed CPU threads (default: see o3dvis.threads)
 
 Naming: a function that stands in for an Open3D method is named after it with ``_neural``
@@ -34,7 +36,8 @@ _EXPORTS = {
     "set_num_threads": "threads", "get_num_threads": "threads",
     **dict.fromkeys(["estimate_normals_neural", "orient_normals_neural", "reconstruct_view_dependent",
                      "reconstruct_poisson", "shadow_map", "points_in_shadow", "render_with_shadows", "best_view",
-                     "render_points", "depth_image"], "apps"),
+                     "render_points", "depth_image", "visible_in_frame", "frames", "Frame", "FrameMap"], "apps"),
+    "frames_on_ray": "cluster",
 }
 __all__ = list(_EXPORTS)
 clib.warn_unbuilt()

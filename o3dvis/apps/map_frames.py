@@ -67,6 +67,19 @@ class Frame:
     def __len__(self) -> int:
         return len(self.indices)
 
+    def save(self, file) -> None:
+        """Writes the frame's arrays (the images where it has them) to an ``.npz`` file: a binary file
+        object or a path (``.npz`` is appended to a path without it, as ``np.savez`` does)."""
+        images = {"depth_image": self.depth_image, "index_image": self.index_image}
+        np.savez(file, indices=self.indices, pixels=self.pixels, depths=self.depths,
+                 **{name: image for name, image in images.items() if image is not None})
+
+    @classmethod
+    def load(cls, file) -> "Frame":
+        """The frame :meth:`save` wrote to ``file`` (a path or a binary file object)."""
+        with np.load(file) as arrays:
+            return cls(**{name: arrays[name] for name in arrays.files})
+
 
 def _checked_size(width, height) -> tuple[int, int]:
     """``(width, height)`` of a frame's image, positive ints of at most :data:`MAX_PIXELS` pixels."""

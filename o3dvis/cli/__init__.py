@@ -12,10 +12,10 @@ from ._common import split_vectors
 
 __all__ = ["main", "build_parser"]
 
-_MODULES = ("visible", "apps", "demo", "data", "eval")
+_MODULES = ("visible", "apps", "frames", "demo", "data", "eval")
 _DESCRIPTION = """Neural visibility of point sets, for Open3D users.
 
-Commands on your files: visible, normals, reconstruct, shadow, best-view, render, demo.
+Commands on your files: visible, normals, reconstruct, shadow, best-view, render, frames, demo.
 Commands that make and measure models: shapes, prepare, train, calibrate, fuse, publish, eval,
 eval-drives, bench.
 'o3dvis COMMAND --help' tells what one does."""

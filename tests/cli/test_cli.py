@@ -16,7 +16,7 @@ import o3dvis
 from o3dvis.cli import _common
 
 _ROOT = Path(__file__).resolve().parents[2]
-_USER_COMMANDS = ["visible", "normals", "reconstruct", "shadow", "best-view", "render", "demo"]
+_USER_COMMANDS = ["visible", "normals", "reconstruct", "shadow", "best-view", "render", "frames", "demo"]
 _TRAINING_COMMANDS = ["shapes", "prepare", "train", "calibrate", "fuse", "publish", "eval", "eval-drives", "bench"]
 
 

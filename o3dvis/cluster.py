@@ -21,7 +21,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from .apps.map_frames import Frame, FrameMap, pinhole_frames, tile_centres
+from .apps.map_frames import Frame, FrameMap, checked_frame_indices, pinhole_frames, tile_centres
 from .cameras import View
 from .clouds import cloud_arrays
 from .field import checked_range
@@ -108,9 +108,7 @@ def frames_on_ray(pcd, trajectory, *, intrinsic=None, width: int | None = None, 
     for name, value in (("workers", workers), ("batch_size", batch_size)):
         if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
             raise ValueError(f"{name} must be a positive int, got {value!r}")
-    chosen = range(len(views)) if indices is None else sorted({int(i) for i in indices})
-    if chosen and not 0 <= chosen[0] <= chosen[-1] < len(views):
-        raise ValueError(f"frame indices must lie in [0, {len(views)}), got {chosen[0]} .. {chosen[-1]}")
+    chosen = checked_frame_indices(indices, len(views))
     centres = tile_centres(points, views, max_range)
     rows = [{"frame": i, "extrinsic": views[i].extrinsic, "intrinsic": views[i].intrinsic,
              "size": np.array([views[i].width, views[i].height]),

@@ -83,19 +83,20 @@ def test_a_stopped_run_keeps_its_frames_and_the_next_answers_only_the_rest(log, 
     assert len({tuple(c) for c in centres}) > 1
     out = tmp_path / "frames"
     argv = ["frames", str(ply), str(poses), "-o", str(out), "--max-range", "10"]
+    monkeypatch.setenv("O3DVIS_NUM_THREADS", "1")  # one frame at a time
     answered = []
-    frame = FrameMap.frame
+    answer = FrameMap._answer
 
-    def stopping(self, camera, **kwargs):
+    def stopping(self, view, *args):
         if len(answered) == 2:  # within the first crop: the rest, alone, would be cropped otherwise
             raise KeyboardInterrupt
-        answered.append(camera)
-        return frame(self, camera, **kwargs)
+        answered.append(view)
+        return answer(self, view, *args)
 
-    monkeypatch.setattr(FrameMap, "frame", stopping)
+    monkeypatch.setattr(FrameMap, "_answer", stopping)
     assert main(argv) == 130
     assert [f.name for f in _frames_of(out)] == ["000000.npz", "000001.npz"]
-    monkeypatch.setattr(FrameMap, "frame", lambda self, camera, **kw: answered.append(camera) or frame(self, camera, **kw))
+    monkeypatch.setattr(FrameMap, "_answer", lambda self, view, *args: answered.append(view) or answer(self, view, *args))
     answered.clear()
     assert main(argv) == 0 and len(answered) == len(trajectory.parameters) - 2
     for path, expected in zip(_frames_of(out), _expected(log)):

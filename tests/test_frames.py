@@ -252,3 +252,21 @@ def test_for_camera_gives_the_scene_field_inside_the_box(room, vis):
     with pytest.raises(IndexError):
         field.restricted([len(room[0])])
     assert isinstance(field.restricted(torch.arange(3)).points, torch.Tensor)
+
+
+def test_frames_side_by_side_or_a_subset_are_the_frames_one_at_a_time(corridor, vis):
+    points, extrinsics = corridor
+    kwargs = {"intrinsic": _K, "width": _W, "height": _H, "progress": False}
+    one = list(FrameMap(points, max_range=8.0, model=vis).frames(extrinsics, workers=1, **kwargs))
+    two = list(FrameMap(points, max_range=8.0, model=vis).frames(extrinsics, workers=2, **kwargs))
+    some = list(FrameMap(points, max_range=8.0, model=vis).frames(extrinsics, indices=[9, 1, 4], workers=2, **kwargs))
+    for a, b in zip(one, two):
+        np.testing.assert_array_equal(a.indices, b.indices)
+        np.testing.assert_array_equal(a.pixels, b.pixels)
+    for i, frame in zip([1, 4, 9], some):
+        np.testing.assert_array_equal(frame.indices, one[i].indices)
+    fmap = FrameMap(points, max_range=8.0, model=vis)
+    for bad, error in (({"workers": 0}, ValueError), ({"indices": [len(extrinsics)]}, ValueError),
+                       ({"indices": [0.5]}, TypeError)):
+        with pytest.raises(error):
+            fmap.frames(extrinsics, **bad, **kwargs)

@@ -18,6 +18,7 @@ a frame of 40 metres sees (see :class:`FrameMap`).
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -30,9 +31,10 @@ from ..cameras import MAX_PIXELS, View, Views, frustum_from_pinhole, intrinsic_m
 from ..clouds import cloud_arrays, cloud_device
 from ..field import VisibilityField, checked_range
 from ..models import torch_device
-from ..threads import plan_threads, torch_threads
+from ..threads import plan_threads, threaded_map, torch_threads
 
-__all__ = ["Frame", "FrameMap", "visible_in_frame", "frames", "pinhole_frames", "tile_centres", "TILE_SLACK"]
+__all__ = ["Frame", "FrameMap", "visible_in_frame", "frames", "pinhole_frames", "tile_centres", "checked_frame_indices",
+           "TILE_SLACK"]
 
 TILE_SLACK = 0.5
 """With ``max_range`` R, a crop of the map of radius (1 + TILE_SLACK) R is encoded for the frames
@@ -41,6 +43,7 @@ _KEPT_TILES = 2  # encodings of crops kept for the frames to come (the current o
 _BLOCK = 64  # consecutive points (along the Morton curve) whose bounding box culls them at once
 _MAX_BLOCKS = 1 << 15
 _SPLIT_ROWS = 1 << 16  # a frame's crop of fewer points runs its torch ops on one thread
+_LOOKAHEAD = 4  # frames a worker has at most in hand ahead of those yielded
 
 
 @dataclass(frozen=True)
@@ -173,16 +176,18 @@ def _framed(index: int, make) -> View:
 
 
 class _Tile:
-    """An encoding of (part of) the map and what cropping a frame out of it needs, in the field's
-    stored order (along the Morton curve): each point's index in the map and its world coordinates
-    (float64, on the CPU), and the bounding boxes of blocks of consecutive points."""
+    """An encoding of (part of) the map and what cropping a frame out of it needs, in the order the
+    field stores its points (along the Morton curve): the field itself, its points in that order;
+    each point's index in the map and its world coordinates (float64, on the CPU); and the bounding
+    boxes of blocks of consecutive points."""
 
     def __init__(self, field: VisibilityField, index: np.ndarray, world: np.ndarray):
         n = field.num_points
         order = np.arange(n)
         if field.rank is not None:  # stored row rank[i] holds the field's point i
             order[field.rank.cpu().numpy()] = np.arange(n)
-        self.field, self.order = field, torch.from_numpy(order)
+            field = field.restricted(torch.from_numpy(order).to(field.device))
+        self.field = field
         self.index = index[order]
         world = np.ascontiguousarray(world[order])
         self.world = torch.from_numpy(world)
@@ -190,61 +195,74 @@ class _Tile:
         padded = np.concatenate([world, np.repeat(world[-1:], -n % self.block, axis=0)]).reshape(-1, self.block, 3)
         self.lo, self.hi = padded.min(axis=1), padded.max(axis=1)
 
-    def candidates(self, view: View, max_range: float | None) -> np.ndarray:
-        """The stored rows of the blocks that may hold points of the frame: those not wholly
-        outside one of the image's sides or behind the camera, nor farther than ``max_range``."""
+    def blocks(self, view: View, max_range: float | None) -> tuple[np.ndarray, np.ndarray]:
+        """The blocks that may hold points of the frame (not wholly outside one of the image's sides
+        or behind the camera, nor farther than ``max_range``) and, of those, the ones wholly inside."""
         rotation, shift = view.extrinsic[:3, :3], view.extrinsic[:3, 3]
         k, w, h = view.intrinsic, view.width, view.height
         # half-spaces n . x >= 0 of camera coordinates: the image's four sides and the front
         sides = np.array([[k[0, 0], k[0, 1], k[0, 2] + 0.5], [-k[0, 0], -k[0, 1], w - 0.5 - k[0, 2]],
                           [0.0, k[1, 1], k[1, 2] + 0.5], [0.0, -k[1, 1], h - 0.5 - k[1, 2]], [0.0, 0.0, 1.0]])
         normals, offsets = sides @ rotation, sides @ shift  # the same half-spaces in world coordinates
-        farthest = np.where(normals[:, None, :] > 0, self.hi[None], self.lo[None])
-        keep = (np.einsum("pbi,pi->pb", farthest, normals) + offsets[:, None] >= 0).all(axis=0)
+        ahead = normals[:, None, :] > 0  # a box's corner farthest along each normal, and nearest
+        farthest = np.einsum("pbi,pi->pb", np.where(ahead, self.hi[None], self.lo[None]), normals) + offsets[:, None]
+        nearest = np.einsum("pbi,pi->pb", np.where(ahead, self.lo[None], self.hi[None]), normals) + offsets[:, None]
+        keep, inside = (farthest >= 0).all(axis=0), (nearest > 0).all(axis=0)
         if max_range is not None:
             location = view.location
             gap = np.clip(location, self.lo, self.hi) - location
+            reach = np.maximum(np.abs(self.lo - location), np.abs(self.hi - location))
             keep &= np.einsum("bi,bi->b", gap, gap) <= max_range * max_range
-        blocks = np.flatnonzero(keep)
-        rows = (blocks[:, None] * self.block + np.arange(self.block)).ravel()
-        if len(blocks) and blocks[-1] == len(self.lo) - 1:  # the last block's padding
-            rows = rows[rows < len(self.world)]
-        return rows
+            inside &= np.einsum("bi,bi->b", reach, reach) <= max_range * max_range
+        return np.flatnonzero(keep), inside
 
-    def crop(self, view: View, max_range: float | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``(stored rows, (M, 2) pixels, (M,) depths)`` of the points the frame sees (in its image,
-        in front of the camera, within ``max_range``), the pixels and depths in float64, as
-        :meth:`~o3dvis.cameras.Frustum.contains` tells them."""
-        rows = torch.from_numpy(self.candidates(view, max_range))
+    def crop(self, view: View, max_range: float | None) -> torch.Tensor:
+        """The stored rows, ascending, of the points the frame sees (in its image, in front of the
+        camera, within ``max_range``), as :meth:`~o3dvis.cameras.Frustum.contains` tells them (the
+        points of a block wholly inside without a test of their own)."""
+        blocks, inside = self.blocks(view, max_range)
+        rows = (blocks[:, None] * self.block + np.arange(self.block)).ravel()
+        whole = np.repeat(inside[blocks], self.block)
+        if len(blocks) and blocks[-1] == len(self.lo) - 1:  # the last block's padding
+            real = rows < len(self.world)
+            rows, whole = rows[real], whole[real]
+        rows, keep = torch.from_numpy(rows), torch.from_numpy(whole)
+        tested = (~keep).nonzero()[:, 0]
+        if len(tested):
+            pixels, depth, cam = self.project(view, rows[tested])
+            seen = (depth > 0) & (pixels >= -0.5).all(dim=1) & (pixels[:, 0] < view.width - 0.5)
+            seen &= pixels[:, 1] < view.height - 0.5
+            if max_range is not None:
+                seen &= cam.square().sum(dim=1) <= max_range * max_range
+            keep[tested] = seen
+        return rows[keep]
+
+    def project(self, view: View, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``((M, 2) pixels (u, v), (M,) depths, (M, 3) camera coordinates)`` of the stored ``rows``,
+        in float64 (the pixels of points at or behind the camera are meaningless)."""
         k = view.intrinsic
         cam = torch.addmm(torch.from_numpy(view.extrinsic[:3, 3].copy()), self.world.index_select(0, rows),
                           torch.from_numpy(view.extrinsic[:3, :3].T.copy()))
         x, y, depth = cam.unbind(1)
-        front = depth > 0
-        inverse = torch.where(front, depth, 1.0).reciprocal_()
+        inverse = torch.where(depth > 0, depth, 1.0).reciprocal_()
         v = y * inverse
         u = (x * inverse).mul_(k[0, 0]).add_(v, alpha=k[0, 1]).add_(k[0, 2])
-        v.mul_(k[1, 1]).add_(k[1, 2])
-        keep = front & (u >= -0.5) & (u < view.width - 0.5) & (v >= -0.5) & (v < view.height - 0.5)
-        if max_range is not None:
-            keep &= cam.square().sum(dim=1) <= max_range * max_range
-        keep = keep.nonzero()[:, 0]
-        return rows[keep], torch.stack([u[keep], v[keep]], dim=1), depth[keep]
+        return torch.stack([u, v.mul_(k[1, 1]).add_(k[1, 2])], dim=1), depth, cam
 
     def frame(self, view: View, max_range: float | None, threshold: float, images: bool) -> Frame:
         """What ``view`` sees of this tile's points (see :func:`visible_in_frame`)."""
         # the torch ops here on the threads the load allows, as the query's own
         with torch_threads(plan_threads(len(self.world), _SPLIT_ROWS)):
-            rows, pixels, depths = self.crop(view, max_range)
+            rows = self.crop(view, max_range)
             if len(rows):
                 location = torch.from_numpy(view.location)
-                field = self.field.for_camera(location).restricted(self.order[rows].to(self.field.device))
+                field = self.field.for_camera(location).restricted(rows.to(self.field.device))
                 seen = torch.from_numpy(field.query(Views(location[None], None, (None,)), threshold=threshold,
-                                                    frustum=False)[0]).nonzero()[:, 0]
-                rows, pixels, depths = rows[seen], pixels[seen], depths[seen]
+                                                    frustum=False)[0])
+                rows = rows[seen]
             indices, ascending = torch.from_numpy(self.index).index_select(0, rows).sort()
-            pixels, depths = pixels[ascending].numpy(), depths[ascending].float().numpy()
-        indices = indices.numpy()
+            pixels, depths, _ = self.project(view, rows[ascending])
+        indices, pixels, depths = indices.numpy(), pixels.numpy(), depths.float().numpy()
         pictures = _images(indices, pixels, depths, view.width, view.height) if images else (None, None)
         return Frame(indices, pixels.astype(np.float32), depths, *pictures)
 
@@ -254,6 +272,7 @@ def _images(indices: np.ndarray, pixels: np.ndarray, depths: np.ndarray, width: 
     """The depth and index images of a frame's visible points: each pixel shows the nearest of the
     points whose (float64) pixel coordinates round to it (of equals, the one of smallest index)."""
     cell = np.floor(pixels + 0.5).astype(np.int64)
+    np.clip(cell, 0, [width - 1, height - 1], out=cell)  # a point within rounding of the image's border
     flat = torch.from_numpy(cell[:, 1] * width + cell[:, 0])
     depth = torch.from_numpy(depths)
     nearest = torch.full((width * height,), torch.inf).scatter_reduce_(0, flat, depth, "amin")
@@ -313,6 +332,39 @@ def tile_centres(points: np.ndarray, views: list[View], max_range: float | None)
     return centres
 
 
+def checked_frame_indices(indices, count: int) -> list[int]:
+    """``indices`` of frames of a trajectory of ``count``, ascending and distinct (None: all).
+
+    Raises:
+        TypeError: indices that are not integers.
+        ValueError: an index out of range.
+    """
+    if indices is None:
+        return list(range(count))
+    chosen = np.unique(np.asarray(list(indices) if not isinstance(indices, np.ndarray) else indices))
+    if len(chosen) and chosen.dtype.kind not in "iu":
+        raise TypeError(f"frame indices must be integers, got {chosen.dtype}")
+    if len(chosen) and not 0 <= chosen[0] <= chosen[-1] < count:
+        raise ValueError(f"frame indices must lie in [0, {count}), got {chosen[0]} .. {chosen[-1]}")
+    return chosen.astype(int).tolist()
+
+
+def _runs(centres: list, limit: int) -> Iterator[list[int]]:
+    """The frames in runs of at most ``limit`` consecutive ones answered from the same crop."""
+    run: list[int] = []
+    for i, centre in enumerate(centres):
+        if run and (len(run) == limit or not _same_centre(centres[run[0]], centre)):
+            yield run
+            run = []
+        run.append(i)
+    if run:
+        yield run
+
+
+def _same_centre(a: np.ndarray | None, b: np.ndarray | None) -> bool:
+    return a is b or (a is not None and b is not None and np.array_equal(a, b))
+
+
 class FrameMap:
     """A map encoded for pinhole frames, answering each frame from the encoding of what it sees.
 
@@ -343,6 +395,7 @@ class FrameMap:
         from ..pretrained import resolve_model
 
         self.max_range = checked_range(max_range)
+        self._lock = threading.Lock()  # guards the kept encodings
         self._tiles: OrderedDict[tuple | None, _Tile | None] = OrderedDict()
         if isinstance(pcd, VisibilityField):
             world = pcd.points.detach().double() * pcd.scale + pcd.center
@@ -383,22 +436,54 @@ class FrameMap:
         return self._answer(views[0], centre, threshold, images)
 
     def frames(self, cameras, *, intrinsic=None, width: int | None = None, height: int | None = None,
-               threshold: float = 0.5, images: bool = False, progress: bool = True) -> Iterator[Frame]:
+               threshold: float = 0.5, images: bool = False, progress: bool = True, indices=None,
+               workers: int | None = None) -> Iterator[Frame]:
         """What each frame of a trajectory sees of the map, in its order (see :func:`frames`).
 
-        The cameras are checked before any frame is answered.
+        The cameras are checked before any frame is answered. Each crop is encoded on the threads
+        the load allows, then the frames it answers are answered side by side on ``workers``
+        threads, each frame on one.
+
+        Args:
+            cameras, intrinsic, width, height: the cameras, as :func:`pinhole_frames` takes them.
+            threshold, images, progress: as in :func:`frames`.
+            indices: answer only these frames of the trajectory, in ascending order, each from
+                the crop the whole trajectory gives it (a run resumed answers as a whole one);
+                None: all.
+            workers: frames answered side by side (default: on the CPU, the cores the load leaves
+                free, see :mod:`o3dvis.threads`; 1 on other devices).
+
+        Raises:
+            ValueError: as :func:`pinhole_frames`, an index out of range, workers below 1.
         """
         views = pinhole_frames(cameras, intrinsic, width, height)
-        return self._frames(views, self.tile_centres(views), threshold, images, progress)
+        chosen = checked_frame_indices(indices, len(views))
+        if workers is None:
+            workers = plan_threads(len(self.points), _SPLIT_ROWS) if self.device.type == "cpu" else 1
+        elif isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+            raise ValueError(f"workers must be a positive int, got {workers!r}")
+        centres = self.tile_centres(views)
+        return self._frames([views[i] for i in chosen], [centres[i] for i in chosen], threshold, images, progress,
+                            workers)
 
-    def _frames(self, views: list[View], centres: list, threshold: float, images: bool,
-                progress: bool) -> Iterator[Frame]:
+    def _frames(self, views: list[View], centres: list, threshold: float, images: bool, progress: bool,
+                workers: int) -> Iterator[Frame]:
         from tqdm import tqdm
 
+        def answer(i: int) -> Frame:
+            return self._answer(views[i], centres[i], threshold, images)
+
         with tqdm(total=len(views), unit="frame", desc="frames", disable=not progress) as bar:
-            for view, centre in zip(views, centres):
-                yield self._answer(view, centre, threshold, images)
-                bar.update()
+            for run in _runs(centres, _LOOKAHEAD * workers):
+                self._tile(views[run[0]], centres[run[0]])  # encoded here, on the threads the load allows
+                for frame in threaded_map(answer, run, workers) if workers > 1 else map(answer, run):
+                    yield frame
+                    bar.update()
+
+    @property
+    def device(self) -> torch.device:
+        """Where the map's encodings live."""
+        return self._tiles[None].field.device if self.model is None else self.model.device
 
     def _answer(self, view: View, centre, threshold: float, images: bool) -> Frame:
         """:meth:`frame` of a checked camera."""
@@ -407,7 +492,12 @@ class FrameMap:
 
     def _tile(self, view: View, centre) -> _Tile | None:
         """The encoding that answers ``view`` (None: no point within its reach), encoded where it
-        is not kept."""
+        is not kept (thread-safe)."""
+        with self._lock:
+            return self._kept_tile(view, centre)
+
+    def _kept_tile(self, view: View, centre) -> _Tile | None:
+        """:meth:`_tile`, under the lock."""
         if self._whole:
             if None not in self._tiles:
                 self._tiles[None] = _Tile(self.model.encode(self.points), np.arange(len(self.points)), self.points)
@@ -477,7 +567,7 @@ def visible_in_frame(pcd, camera, *, intrinsic=None, width: int | None = None, h
 
 def frames(pcd, trajectory, *, intrinsic=None, width: int | None = None, height: int | None = None,
            max_range: float | None = None, threshold: float = 0.5, images: bool = False, progress: bool = True,
-           model=None, device=None) -> Iterator[Frame]:
+           model=None, device=None, workers: int | None = None) -> Iterator[Frame]:
     """What each pinhole frame of a trajectory sees of a map, frame by frame, with a progress bar.
 
     The map is encoded once, or in crops shared by nearby frames where it is much larger than
@@ -493,6 +583,8 @@ def frames(pcd, trajectory, *, intrinsic=None, width: int | None = None, height:
         intrinsic, width, height: for extrinsics, as in :func:`visible_in_frame`.
         max_range, threshold, images, model, device: as in :func:`visible_in_frame`.
         progress: show a progress bar (tqdm) of the frames answered.
+        workers: frames answered side by side, each on one thread (default: on the CPU, the
+            cores the load leaves free, see :mod:`o3dvis.threads`).
 
     Returns:
         An iterator of one :class:`Frame` per camera, in the trajectory's order.
@@ -502,4 +594,4 @@ def frames(pcd, trajectory, *, intrinsic=None, width: int | None = None, height:
     """
     return FrameMap(pcd, max_range=max_range, model=model, device=device).frames(
         trajectory, intrinsic=intrinsic, width=width, height=height, threshold=threshold, images=images,
-        progress=progress)
+        progress=progress, workers=workers)

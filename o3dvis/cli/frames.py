@@ -146,10 +146,9 @@ def _answers(args: argparse.Namespace, pcd, views: list, todo: list[int]):
         return
     from ..apps.map_frames import FrameMap
 
-    fmap = FrameMap(pcd, max_range=args.max_range, model=model, device=args.device)
-    centres = fmap.tile_centres(views)
-    for i in todo:
-        yield i, fmap.frame(views[i], centre=centres[i], threshold=args.threshold, images=args.depth_png)
+    answers = FrameMap(pcd, max_range=args.max_range, model=model, device=args.device).frames(
+        views, threshold=args.threshold, images=args.depth_png, progress=False, indices=todo)
+    yield from zip(todo, answers)
 
 
 def _written(out: Path, name: str, depth_png: bool) -> bool:

@@ -262,8 +262,8 @@ class _Tile:
                 rows = rows[seen]
             indices, ascending = torch.from_numpy(self.index).index_select(0, rows).sort()
             pixels, depths, _ = self.project(view, rows[ascending])
-        indices, pixels, depths = indices.numpy(), pixels.numpy(), depths.float().numpy()
-        pictures = _images(indices, pixels, depths, view.width, view.height) if images else (None, None)
+            indices, pixels, depths = indices.numpy(), pixels.numpy(), depths.float().numpy()
+            pictures = _images(indices, pixels, depths, view.width, view.height) if images else (None, None)
         return Frame(indices, pixels.astype(np.float32), depths, *pictures)
 
 

@@ -35,17 +35,20 @@ def _positive_float(text: str) -> float:
     return value
 
 
+_DESCRIPTION = """For each pinhole camera of POSES, writes the points of MAP it sees: their indices in MAP, pixel
+coordinates (u, v) and depths, in OUT/NNNNNN.npz (arrays indices, pixels, depths), and with --depth-png
+its 16-bit depth image, OUT/NNNNNN.png. Each file appears whole or not at all; a run started again
+skips the frames already written."""
+_EXAMPLES = """examples:
+  o3dvis frames map.ply trajectory.json -o frames --max-range 40
+  o3dvis frames map.ply trajectory.json -o frames --max-range 40 --ray auto --workers 32"""
+
+
 def register(subparsers) -> None:
     """Adds the ``frames`` subcommand."""
-    parser = subparsers.add_parser(
-        "frames", help="the points of a map each camera of a trajectory sees",
-        description="For each pinhole camera of POSES, writes the points of MAP it sees: their indices in MAP, "
-                    "pixel coordinates (u, v) and depths, in OUT/NNNNNN.npz (arrays indices, pixels, depths), "
-                    "and with --depth-png its 16-bit depth image, OUT/NNNNNN.png. Each file appears whole or "
-                    "not at all; a run started again skips the frames already written.",
-        epilog="examples:\n  o3dvis frames map.ply trajectory.json -o frames --max-range 40\n"
-               "  o3dvis frames map.ply trajectory.json -o frames --max-range 40 --ray auto --workers 32",
-        formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = subparsers.add_parser("frames", help="the points of a map each camera of a trajectory sees",
+                                   description=_DESCRIPTION, epilog=_EXAMPLES,
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("map", help="the map: a point cloud file readable by Open3D (.ply, .pcd, .xyz, ...)")
     parser.add_argument("poses", help="the cameras: an Open3D trajectory (.json, or .log with its default intrinsic)")
     parser.add_argument("-o", "--output", required=True, metavar="OUT", help="folder of the frames' files")
@@ -55,7 +58,7 @@ def register(subparsers) -> None:
                         help="also write each frame's depth image, 16-bit PNG in units of 1/--depth-scale, "
                              "0 where no point shows (or deeper than 16 bits hold)")
     parser.add_argument("--depth-scale", type=_positive_float, default=1000.0,
-                        help="depth image units per map unit (default 1000: millimetres of a map in metres)")
+                        metavar="S", help="depth image units per map unit (default 1000: millimetres of a map in metres)")
     parser.add_argument("--threshold", type=float, default=0.5,
                         help="a point is visible when its probability exceeds this (default 0.5)")
     parser.add_argument("--ray", default=None, metavar="ADDRESS",

@@ -21,17 +21,17 @@ from __future__ import annotations
 import threading
 from collections import OrderedDict
 from collections.abc import Iterator
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from .._open3d import is_open3d, require_open3d
-from ..cameras import MAX_PIXELS, View, Views, frustum_from_pinhole, intrinsic_matrix, real_array
+from ..cameras import MAX_PIXELS, View, frustum_from_pinhole, intrinsic_matrix, real_array
 from ..clouds import cloud_arrays, cloud_device
 from ..field import VisibilityField, checked_range
 from ..models import torch_device
-from ..threads import plan_threads, threaded_map, torch_threads
+from ..threads import plan_threads, threaded_map
+from .frame_tiles import Frame, FrameTile, empty_frame
 
 __all__ = ["Frame", "FrameMap", "visible_in_frame", "frames", "pinhole_frames", "tile_centres", "checked_frame_indices",
            "TILE_SLACK"]
@@ -40,48 +40,8 @@ TILE_SLACK = 0.5
 """With ``max_range`` R, a crop of the map of radius (1 + TILE_SLACK) R is encoded for the frames
 whose cameras lie within TILE_SLACK R of its centre: each sees all of its range inside the crop."""
 _KEPT_TILES = 2  # encodings of crops kept for the frames to come (the current one and the last)
-_BLOCK = 64  # consecutive points (along the Morton curve) whose bounding box culls them at once
-_MAX_BLOCKS = 1 << 15
-_SPLIT_ROWS = 1 << 16  # a frame's crop of fewer points runs its torch ops on one thread
 _LOOKAHEAD = 4  # frames a worker has at most in hand ahead of those yielded
-
-
-@dataclass(frozen=True)
-class Frame:
-    """What one pinhole frame sees of a map.
-
-    Attributes:
-        indices: (M,) int64 indices of the visible points in the map, ascending.
-        pixels: (M, 2) float32 their image coordinates ``(u, v)`` = (column, row), the centre
-            of pixel (row, col) being ``(col, row)`` (Open3D's convention).
-        depths: (M,) float32 their depths along the optical axis, in the map's units.
-        depth_image: (H, W) float32 depth of the nearest visible point of each pixel, 0 where
-            none; None unless asked for.
-        index_image: (H, W) int64 index of that point in the map, -1 where none; None unless
-            asked for.
-    """
-
-    indices: np.ndarray
-    pixels: np.ndarray
-    depths: np.ndarray
-    depth_image: np.ndarray | None = None
-    index_image: np.ndarray | None = None
-
-    def __len__(self) -> int:
-        return len(self.indices)
-
-    def save(self, file) -> None:
-        """Writes the frame's arrays (the images where it has them) to an ``.npz`` file: a binary file
-        object or a path (``.npz`` is appended to a path without it, as ``np.savez`` does)."""
-        images = {"depth_image": self.depth_image, "index_image": self.index_image}
-        np.savez(file, indices=self.indices, pixels=self.pixels, depths=self.depths,
-                 **{name: image for name, image in images.items() if image is not None})
-
-    @classmethod
-    def load(cls, file) -> "Frame":
-        """The frame :meth:`save` wrote to ``file`` (a path or a binary file object)."""
-        with np.load(file) as arrays:
-            return cls(**{name: arrays[name] for name in arrays.files})
+_SIDE_BY_SIDE_POINTS = 1 << 16  # a smaller map's frames are answered one at a time
 
 
 def _checked_size(width, height) -> tuple[int, int]:
@@ -173,123 +133,6 @@ def _framed(index: int, make) -> View:
         return make()
     except ValueError as error:
         raise ValueError(f"frame {index}: {error}") from None
-
-
-class _Tile:
-    """An encoding of (part of) the map and what cropping a frame out of it needs, in the order the
-    field stores its points (along the Morton curve): the field itself, its points in that order;
-    each point's index in the map and its world coordinates (float64, on the CPU); and the bounding
-    boxes of blocks of consecutive points."""
-
-    def __init__(self, field: VisibilityField, index: np.ndarray, world: np.ndarray):
-        n = field.num_points
-        order = np.arange(n)
-        if field.rank is not None:  # stored row rank[i] holds the field's point i
-            order[field.rank.cpu().numpy()] = np.arange(n)
-            field = field.restricted(torch.from_numpy(order).to(field.device))
-        self.field = field
-        self.index = index[order]
-        world = np.ascontiguousarray(world[order])
-        self.world = torch.from_numpy(world)
-        self.block = max(_BLOCK, -(-n // _MAX_BLOCKS))
-        padded = np.concatenate([world, np.repeat(world[-1:], -n % self.block, axis=0)]).reshape(-1, self.block, 3)
-        self.lo, self.hi = padded.min(axis=1), padded.max(axis=1)
-
-    def blocks(self, view: View, max_range: float | None) -> tuple[np.ndarray, np.ndarray]:
-        """The blocks that may hold points of the frame (not wholly outside one of the image's sides
-        or behind the camera, nor farther than ``max_range``) and, of those, the ones wholly inside."""
-        rotation, shift = view.extrinsic[:3, :3], view.extrinsic[:3, 3]
-        k, w, h = view.intrinsic, view.width, view.height
-        # half-spaces n . x >= 0 of camera coordinates: the image's four sides and the front
-        sides = np.array([[k[0, 0], k[0, 1], k[0, 2] + 0.5], [-k[0, 0], -k[0, 1], w - 0.5 - k[0, 2]],
-                          [0.0, k[1, 1], k[1, 2] + 0.5], [0.0, -k[1, 1], h - 0.5 - k[1, 2]], [0.0, 0.0, 1.0]])
-        normals, offsets = sides @ rotation, sides @ shift  # the same half-spaces in world coordinates
-        ahead = normals[:, None, :] > 0  # a box's corner farthest along each normal, and nearest
-        farthest = np.einsum("pbi,pi->pb", np.where(ahead, self.hi[None], self.lo[None]), normals) + offsets[:, None]
-        nearest = np.einsum("pbi,pi->pb", np.where(ahead, self.lo[None], self.hi[None]), normals) + offsets[:, None]
-        keep, inside = (farthest >= 0).all(axis=0), (nearest > 0).all(axis=0)
-        if max_range is not None:
-            location = view.location
-            gap = np.clip(location, self.lo, self.hi) - location
-            reach = np.maximum(np.abs(self.lo - location), np.abs(self.hi - location))
-            keep &= np.einsum("bi,bi->b", gap, gap) <= max_range * max_range
-            inside &= np.einsum("bi,bi->b", reach, reach) <= max_range * max_range
-        return np.flatnonzero(keep), inside
-
-    def crop(self, view: View, max_range: float | None) -> torch.Tensor:
-        """The stored rows, ascending, of the points the frame sees (in its image, in front of the
-        camera, within ``max_range``), as :meth:`~o3dvis.cameras.Frustum.contains` tells them (the
-        points of a block wholly inside without a test of their own)."""
-        blocks, inside = self.blocks(view, max_range)
-        rows = (blocks[:, None] * self.block + np.arange(self.block)).ravel()
-        whole = np.repeat(inside[blocks], self.block)
-        if len(blocks) and blocks[-1] == len(self.lo) - 1:  # the last block's padding
-            real = rows < len(self.world)
-            rows, whole = rows[real], whole[real]
-        rows, keep = torch.from_numpy(rows), torch.from_numpy(whole)
-        tested = (~keep).nonzero()[:, 0]
-        if len(tested):
-            pixels, depth, cam = self.project(view, rows[tested])
-            seen = (depth > 0) & (pixels >= -0.5).all(dim=1) & (pixels[:, 0] < view.width - 0.5)
-            seen &= pixels[:, 1] < view.height - 0.5
-            if max_range is not None:
-                seen &= cam.square().sum(dim=1) <= max_range * max_range
-            keep[tested] = seen
-        return rows[keep]
-
-    def project(self, view: View, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``((M, 2) pixels (u, v), (M,) depths, (M, 3) camera coordinates)`` of the stored ``rows``,
-        in float64 (the pixels of points at or behind the camera are meaningless)."""
-        k = view.intrinsic
-        cam = torch.addmm(torch.from_numpy(view.extrinsic[:3, 3].copy()), self.world.index_select(0, rows),
-                          torch.from_numpy(view.extrinsic[:3, :3].T.copy()))
-        x, y, depth = cam.unbind(1)
-        inverse = torch.where(depth > 0, depth, 1.0).reciprocal_()
-        v = y * inverse
-        u = (x * inverse).mul_(k[0, 0]).add_(v, alpha=k[0, 1]).add_(k[0, 2])
-        return torch.stack([u, v.mul_(k[1, 1]).add_(k[1, 2])], dim=1), depth, cam
-
-    def frame(self, view: View, max_range: float | None, threshold: float, images: bool) -> Frame:
-        """What ``view`` sees of this tile's points (see :func:`visible_in_frame`)."""
-        # the torch ops here on the threads the load allows, as the query's own
-        with torch_threads(plan_threads(len(self.world), _SPLIT_ROWS)):
-            rows = self.crop(view, max_range)
-            if len(rows):
-                location = torch.from_numpy(view.location)
-                field = self.field.for_camera(location).restricted(rows.to(self.field.device))
-                seen = torch.from_numpy(field.query(Views(location[None], None, (None,)), threshold=threshold,
-                                                    frustum=False)[0])
-                rows = rows[seen]
-            indices, ascending = torch.from_numpy(self.index).index_select(0, rows).sort()
-            pixels, depths, _ = self.project(view, rows[ascending])
-            indices, pixels, depths = indices.numpy(), pixels.numpy(), depths.float().numpy()
-            pictures = _images(indices, pixels, depths, view.width, view.height) if images else (None, None)
-        return Frame(indices, pixels.astype(np.float32), depths, *pictures)
-
-
-def _images(indices: np.ndarray, pixels: np.ndarray, depths: np.ndarray, width: int, height: int
-            ) -> tuple[np.ndarray, np.ndarray]:
-    """The depth and index images of a frame's visible points: each pixel shows the nearest of the
-    points whose (float64) pixel coordinates round to it (of equals, the one of smallest index)."""
-    cell = np.floor(pixels + 0.5).astype(np.int64)
-    np.clip(cell, 0, [width - 1, height - 1], out=cell)  # a point within rounding of the image's border
-    flat = torch.from_numpy(cell[:, 1] * width + cell[:, 0])
-    depth = torch.from_numpy(depths)
-    nearest = torch.full((width * height,), torch.inf).scatter_reduce_(0, flat, depth, "amin")
-    front = depth == nearest[flat]
-    index = torch.full((width * height,), torch.iinfo(torch.int64).max).scatter_reduce_(
-        0, flat[front], torch.from_numpy(indices)[front], "amin")
-    empty = torch.isinf(nearest)
-    return (nearest.masked_fill_(empty, 0).view(height, width).numpy(),
-            index.masked_fill_(empty, -1).view(height, width).numpy())
-
-
-def _empty_frame(view: View, images: bool) -> Frame:
-    """A frame that sees no point."""
-    none = np.zeros(0, dtype=np.int64)
-    pictures = _images(none, np.zeros((0, 2)), np.zeros(0, dtype=np.float32), view.width, view.height) \
-        if images else (None, None)
-    return Frame(none, np.zeros((0, 2), dtype=np.float32), np.zeros(0, dtype=np.float32), *pictures)
 
 
 def _encoded_whole(points: np.ndarray, max_range: float | None) -> bool:
@@ -396,12 +239,12 @@ class FrameMap:
 
         self.max_range = checked_range(max_range)
         self._lock = threading.Lock()  # guards the kept encodings
-        self._tiles: OrderedDict[tuple | None, _Tile | None] = OrderedDict()
+        self._tiles: OrderedDict[tuple | None, FrameTile | None] = OrderedDict()
         if isinstance(pcd, VisibilityField):
             world = pcd.points.detach().double() * pcd.scale + pcd.center
             world = (world if pcd.rank is None else world[pcd.rank]).cpu().numpy()
             self.points, self.model, self._whole = world, None, True
-            self._tiles[None] = _Tile(pcd, np.arange(len(world)), world)
+            self._tiles[None] = FrameTile(pcd, np.arange(len(world)), world)
             return
         self.points = cloud_arrays(pcd)[0].cpu().numpy()
         self.model = resolve_model(model, torch_device(device) if device is not None else cloud_device(pcd))
@@ -459,7 +302,7 @@ class FrameMap:
         views = pinhole_frames(cameras, intrinsic, width, height)
         chosen = checked_frame_indices(indices, len(views))
         if workers is None:
-            workers = plan_threads(len(self.points), _SPLIT_ROWS) if self.device.type == "cpu" else 1
+            workers = plan_threads(len(self.points), _SIDE_BY_SIDE_POINTS) if self.device.type == "cpu" else 1
         elif isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
             raise ValueError(f"workers must be a positive int, got {workers!r}")
         centres = self.tile_centres(views)
@@ -488,19 +331,19 @@ class FrameMap:
     def _answer(self, view: View, centre, threshold: float, images: bool) -> Frame:
         """:meth:`frame` of a checked camera."""
         tile = self._tile(view, centre)
-        return _empty_frame(view, images) if tile is None else tile.frame(view, self.max_range, threshold, images)
+        return empty_frame(view, images) if tile is None else tile.frame(view, self.max_range, threshold, images)
 
-    def _tile(self, view: View, centre) -> _Tile | None:
+    def _tile(self, view: View, centre) -> FrameTile | None:
         """The encoding that answers ``view`` (None: no point within its reach), encoded where it
         is not kept (thread-safe)."""
         with self._lock:
             return self._kept_tile(view, centre)
 
-    def _kept_tile(self, view: View, centre) -> _Tile | None:
+    def _kept_tile(self, view: View, centre) -> FrameTile | None:
         """:meth:`_tile`, under the lock."""
         if self._whole:
             if None not in self._tiles:
-                self._tiles[None] = _Tile(self.model.encode(self.points), np.arange(len(self.points)), self.points)
+                self._tiles[None] = FrameTile(self.model.encode(self.points), np.arange(len(self.points)), self.points)
             return self._tiles[None]
         location = view.location
         centre = location if centre is None else real_array(centre, "centre", "a (3,) position")
@@ -515,7 +358,7 @@ class FrameMap:
             self._tiles.popitem(last=False)
         return tile
 
-    def _encode_crop(self, centre: np.ndarray) -> _Tile | None:
+    def _encode_crop(self, centre: np.ndarray) -> FrameTile | None:
         """The encoding of the map's points within ``(1 + TILE_SLACK) max_range`` of ``centre``."""
         reach = (1 + TILE_SLACK) * self.max_range
         offset = self.points - centre
@@ -523,7 +366,7 @@ class FrameMap:
         if len(index) == 0:
             return None
         world = self.points[index]
-        return _Tile(self.model.encode(world), index, world)
+        return FrameTile(self.model.encode(world), index, world)
 
 
 def visible_in_frame(pcd, camera, *, intrinsic=None, width: int | None = None, height: int | None = None,

@@ -178,3 +178,31 @@ def test_a_poses_file_of_another_kind_is_refused(log, tmp_path, capsys):
     (tmp_path / "poses.txt").write_text("0 0 0\n")
     assert main(["frames", str(ply), str(tmp_path / "poses.txt"), "-o", str(tmp_path / "f")]) == 2
     assert ".json or .log" in capsys.readouterr().err
+
+
+def test_ray_gets_the_frames_left_and_the_options(log, tmp_path, monkeypatch):
+    """--ray hands the frames not yet written and the options to o3dvis.cluster.frames_on_ray (which
+    tests/test_cluster.py runs on Ray), and writes what it answers."""
+    from o3dvis import cluster
+
+    ply, poses, trajectory = log
+    out = tmp_path / "frames"
+    expected = _expected(log, images=True)
+    out.mkdir()
+    expected[1].save(out / "000001.npz")
+    calls = []
+
+    def on_ray(pcd, views, **kwargs):
+        calls.append(kwargs)
+        return iter([(i, expected[i]) for i in kwargs["indices"]])
+
+    monkeypatch.setattr(cluster, "frames_on_ray", on_ray)
+    argv = ["frames", str(ply), str(poses), "-o", str(out), "--max-range", "10", "--workers", "3",
+            "--batch-size", "5", "--threshold", "0.4"]
+    assert main([*argv, "--ray", "local"]) == 0
+    assert main([*argv, "--ray", "ray://head:10001", "--depth-png"]) == 0  # the frames have no depth image yet
+    first, second = calls
+    assert first["indices"] == [0, 2, 3, 4, 5, 6] and first["address"] is None and not first["images"]
+    assert second["indices"] == list(range(7)) and second["address"] == "ray://head:10001" and second["images"]
+    assert (first["workers"], first["batch_size"], first["threshold"], first["max_range"]) == (3, 5, 0.4, 10.0)
+    assert len(_frames_of(out)) == len(list(out.glob("*.png"))) == len(trajectory.parameters)

@@ -57,3 +57,4 @@ def test_bad_cluster_arguments_are_refused_before_ray_starts(monkeypatch):
                           ({"indices": [3]}, r"\[0, 1\)")):
         with pytest.raises(ValueError, match=error):
             frames_on_ray(points, np.eye(4), intrinsic=_K, width=_W, height=_H, **kwargs)
+

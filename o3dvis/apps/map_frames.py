@@ -318,7 +318,9 @@ class FrameMap:
 
         with tqdm(total=len(views), unit="frame", desc="frames", disable=not progress) as bar:
             for run in _runs(centres, _LOOKAHEAD * workers):
-                self._tile(views[run[0]], centres[run[0]])  # encoded here, on the threads the load allows
+                tile = self._tile(views[run[0]], centres[run[0]])  # encoded here, on the threads the load allows
+                if tile is not None:  # and the scene field that answers its cameras inside the box
+                    tile.field.for_camera(views[run[0]].location)
                 for frame in threaded_map(answer, run, workers) if workers > 1 else map(answer, run):
                     yield frame
                     bar.update()

@@ -311,7 +311,8 @@ class VisibilityField:
             field.rank = torch.empty_like(order).scatter_(0, order, torch.arange(len(order), device=order.device))
         for whole, part in zip([self.points, *(e.points for e in self.rotated)],
                                [field.points, *(e.points for e in field.rotated)]):
-            surfels = self._surfels_of(whole)
+            with torch.no_grad():  # fixed, as the features: the C kernels make them
+                surfels = self._surfels_of(whole)
             if any(s is not None for s in surfels):
                 field._surfels[part.data_ptr()] = tuple(None if s is None else s.index_select(0, kept) for s in surfels)
         if self._scene_factory is not None:

@@ -159,22 +159,26 @@ def test_a_trajectory_is_answered_from_one_encoding_as_each_frame_alone(room, vi
     extrinsics = np.stack([look_at(np.array([1.0 + i, 3.0 + 0.2 * i, 1.5]), np.array([10.0, 3.0, 1.0]))
                            for i in range(3)])
     encodings = []
-    monkeypatch.setattr(vis, "encode", lambda pcd, *a, encode=vis.encode: encodings.append(1) or encode(pcd, *a))
+    monkeypatch.setattr(vis, "_encode", lambda pcd, *a, encode=vis._encode: encodings.append(a) or encode(pcd, *a))
     answered = list(frames(points, extrinsics, intrinsic=_K, width=_W, height=_H, model=vis, progress=True))
-    assert len(encodings) == 1 and len(answered) == 3
+    assert len(answered) == 3 and len(encodings) == 1 and encodings[0][1] is not None  # the scene model's alone
     assert "frames" in capsys.readouterr().err  # the progress bar
     for extrinsic, frame in zip(extrinsics, answered):
         alone = visible_in_frame(points, extrinsic, intrinsic=_K, width=_W, height=_H, model=vis)
         np.testing.assert_array_equal(frame.indices, alone.indices)
 
 
-def test_a_field_answers_as_the_map_it_encodes(room, vis):
+def test_a_field_answers_as_the_map_it_encodes_inside_the_box_and_outside(room, vis):
     points, _ = room
     field = vis.encode(points)
-    from_field = visible_in_frame(field, _params(_towards_pillar()))
-    from_map = visible_in_frame(points, _params(_towards_pillar()), model=vis)
-    np.testing.assert_array_equal(from_field.indices, from_map.indices)
-    np.testing.assert_allclose(from_field.pixels, from_map.pixels, atol=1e-3)
+    outside = look_at(np.array([-6.0, 3.0, 1.5]), np.array([5.0, 3.0, 1.5]))  # the default model's camera
+    fmap = FrameMap(points, model=vis)  # its sides encoded as their cameras come
+    for extrinsic in (_towards_pillar(), outside, _towards_pillar()):
+        from_field = visible_in_frame(field, _params(extrinsic))
+        from_map = fmap.frame(_params(extrinsic))
+        assert len(from_map)
+        np.testing.assert_array_equal(from_field.indices, from_map.indices)
+        np.testing.assert_allclose(from_field.pixels, from_map.pixels, atol=1e-3)
 
 
 @pytest.fixture(scope="module")
@@ -195,7 +199,7 @@ def test_a_long_map_is_encoded_in_crops_each_shared_by_nearby_frames(corridor, v
     distinct = [c for i, c in enumerate(centres) if i == 0 or not np.array_equal(c, centres[i - 1])]
     assert 1 < len(distinct) < len(views)
     sizes = []
-    monkeypatch.setattr(vis, "encode", lambda pcd, *a, encode=vis.encode: sizes.append(len(pcd)) or encode(pcd, *a))
+    monkeypatch.setattr(vis, "_encode", lambda pcd, *a, encode=vis._encode: sizes.append(len(pcd)) or encode(pcd, *a))
     fmap = FrameMap(points, max_range=8.0, model=vis)
     answered = list(fmap.frames(extrinsics, intrinsic=_K, width=_W, height=_H, progress=False))
     assert len(sizes) == len(distinct) and max(sizes) < len(points) / 3  # crops, each encoded once

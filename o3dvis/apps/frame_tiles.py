@@ -8,13 +8,15 @@ Morton curve, in blocks of consecutive points whose bounding boxes cull a frame'
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from ..cameras import View, Views
-from ..field import VisibilityField
+from ..field import VisibilityField, inside_box
 from ..threads import plan_threads, torch_threads
 
 __all__ = ["Frame", "FrameTile", "frame_images", "empty_frame"]
@@ -66,21 +68,49 @@ class FrameTile:
     """An encoding of (part of) the map and what cropping a frame out of it needs, in the order the
     field stores its points (along the Morton curve): the field itself, its points in that order;
     each point's index in the map and its world coordinates (float64, on the CPU); and the bounding
-    boxes of blocks of consecutive points."""
+    boxes of blocks of consecutive points.
 
-    def __init__(self, field: VisibilityField, index: np.ndarray, world: np.ndarray):
+    With a scene model, the cameras inside the points' bounding box and those outside it are
+    answered by different networks. Given ``encode`` (``encode(inside)``: the encoding that answers
+    the cameras on that side), each side is encoded when a camera on it first asks, so that the
+    frames of a driving log, all inside, never run the other network; ``field`` is that of the
+    side ``inside``. Without, ``field`` answers every camera as it dispatches them.
+    """
+
+    def __init__(self, field: VisibilityField, index: np.ndarray, world: np.ndarray,
+                 encode: Callable[[bool], VisibilityField] | None = None, inside: bool | None = None):
         n = field.num_points
         order = np.arange(n)
+        self._rank = field.rank
         if field.rank is not None:  # stored row rank[i] holds the field's point i
             order[field.rank.cpu().numpy()] = np.arange(n)
-            field = field.restricted(torch.from_numpy(order).to(field.device))
-        self.field = field
+        self._order = None if field.rank is None else torch.from_numpy(order).to(field.device)
+        self._encode, self._lock, self.bounds = encode, threading.Lock(), field.bounds
+        self._fields = {inside if encode is not None else None: self._stored(field)}
         self.index = index[order]
         world = np.ascontiguousarray(world[order])
         self.world = torch.from_numpy(world)
         self.block = max(_BLOCK, -(-n // _MAX_BLOCKS))
         padded = np.concatenate([world, np.repeat(world[-1:], -n % self.block, axis=0)]).reshape(-1, self.block, 3)
         self.lo, self.hi = padded.min(axis=1), padded.max(axis=1)
+
+    def _stored(self, field: VisibilityField) -> VisibilityField:
+        """``field`` with its points in the order it stores them (the tile's)."""
+        if (field.rank is None) != (self._rank is None) or (field.rank is not None and not torch.equal(
+                field.rank, self._rank)):
+            raise RuntimeError("the encodings of the two sides of a crop store its points in different orders")
+        return field if self._order is None else field.restricted(self._order)
+
+    def field_for(self, location: torch.Tensor) -> VisibilityField:
+        """The field, over the tile's points in its order, that answers a camera at ``location``
+        (encoded on the first camera of its side; thread-safe)."""
+        if self._encode is None:
+            return self._fields[None].for_camera(location)
+        inside = bool(inside_box(location.to(self.bounds[0])[None], self.bounds)[0])
+        with self._lock:
+            if inside not in self._fields:
+                self._fields[inside] = self._stored(self._encode(inside))
+            return self._fields[inside]
 
     def blocks(self, view: View, max_range: float | None) -> tuple[np.ndarray, np.ndarray]:
         """The blocks that may hold points of the frame (not wholly outside one of the image's sides
@@ -143,7 +173,8 @@ class FrameTile:
             rows = self.crop(view, max_range)
             if len(rows):
                 location = torch.from_numpy(view.location)
-                field = self.field.for_camera(location).restricted(rows.to(self.field.device))
+                field = self.field_for(location)
+                field = field.restricted(rows.to(field.device))
                 seen = torch.from_numpy(field.query(Views(location[None], None, (None,)), threshold=threshold,
                                                     frustum=False)[0])
                 rows = rows[seen]

@@ -28,7 +28,7 @@ import torch
 from .._open3d import is_open3d, require_open3d
 from ..cameras import MAX_PIXELS, View, frustum_from_pinhole, intrinsic_matrix, real_array
 from ..clouds import cloud_arrays, cloud_device
-from ..field import VisibilityField, checked_range
+from ..field import VisibilityField, checked_range, inside_box
 from ..models import torch_device
 from ..threads import plan_threads, threaded_map
 from .frame_tiles import Frame, FrameTile, empty_frame
@@ -243,12 +243,12 @@ class FrameMap:
         if isinstance(pcd, VisibilityField):
             world = pcd.points.detach().double() * pcd.scale + pcd.center
             world = (world if pcd.rank is None else world[pcd.rank]).cpu().numpy()
-            self.points, self.model, self._whole = world, None, True
+            self.points, self.model, self._whole, self._device = world, None, True, pcd.device
             self._tiles[None] = FrameTile(pcd, np.arange(len(world)), world)
             return
         self.points = cloud_arrays(pcd)[0].cpu().numpy()
         self.model = resolve_model(model, torch_device(device) if device is not None else cloud_device(pcd))
-        self._whole = _encoded_whole(self.points, self.max_range)
+        self._whole, self._device = _encoded_whole(self.points, self.max_range), self.model.device
 
     def tile_centres(self, views: list[View]) -> list[np.ndarray | None]:
         """:func:`tile_centres` of this map."""
@@ -319,8 +319,8 @@ class FrameMap:
         with tqdm(total=len(views), unit="frame", desc="frames", disable=not progress) as bar:
             for run in _runs(centres, _LOOKAHEAD * workers):
                 tile = self._tile(views[run[0]], centres[run[0]])  # encoded here, on the threads the load allows
-                if tile is not None:  # and the scene field that answers its cameras inside the box
-                    tile.field.for_camera(views[run[0]].location)
+                if tile is not None:  # and the field that answers its first camera
+                    tile.field_for(torch.from_numpy(views[run[0]].location))
                 for frame in threaded_map(answer, run, workers) if workers > 1 else map(answer, run):
                     yield frame
                     bar.update()
@@ -328,7 +328,7 @@ class FrameMap:
     @property
     def device(self) -> torch.device:
         """Where the map's encodings live."""
-        return self._tiles[None].field.device if self.model is None else self.model.device
+        return self._device
 
     def _answer(self, view: View, centre, threshold: float, images: bool) -> Frame:
         """:meth:`frame` of a checked camera."""
@@ -345,7 +345,7 @@ class FrameMap:
         """:meth:`_tile`, under the lock."""
         if self._whole:
             if None not in self._tiles:
-                self._tiles[None] = FrameTile(self.model.encode(self.points), np.arange(len(self.points)), self.points)
+                self._tiles[None] = self._new_tile(self.points, np.arange(len(self.points)), view.location)
             return self._tiles[None]
         location = view.location
         centre = location if centre is None else real_array(centre, "centre", "a (3,) position")
@@ -367,8 +367,21 @@ class FrameMap:
         index = np.flatnonzero(np.einsum("ni,ni->n", offset, offset) <= reach * reach)
         if len(index) == 0:
             return None
-        world = self.points[index]
-        return FrameTile(self.model.encode(world), index, world)
+        return self._new_tile(self.points[index], index, centre)
+
+    def _new_tile(self, world: np.ndarray, index: np.ndarray, location: np.ndarray) -> FrameTile:
+        """The tile of the map's points ``index`` (at ``world``), encoded for the side of its bounding
+        box ``location`` is on (see :class:`FrameTile`)."""
+        model = self.model
+        if model.scene_network is None:  # one network answers every camera
+            return FrameTile(model.encode(world), index, world)
+        lo, hi = torch.from_numpy(world.min(axis=0)), torch.from_numpy(world.max(axis=0))
+
+        def encode(inside: bool) -> VisibilityField:  # the scene model's alone for the cameras inside
+            return model._encode(world, None, (lo + hi) / 2) if inside else model.encode(world)
+
+        inside = bool(inside_box(torch.from_numpy(location)[None], (lo, hi))[0])
+        return FrameTile(encode(inside), index, world, encode, inside)
 
 
 def visible_in_frame(pcd, camera, *, intrinsic=None, width: int | None = None, height: int | None = None,

@@ -15,7 +15,7 @@ from o3dvis.apps import map_frames
 from o3dvis.apps.map_frames import Frame, FrameMap
 from o3dvis.cameras import look_at
 from o3dvis.cli import main
-from tests.conftest import box_surface
+from conftest import box_surface
 
 _ROOT = Path(__file__).resolve().parent.parent
 _W, _H = 160, 120

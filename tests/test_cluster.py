@@ -7,7 +7,7 @@ import pytest
 
 from o3dvis.apps.map_frames import FrameMap
 from o3dvis.cameras import look_at
-from tests.conftest import box_surface
+from conftest import box_surface
 
 _K = np.array([[80.0, 0, 79.5], [0, 80.0, 59.5], [0, 0, 1]])  # 160 x 120
 _W, _H = 160, 120

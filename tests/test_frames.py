@@ -10,7 +10,7 @@ from o3dvis.apps import map_frames
 from o3dvis.apps.map_frames import Frame, FrameMap, frames, pinhole_frames, tile_centres, visible_in_frame
 from o3dvis.cameras import View, look_at
 from o3dvis.groundtruth import visibility_from_mesh
-from tests.conftest import box_surface
+from conftest import box_surface
 
 _K = np.array([[160.0, 0, 159.5], [0, 160.0, 119.5], [0, 0, 1]])  # 320 x 240, 90 degrees across
 _W, _H = 320, 240

@@ -25,7 +25,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from o3dvis.apps.map_frames import FrameMap, pinhole_frames  # noqa: E402
-from o3dvis.cameras import look_at  # noqa: E402
+from o3dvis.apps.pinhole import look_at  # noqa: E402
 from o3dvis.groundtruth import visibility_from_mesh  # noqa: E402
 from o3dvis.neural import NeuralVisibility  # noqa: E402
 from o3dvis.training.data.scenes import random_street, sample_lidar  # noqa: E402
@@ -61,6 +61,17 @@ def driving_log(segments: int, points: int, seed: int, spacing: float = 4.0):
         count += len(mesh)
         start += mesh[:, 0].max() - mesh[:, 0].min()
     return np.concatenate(clouds), np.stack(extrinsics), (np.concatenate(vertices), np.concatenate(triangles))
+
+
+def _pinhole(view):
+    """The view as ``o3d.camera.PinholeCameraParameters``, as a query of a field takes it."""
+    import open3d as o3d
+
+    params = o3d.camera.PinholeCameraParameters()
+    k = view.intrinsic
+    params.intrinsic = o3d.camera.PinholeCameraIntrinsic(view.width, view.height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+    params.extrinsic = view.extrinsic
+    return params
 
 
 def _median_ms(times: list[float]) -> str:
@@ -110,11 +121,11 @@ def main() -> None:
     print(f"one frame after its encoding, FrameMap.frame: {_median_ms(after)}")
     if args.segments == 1:
         field = model.encode(points)
-        field.query(timed[0].to_open3d(), max_range=args.max_range)
+        field.query(_pinhole(timed[0]), max_range=args.max_range)
         before = []
         for view in timed:
             start = time.perf_counter()
-            field.query(view.to_open3d(), max_range=args.max_range)
+            field.query(_pinhole(view), max_range=args.max_range)
             before.append(time.perf_counter() - start)
         print(f"one frame, VisibilityField.query(max_range=...) of the whole map: {_median_ms(before)}")
     for workers in (1, 2):

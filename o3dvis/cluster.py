@@ -22,7 +22,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from .apps.map_frames import Frame, FrameMap, checked_frame_indices, pinhole_frames, tile_centres
-from .cameras import View
+from .apps.pinhole import PinholeView
 from .clouds import cloud_arrays
 from .field import checked_range
 
@@ -63,7 +63,7 @@ class _FrameWorker:
         data = []
         for extrinsic, intrinsic, size, centre in zip(batch["extrinsic"], batch["intrinsic"], batch["size"],
                                                       batch["centre"]):
-            view = View(np.asarray(extrinsic, dtype=np.float64), np.asarray(intrinsic, dtype=np.float64),
+            view = PinholeView(np.asarray(extrinsic, dtype=np.float64), np.asarray(intrinsic, dtype=np.float64),
                         int(size[0]), int(size[1]))
             frame = self.map.frame(view, centre=None if np.isnan(centre).any() else centre,
                                    threshold=self.threshold, images=self.images)

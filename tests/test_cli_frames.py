@@ -13,7 +13,7 @@ import pytest
 
 from o3dvis.apps import map_frames
 from o3dvis.apps.map_frames import Frame, FrameMap
-from o3dvis.cameras import look_at
+from o3dvis.apps.pinhole import look_at
 from o3dvis.cli import main
 from conftest import box_surface
 
@@ -71,6 +71,7 @@ def test_each_frame_is_a_file_of_its_visible_points(log, tmp_path, capsys):
         assert png.dtype == np.uint16 and png.shape == (_H, _W)
         np.testing.assert_array_equal(png, np.rint(frame.depth_image.astype(np.float64) * 1000).astype(np.uint16))
     assert "7 frames written" in capsys.readouterr().out
+    assert (out / "names.txt").read_text().split("\n") == [str(i) for i in range(7)] + [""]  # the poses' names
     assert main(["frames", str(ply), str(poses), "-o", str(out), "--max-range", "10", "--depth-png"]) == 0
     assert "all 7 frames are written" in capsys.readouterr().out
 
@@ -120,7 +121,7 @@ def test_a_write_stopped_midway_leaves_no_part_of_a_file(log, tmp_path, monkeypa
     monkeypatch.setattr(Frame, "save", cut_short)
     assert main(["frames", str(ply), str(poses), "-o", str(out), "--max-range", "10"]) == 130
     assert _frames_of(out) == [] and not stale.exists() and alive.exists()
-    assert sorted(p.name for p in out.iterdir()) == [alive.name]
+    assert sorted(p.name for p in out.iterdir()) == [alive.name, "names.txt"]
     monkeypatch.setattr(Frame, "save", save)
     assert main(["frames", str(ply), str(poses), "-o", str(out), "--max-range", "10"]) == 0
     assert len(_frames_of(out)) == 7
@@ -159,7 +160,8 @@ def test_a_pose_that_is_not_a_rotation_is_refused_before_any_frame(log, tmp_path
     out = tmp_path / "frames"
     assert main(["frames", str(ply), str(poses), "-o", str(out)]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("o3dvis frames: error: frame 2: ") and "rigid" in err and len(err.splitlines()) == 1
+    assert err.startswith("o3dvis frames: error: ") and "camera 2" in err and "rigid" in err
+    assert len(err.splitlines()) == 1
     assert not out.exists() or not any(out.iterdir())
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from o3dvis.apps.map_frames import FrameMap
-from o3dvis.cameras import look_at
+from o3dvis.apps.pinhole import look_at
 from conftest import box_surface
 
 _K = np.array([[80.0, 0, 79.5], [0, 80.0, 59.5], [0, 0, 1]])  # 160 x 120

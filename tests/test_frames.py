@@ -8,7 +8,7 @@ import torch
 import o3dvis
 from o3dvis.apps import map_frames
 from o3dvis.apps.map_frames import Frame, FrameMap, frames, pinhole_frames, tile_centres, visible_in_frame
-from o3dvis.cameras import View, look_at
+from o3dvis.apps.pinhole import PinholeView, look_at
 from o3dvis.groundtruth import visibility_from_mesh
 from conftest import box_surface
 
@@ -43,7 +43,7 @@ def _towards_pillar() -> np.ndarray:
 
 def _in_view(points: np.ndarray, extrinsic: np.ndarray, max_range: float | None = None) -> np.ndarray:
     """The points in the image, in front of the camera (and within max_range), as the frames crop them."""
-    view = View(extrinsic, _K, _W, _H)
+    view = PinholeView(extrinsic, _K, _W, _H)
     uv, depth = view.project(points)
     inside = (depth > 0) & (uv >= -0.5).all(axis=1) & (uv[:, 0] < _W - 0.5) & (uv[:, 1] < _H - 0.5)
     if max_range is not None:
@@ -58,7 +58,7 @@ def test_a_frame_gives_the_visible_points_their_pixels_and_depths(room, vis):
     assert isinstance(frame, Frame) and frame.depth_image is None and frame.index_image is None
     assert frame.indices.dtype == np.int64 and np.all(np.diff(frame.indices) > 0)
     assert frame.pixels.dtype == np.float32 and frame.pixels.shape == (len(frame), 2)
-    uv, depth = View(extrinsic, _K, _W, _H).project(points[frame.indices])
+    uv, depth = PinholeView(extrinsic, _K, _W, _H).project(points[frame.indices])
     np.testing.assert_allclose(frame.pixels, uv, atol=1e-3)
     np.testing.assert_allclose(frame.depths, depth, rtol=1e-6)
     in_view = _in_view(points, extrinsic)
@@ -82,7 +82,7 @@ def test_every_form_of_camera_gives_the_same_frame(room, vis):
     intrinsic = o3d.camera.PinholeCameraIntrinsic(_W, _H, _K[0, 0], _K[1, 1], _K[0, 2], _K[1, 2])
     for frame in (visible_in_frame(points, extrinsic, intrinsic=_K, width=_W, height=_H, model=vis),
                   visible_in_frame(points, extrinsic, intrinsic=intrinsic, model=vis),
-                  visible_in_frame(points, View(extrinsic, _K, _W, _H), model=vis),
+                  visible_in_frame(points, PinholeView(extrinsic, _K, _W, _H), model=vis),
                   visible_in_frame(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)), _params(extrinsic),
                                    model=vis)):
         np.testing.assert_array_equal(frame.indices, expected.indices)
@@ -159,9 +159,9 @@ def test_a_trajectory_is_answered_from_one_encoding_as_each_frame_alone(room, vi
     extrinsics = np.stack([look_at(np.array([1.0 + i, 3.0 + 0.2 * i, 1.5]), np.array([10.0, 3.0, 1.0]))
                            for i in range(3)])
     encodings = []
-    monkeypatch.setattr(vis, "_encode", lambda pcd, *a, encode=vis._encode: encodings.append(a) or encode(pcd, *a))
+    monkeypatch.setattr(vis, "encode", lambda pcd, *a, encode=vis.encode, **k: encodings.append(k) or encode(pcd, *a, **k))
     answered = list(frames(points, extrinsics, intrinsic=_K, width=_W, height=_H, model=vis, progress=True))
-    assert len(answered) == 3 and len(encodings) == 1 and encodings[0][1] is not None  # the scene model's alone
+    assert len(answered) == 3 and len(encodings) == 1 and encodings[0]["views"] is not None  # the scene model's alone
     assert "frames" in capsys.readouterr().err  # the progress bar
     for extrinsic, frame in zip(extrinsics, answered):
         alone = visible_in_frame(points, extrinsic, intrinsic=_K, width=_W, height=_H, model=vis)
@@ -199,7 +199,7 @@ def test_a_long_map_is_encoded_in_crops_each_shared_by_nearby_frames(corridor, v
     distinct = [c for i, c in enumerate(centres) if i == 0 or not np.array_equal(c, centres[i - 1])]
     assert 1 < len(distinct) < len(views)
     sizes = []
-    monkeypatch.setattr(vis, "_encode", lambda pcd, *a, encode=vis._encode: sizes.append(len(pcd)) or encode(pcd, *a))
+    monkeypatch.setattr(vis, "encode", lambda pcd, *a, encode=vis.encode, **k: sizes.append(len(pcd)) or encode(pcd, *a, **k))
     fmap = FrameMap(points, max_range=8.0, model=vis)
     answered = list(fmap.frames(extrinsics, intrinsic=_K, width=_W, height=_H, progress=False))
     assert len(sizes) == len(distinct) and max(sizes) < len(points) / 3  # crops, each encoded once

@@ -15,9 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..cameras import View, Views
-from ..field import VisibilityField, inside_box
+from ..cameras import Views
+from ..field import VisibilityField
 from ..threads import plan_threads, torch_threads
+from .pinhole import PinholeView
 
 __all__ = ["Frame", "FrameTile", "frame_images", "empty_frame"]
 
@@ -85,7 +86,7 @@ class FrameTile:
         if field.rank is not None:  # stored row rank[i] holds the field's point i
             order[field.rank.cpu().numpy()] = np.arange(n)
         self._order = None if field.rank is None else torch.from_numpy(order).to(field.device)
-        self._encode, self._lock, self.bounds = encode, threading.Lock(), field.bounds
+        self._encode, self._lock, self._frame = encode, threading.Lock(), field.frame
         self._fields = {inside if encode is not None else None: self._stored(field)}
         self.index = index[order]
         world = np.ascontiguousarray(world[order])
@@ -106,13 +107,13 @@ class FrameTile:
         (encoded on the first camera of its side; thread-safe)."""
         if self._encode is None:
             return self._fields[None].for_camera(location)
-        inside = bool(inside_box(location.to(self.bounds[0])[None], self.bounds)[0])
+        inside = bool(self._frame.contains(location[None])[0])
         with self._lock:
             if inside not in self._fields:
                 self._fields[inside] = self._stored(self._encode(inside))
             return self._fields[inside]
 
-    def blocks(self, view: View, max_range: float | None) -> tuple[np.ndarray, np.ndarray]:
+    def blocks(self, view: PinholeView, max_range: float | None) -> tuple[np.ndarray, np.ndarray]:
         """The blocks that may hold points of the frame (not wholly outside one of the image's sides
         or behind the camera, nor farther than ``max_range``) and, of those, the ones wholly inside."""
         rotation, shift = view.extrinsic[:3, :3], view.extrinsic[:3, 3]
@@ -133,7 +134,7 @@ class FrameTile:
             inside &= np.einsum("bi,bi->b", reach, reach) <= max_range * max_range
         return np.flatnonzero(keep), inside
 
-    def crop(self, view: View, max_range: float | None) -> torch.Tensor:
+    def crop(self, view: PinholeView, max_range: float | None) -> torch.Tensor:
         """The stored rows, ascending, of the points the frame sees (in its image, in front of the
         camera, within ``max_range``), as :meth:`~o3dvis.cameras.Frustum.contains` tells them (the
         points of a block wholly inside without a test of their own)."""
@@ -154,7 +155,7 @@ class FrameTile:
             keep[tested] = seen
         return rows[keep]
 
-    def project(self, view: View, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def project(self, view: PinholeView, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``((M, 2) pixels (u, v), (M,) depths, (M, 3) camera coordinates)`` of the stored ``rows``,
         in float64 (the pixels of points at or behind the camera are meaningless)."""
         k = view.intrinsic
@@ -166,7 +167,7 @@ class FrameTile:
         u = (x * inverse).mul_(k[0, 0]).add_(v, alpha=k[0, 1]).add_(k[0, 2])
         return torch.stack([u, v.mul_(k[1, 1]).add_(k[1, 2])], dim=1), depth, cam
 
-    def frame(self, view: View, max_range: float | None, threshold: float, images: bool) -> Frame:
+    def frame(self, view: PinholeView, max_range: float | None, threshold: float, images: bool) -> Frame:
         """What ``view`` sees of this tile's points (see :func:`visible_in_frame`)."""
         # the torch ops here on the threads the load allows, as the query's own
         with torch_threads(plan_threads(len(self.world), _SPLIT_ROWS)):
@@ -202,7 +203,7 @@ def frame_images(indices: np.ndarray, pixels: np.ndarray, depths: np.ndarray, wi
             index.masked_fill_(empty, -1).view(height, width).numpy())
 
 
-def empty_frame(view: View, images: bool) -> Frame:
+def empty_frame(view: PinholeView, images: bool) -> Frame:
     """A frame that sees no point."""
     none = np.zeros(0, dtype=np.int64)
     pictures = frame_images(none, np.zeros((0, 2)), np.zeros(0, dtype=np.float32), view.width, view.height) \

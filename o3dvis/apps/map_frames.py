@@ -25,13 +25,13 @@ from collections.abc import Iterator
 import numpy as np
 import torch
 
-from .._open3d import is_open3d, require_open3d
-from ..cameras import MAX_PIXELS, View, frustum_from_pinhole, intrinsic_matrix, real_array
+from ..cameras import Views, frustum_from_pinhole, intrinsic_matrix, is_open3d, real_array, require_open3d
 from ..clouds import cloud_arrays, cloud_device
-from ..field import VisibilityField, checked_range, inside_box
+from ..field import VisibilityField, checked_range
 from ..models import torch_device
 from ..threads import plan_threads, threaded_map
 from .frame_tiles import Frame, FrameTile, empty_frame
+from .pinhole import MAX_PIXELS, PinholeView
 
 __all__ = ["Frame", "FrameMap", "visible_in_frame", "frames", "pinhole_frames", "tile_centres", "checked_frame_indices",
            "TILE_SLACK"]
@@ -54,17 +54,17 @@ def _checked_size(width, height) -> tuple[int, int]:
     return int(width), int(height)
 
 
-def _view_of_pinhole(params) -> View:
-    """The checked :class:`View` of ``PinholeCameraParameters`` (a rigid extrinsic, a valid intrinsic
+def _view_of_pinhole(params) -> PinholeView:
+    """The checked :class:`PinholeView` of ``PinholeCameraParameters`` (a rigid extrinsic, a valid intrinsic
     with an image size)."""
     _, frustum = frustum_from_pinhole(params)
     if frustum is None:
         raise ValueError("the camera's intrinsic has no image size (width and height must be positive)")
-    return View(frustum.extrinsic, frustum.intrinsic, frustum.width, frustum.height)
+    return PinholeView(frustum.extrinsic, frustum.intrinsic, frustum.width, frustum.height)
 
 
-def _view_of_arrays(extrinsic, intrinsic, width, height) -> View:
-    """The checked :class:`View` of a 4x4 world-to-camera matrix and an intrinsic."""
+def _view_of_arrays(extrinsic, intrinsic, width, height) -> PinholeView:
+    """The checked :class:`PinholeView` of a 4x4 world-to-camera matrix and an intrinsic."""
     o3d = require_open3d("pinhole frames")
     if is_open3d(intrinsic, "camera.PinholeCameraIntrinsic"):
         width, height = intrinsic.width, intrinsic.height
@@ -76,23 +76,23 @@ def _view_of_arrays(extrinsic, intrinsic, width, height) -> View:
     params = o3d.camera.PinholeCameraParameters()
     params.extrinsic = real_array(extrinsic, "extrinsic", "a 4x4 matrix")
     frustum_from_pinhole(params)  # checks the extrinsic: finite and rigid
-    return View(np.asarray(params.extrinsic, dtype=np.float64), k, width, height)
+    return PinholeView(np.asarray(params.extrinsic, dtype=np.float64), k, width, height)
 
 
-def pinhole_frames(cameras, intrinsic=None, width: int | None = None, height: int | None = None) -> list[View]:
-    """The checked cameras of frames, each a :class:`~o3dvis.cameras.View`.
+def pinhole_frames(cameras, intrinsic=None, width: int | None = None, height: int | None = None) -> list[PinholeView]:
+    """The checked cameras of frames, each a :class:`~o3dvis.apps.pinhole.PinholeView`.
 
     Args:
         cameras: ``o3d.camera.PinholeCameraParameters``, a list of them, a
             ``PinholeCameraTrajectory`` (as ``o3d.io.read_pinhole_camera_trajectory``
-            reads it), a :class:`~o3dvis.cameras.View` or a list of them, or world-to-camera
+            reads it), a :class:`~o3dvis.apps.pinhole.PinholeView` or a list of them, or world-to-camera
             extrinsics: one 4x4 matrix or an (F, 4, 4) array, with ``intrinsic``.
         intrinsic: for extrinsics, ``o3d.camera.PinholeCameraIntrinsic`` or a 3x3 matrix (with
             ``width`` and ``height``), or (F, 3, 3) matrices, one per frame.
         width, height: the image size, for intrinsics given as matrices.
 
     Returns:
-        One :class:`View` per frame.
+        One :class:`PinholeView` per frame.
 
     Raises:
         ValueError: a pose that is not a rigid transform (a rotation with determinant +1 and
@@ -102,11 +102,11 @@ def pinhole_frames(cameras, intrinsic=None, width: int | None = None, height: in
     """
     if is_open3d(cameras, "camera.PinholeCameraTrajectory"):
         cameras = list(cameras.parameters)
-    if isinstance(cameras, View) or is_open3d(cameras, "camera.PinholeCameraParameters"):
+    if isinstance(cameras, PinholeView) or is_open3d(cameras, "camera.PinholeCameraParameters"):
         cameras = [cameras]
     if isinstance(cameras, (list, tuple)) and cameras and all(
-            isinstance(c, View) or is_open3d(c, "camera.PinholeCameraParameters") for c in cameras):
-        return [_framed(i, lambda c=c: c if isinstance(c, View) else _view_of_pinhole(c))
+            isinstance(c, PinholeView) or is_open3d(c, "camera.PinholeCameraParameters") for c in cameras):
+        return [_framed(i, lambda c=c: c if isinstance(c, PinholeView) else _view_of_pinhole(c))
                 for i, c in enumerate(cameras)]
     if isinstance(cameras, (list, tuple)) and not cameras:
         raise ValueError("no frame: the trajectory holds no camera")
@@ -127,7 +127,7 @@ def pinhole_frames(cameras, intrinsic=None, width: int | None = None, height: in
             for i, (e, k) in enumerate(zip(extrinsics, intrinsics))]
 
 
-def _framed(index: int, make) -> View:
+def _framed(index: int, make) -> PinholeView:
     """``make()``, its ValueError naming the frame ``index``."""
     try:
         return make()
@@ -142,7 +142,7 @@ def _encoded_whole(points: np.ndarray, max_range: float | None) -> bool:
         2 * (1 + TILE_SLACK) * max_range
 
 
-def tile_centres(points: np.ndarray, views: list[View], max_range: float | None) -> list[np.ndarray | None]:
+def tile_centres(points: np.ndarray, views: list[PinholeView], max_range: float | None) -> list[np.ndarray | None]:
     """The centre of the crop of the map each frame is answered from (None: the map encoded whole).
 
     Consecutive frames share a crop while the bounding box of their cameras has a half diagonal
@@ -241,7 +241,7 @@ class FrameMap:
         self._lock = threading.Lock()  # guards the kept encodings
         self._tiles: OrderedDict[tuple | None, FrameTile | None] = OrderedDict()
         if isinstance(pcd, VisibilityField):
-            world = pcd.points.detach().double() * pcd.scale + pcd.center
+            world = pcd.points.detach().double() * pcd.frame.scale + pcd.frame.center
             world = (world if pcd.rank is None else world[pcd.rank]).cpu().numpy()
             self.points, self.model, self._whole, self._device = world, None, True, pcd.device
             self._tiles[None] = FrameTile(pcd, np.arange(len(world)), world)
@@ -250,7 +250,7 @@ class FrameMap:
         self.model = resolve_model(model, torch_device(device) if device is not None else cloud_device(pcd))
         self._whole, self._device = _encoded_whole(self.points, self.max_range), self.model.device
 
-    def tile_centres(self, views: list[View]) -> list[np.ndarray | None]:
+    def tile_centres(self, views: list[PinholeView]) -> list[np.ndarray | None]:
         """:func:`tile_centres` of this map."""
         return [None] * len(views) if self._whole else tile_centres(self.points, views, self.max_range)
 
@@ -309,7 +309,7 @@ class FrameMap:
         return self._frames([views[i] for i in chosen], [centres[i] for i in chosen], threshold, images, progress,
                             workers)
 
-    def _frames(self, views: list[View], centres: list, threshold: float, images: bool, progress: bool,
+    def _frames(self, views: list[PinholeView], centres: list, threshold: float, images: bool, progress: bool,
                 workers: int) -> Iterator[Frame]:
         from tqdm import tqdm
 
@@ -330,18 +330,18 @@ class FrameMap:
         """Where the map's encodings live."""
         return self._device
 
-    def _answer(self, view: View, centre, threshold: float, images: bool) -> Frame:
+    def _answer(self, view: PinholeView, centre, threshold: float, images: bool) -> Frame:
         """:meth:`frame` of a checked camera."""
         tile = self._tile(view, centre)
         return empty_frame(view, images) if tile is None else tile.frame(view, self.max_range, threshold, images)
 
-    def _tile(self, view: View, centre) -> FrameTile | None:
+    def _tile(self, view: PinholeView, centre) -> FrameTile | None:
         """The encoding that answers ``view`` (None: no point within its reach), encoded where it
         is not kept (thread-safe)."""
         with self._lock:
             return self._kept_tile(view, centre)
 
-    def _kept_tile(self, view: View, centre) -> FrameTile | None:
+    def _kept_tile(self, view: PinholeView, centre) -> FrameTile | None:
         """:meth:`_tile`, under the lock."""
         if self._whole:
             if None not in self._tiles:
@@ -375,12 +375,13 @@ class FrameMap:
         model = self.model
         if model.scene_network is None:  # one network answers every camera
             return FrameTile(model.encode(world), index, world)
-        lo, hi = torch.from_numpy(world.min(axis=0)), torch.from_numpy(world.max(axis=0))
+        lo, hi = world.min(axis=0), world.max(axis=0)
+        centre = Views(torch.from_numpy((lo + hi) / 2)[None], None, (None,))
 
         def encode(inside: bool) -> VisibilityField:  # the scene model's alone for the cameras inside
-            return model._encode(world, None, (lo + hi) / 2) if inside else model.encode(world)
+            return model.encode(world, views=centre) if inside else model.encode(world)
 
-        inside = bool(inside_box(torch.from_numpy(location)[None], (lo, hi))[0])
+        inside = bool(((location >= lo) & (location <= hi)).all())  # the side encoded first
         return FrameTile(encode(inside), index, world, encode, inside)
 
 
@@ -400,7 +401,7 @@ def visible_in_frame(pcd, camera, *, intrinsic=None, width: int | None = None, h
         pcd: the map (``o3d.geometry.PointCloud``, ``o3d.t.geometry.PointCloud``, an (N, 3)
             array) or its :class:`~o3dvis.VisibilityField`.
         camera: ``o3d.camera.PinholeCameraParameters`` (with its image size), a
-            :class:`~o3dvis.cameras.View`, or a 4x4 world-to-camera extrinsic with ``intrinsic``.
+            :class:`~o3dvis.apps.pinhole.PinholeView`, or a 4x4 world-to-camera extrinsic with ``intrinsic``.
         intrinsic: for an extrinsic, ``o3d.camera.PinholeCameraIntrinsic`` or a 3x3 matrix.
         width, height: the image size, with an intrinsic given as a matrix.
         max_range: only the points within this distance of the camera are seen; None: all.
@@ -436,7 +437,7 @@ def frames(pcd, trajectory, *, intrinsic=None, width: int | None = None, height:
         pcd: the map, as :func:`visible_in_frame` takes it.
         trajectory: ``o3d.camera.PinholeCameraTrajectory`` (as
             ``o3d.io.read_pinhole_camera_trajectory`` reads it), a list of
-            ``PinholeCameraParameters`` or of :class:`~o3dvis.cameras.View`, or (F, 4, 4)
+            ``PinholeCameraParameters`` or of :class:`~o3dvis.apps.pinhole.PinholeView`, or (F, 4, 4)
             world-to-camera extrinsics with ``intrinsic`` (one, or (F, 3, 3)).
         intrinsic, width, height: for extrinsics, as in :func:`visible_in_frame`.
         max_range, threshold, images, model, device: as in :func:`visible_in_frame`.

@@ -37,8 +37,9 @@ def _positive_float(text: str) -> float:
 
 _DESCRIPTION = """For each pinhole camera of POSES, writes the points of MAP it sees: their indices in MAP, pixel
 coordinates (u, v) and depths, in OUT/NNNNNN.npz (arrays indices, pixels, depths), and with --depth-png
-its 16-bit depth image, OUT/NNNNNN.png. Each file appears whole or not at all; a run started again
-skips the frames already written."""
+its 16-bit depth image, OUT/NNNNNN.png (NNNNNN: the camera's index); OUT/names.txt holds a name per
+camera, in their order (a COLMAP model's image names, else the indices). Each file appears whole or not
+at all; a run started again skips the frames already written."""
 _EXAMPLES = """examples:
   o3dvis frames map.ply trajectory.json -o frames --max-range 40
   o3dvis frames map.ply trajectory.json -o frames --max-range 40 --ray auto --workers 32"""
@@ -50,7 +51,8 @@ def register(subparsers) -> None:
                                    description=_DESCRIPTION, epilog=_EXAMPLES,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("map", help="the map: a point cloud file readable by Open3D (.ply, .pcd, .xyz, ...)")
-    parser.add_argument("poses", help="the cameras: an Open3D trajectory (.json, or .log with its default intrinsic)")
+    parser.add_argument("poses", help="the cameras: an Open3D trajectory (.json, or .log with Open3D's default "
+                                      "intrinsic) or a COLMAP model (its folder)")
     parser.add_argument("-o", "--output", required=True, metavar="OUT", help="folder of the frames' files")
     parser.add_argument("--max-range", type=_positive_float, default=None, metavar="M",
                         help="a frame sees only the points within M of its camera (default: all in its image)")
@@ -75,27 +77,6 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def read_trajectory(path: str | Path):
-    """The cameras of an Open3D trajectory file (``.json`` or ``.log``) as a ``PinholeCameraTrajectory``.
-
-    Raises:
-        FileNotFoundError: no such file.
-        ValueError: another suffix, or no camera read from it.
-    """
-    import open3d as o3d
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no poses file {path}")
-    if path.suffix.lower() not in (".json", ".log"):
-        raise ValueError(f"{path}: poses are read from an Open3D trajectory, .json or .log, "
-                         f"not {path.suffix or 'a file without suffix'}")
-    trajectory = o3d.io.read_pinhole_camera_trajectory(str(path))
-    if not trajectory.parameters:
-        raise ValueError(f"no camera could be read from {path}")
-    return trajectory
-
-
 def run(args: argparse.Namespace) -> int:
     """Reads the map and the poses, answers the frames not written yet, writes each as it comes.
 
@@ -110,22 +91,24 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from ..apps.map_frames import pinhole_frames
-    from ..io import read_point_cloud
+    from ..io import read_point_cloud, read_poses
 
     pcd = read_point_cloud(args.map)
-    views = pinhole_frames(read_trajectory(args.poses))
+    poses = read_poses(args.poses)
+    views = pinhole_frames(poses.trajectory)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     _remove_unfinished(out)
+    _atomically(out / "names.txt", lambda path: path.write_text("".join(f"{name}\n" for name in poses.names)))
     digits = max(6, len(str(len(views) - 1)))
-    names = [f"{i:0{digits}d}" for i in range(len(views))]
-    todo = [i for i, name in enumerate(names) if not _written(out, name, args.depth_png)]
+    stems = [f"{i:0{digits}d}" for i in range(len(views))]
+    todo = [i for i, stem in enumerate(stems) if not _written(out, stem, args.depth_png)]
     if not todo:
         print(f"all {len(views)} frames are written in {out}")
         return 0
     with tqdm(total=len(views), initial=len(views) - len(todo), unit="frame", desc="frames", leave=False) as bar:
         for i, frame in _answers(args, pcd, views, todo):
-            _write(out, names[i], frame, args.depth_png, args.depth_scale)
+            _write(out, stems[i], frame, args.depth_png, args.depth_scale)
             bar.update()
     before = f", {len(views) - len(todo)} were there" if len(todo) < len(views) else ""
     print(f"{len(todo)} frames written to {out}{before}")

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .cameras import Views, as_vectors, as_views
+from .cameras import Views, as_views
 from .geometry import within_range
 from .nn import native
 from .nn.network import VisibilityNetwork
@@ -272,49 +272,20 @@ class VisibilityField:
                                chunk_size=self.chunk_size, rotated=rotated, calibration=self.calibration,
                                matmul_dtype=self.matmul_dtype, noise=self.noise)
 
-    def for_camera(self, position) -> "VisibilityField":
-        """The field that answers a camera at ``position`` (a 3-vector): the scene field (encoded on
-        first use) for a camera inside the bounding box where there is one, else this field."""
-        if self._scene_factory is None:
-            return self
-        inside = self.frame.contains(as_vectors(position, "position"))
-        if len(inside) != 1:
-            raise ValueError(f"position must be one 3-vector, got {len(inside)}")
-        return self._scene_field() if bool(inside[0]) else self
-
     def restricted(self, rows) -> "VisibilityField":
-        """This field as if the cloud were its points ``rows`` alone: they alone occlude and are
-        answered, in the order given, with no new encoding (the features stay the whole cloud's).
-
-        A crop to what one camera can see (its frustum, its range) costs a query of the crop
-        only. The cameras inside the bounding box still go to the scene field, cropped alike,
-        and the surfels of a network that splats footprints stay those of the whole cloud
-        (computed once and kept): a crop's border keeps the surface spacing it has in the cloud.
-
-        Args:
-            rows: (M,) indices of the points, in the cloud's order.
-
-        Returns:
-            A :class:`VisibilityField` of M points.
-
-        Raises:
-            TypeError, IndexError: as ``indices`` of :meth:`probabilities`.
-        """
-        if rows is None:
-            raise TypeError("rows must be a 1-D sequence of integers, got None")
-        rows = self._checked_indices(rows)
-        stored = rows if self.rank is None else self.rank[rows]
-        ordered = len(stored) < 2 or bool((stored[1:] >= stored[:-1]).all())
-        kept, order = (stored, None) if ordered else stored.sort()
-        field = self._restricted(kept)
-        if order is not None:  # stored along the Morton curve, as encode() stores them; answered in the rows' order
+        """This field as if the cloud were its points ``rows`` (indices in its order; None: all) alone, with
+        no new encoding: they alone occlude and are answered, in that order, with the whole cloud's features
+        and surfels (a crop's border keeps its spacing), the scene field cropped alike. Raises as ``indices``."""
+        stored = self._checked_indices(torch.arange(self.num_points) if rows is None else rows)
+        stored = stored if self.rank is None else self.rank[stored]
+        kept, order = (stored, None) if len(stored) < 2 or bool((stored[1:] >= stored[:-1]).all()) else stored.sort()
+        field = self._restricted(kept)  # stored along the Morton curve, as encode() stores them
+        if order is not None:  # answered in the rows' order
             field.rank = torch.empty_like(order).scatter_(0, order, torch.arange(len(order), device=order.device))
-        for whole, part in zip([self.points, *(e.points for e in self.rotated)],
-                               [field.points, *(e.points for e in field.rotated)]):
-            with torch.no_grad():  # fixed, as the features: the C kernels make them
-                surfels = self._surfels_of(whole)
-            if any(s is not None for s in surfels):
-                field._surfels[part.data_ptr()] = tuple(None if s is None else s.index_select(0, kept) for s in surfels)
+        with torch.no_grad():  # the whole cloud's surfels, made once (by the C kernels)
+            surfels = self._surfels_of(self.points)
+        if any(s is not None for s in surfels):
+            field._surfels[field.points.data_ptr()] = tuple(s if s is None else s[kept] for s in surfels)
         if self._scene_factory is not None:
             field._scene_factory = lambda: self._scene_field().restricted(rows)
         return field

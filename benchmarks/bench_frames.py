@@ -84,8 +84,9 @@ def _scores(frames, views, points: np.ndarray, mesh, max_range: float) -> tuple[
     seen, truth = [], []
     for frame, view in zip(frames, views):
         uv, depth = view.project(points)
-        rows = np.flatnonzero((depth > 0) & (uv >= -0.5).all(axis=1) & (uv[:, 0] < WIDTH - 0.5)
-                              & (uv[:, 1] < HEIGHT - 0.5) & (np.linalg.norm(points - view.location, axis=1) <= max_range))
+        near = np.linalg.norm(points - view.location, axis=1) <= max_range
+        rows = np.flatnonzero(near & (depth > 0) & (uv >= -0.5).all(axis=1) & (uv[:, 0] < WIDTH - 0.5)
+                              & (uv[:, 1] < HEIGHT - 0.5))
         truth.append(visibility_from_mesh(mesh, points[rows], view.location)[0])
         seen.append(np.isin(rows, frame.indices))
     seen, truth = np.concatenate(seen), np.concatenate(truth)

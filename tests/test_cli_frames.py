@@ -97,7 +97,7 @@ def test_a_stopped_run_keeps_its_frames_and_the_next_answers_only_the_rest(log, 
     monkeypatch.setattr(FrameMap, "_answer", stopping)
     assert main(argv) == 130
     assert [f.name for f in _frames_of(out)] == ["000000.npz", "000001.npz"]
-    monkeypatch.setattr(FrameMap, "_answer", lambda self, view, *args: answered.append(view) or answer(self, view, *args))
+    monkeypatch.setattr(FrameMap, "_answer", lambda self, view, *a: answered.append(view) or answer(self, view, *a))
     answered.clear()
     assert main(argv) == 0 and len(answered) == len(trajectory.parameters) - 2
     for path, expected in zip(_frames_of(out), _expected(log)):

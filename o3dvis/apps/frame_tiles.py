@@ -104,9 +104,10 @@ class FrameTile:
 
     def field_for(self, location: torch.Tensor) -> VisibilityField:
         """The field, over the tile's points in its order, that answers a camera at ``location``
-        (encoded on the first camera of its side; thread-safe)."""
+        (encoded on the first camera of its side; thread-safe); without ``encode``, the one field,
+        whose queries go to its scene field where they should."""
         if self._encode is None:
-            return self._fields[None].for_camera(location)
+            return self._fields[None]
         inside = bool(self._frame.contains(location[None])[0])
         with self._lock:
             if inside not in self._fields:

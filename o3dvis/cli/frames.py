@@ -60,7 +60,7 @@ def register(subparsers) -> None:
                         help="also write each frame's depth image, 16-bit PNG in units of 1/--depth-scale, "
                              "0 where no point shows (or deeper than 16 bits hold)")
     parser.add_argument("--depth-scale", type=_positive_float, default=1000.0,
-                        metavar="S", help="depth image units per map unit (default 1000: millimetres of a map in metres)")
+                        metavar="S", help="depth image units per map unit (default 1000: mm of a map in metres)")
     parser.add_argument("--threshold", type=float, default=0.5,
                         help="a point is visible when its probability exceeds this (default 0.5)")
     parser.add_argument("--ray", default=None, metavar="ADDRESS",

@@ -1,4 +1,4 @@
-"""Camera frames of a map (o3dvis.apps.map_frames) and the crops of a field they query."""
+"""Camera frames of a map (o3dvis.apps.map_frames, apps.frame_tiles) and the crops of a field they query."""
 
 import numpy as np
 import open3d as o3d

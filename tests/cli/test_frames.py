@@ -17,7 +17,7 @@ from o3dvis.apps.pinhole import look_at
 from o3dvis.cli import main
 from conftest import box_surface
 
-_ROOT = Path(__file__).resolve().parent.parent
+_ROOT = Path(__file__).resolve().parents[2]
 _W, _H = 160, 120
 
 

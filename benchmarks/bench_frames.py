@@ -6,16 +6,19 @@ pixels, 90 degrees across, every 4 m along it, each seeing the points within ``-
 Printed: the map's encoding time; the median time of one frame once its encoding is made, as
 ``o3dvis.frames`` answers it (``FrameMap.frame``) and, for comparison, as a query of the whole map
 with a range crop (``VisibilityField.query(camera, max_range=...)``); the throughput of ``frames()`` with 1 and 2
-frames side by side; with ``--truth``, accuracy and balanced accuracy against ray casting, of the
+frames side by side (and with ``--ray-workers``, of ``frames_on_ray`` on a local Ray instance); the
+process's peak memory; with ``--truth``, accuracy and balanced accuracy against ray casting, of the
 frames and of the map encoded whole.
 
     nice -n 10 python3 benchmarks/bench_frames.py                       # the 400 k-point street
     python3 benchmarks/bench_frames.py --segments 10 --points 300000 --truth
+    python3 benchmarks/bench_frames.py --segments 10 --points 1000000 --spacing 1 --ray-workers 1,2  # 1 km, 10 M
 """
 
 from __future__ import annotations
 
 import argparse
+import resource
 import sys
 import time
 from pathlib import Path
@@ -93,48 +96,75 @@ def _scores(frames, views, points: np.ndarray, mesh, max_range: float) -> tuple[
     return float((seen == truth).mean()), float((seen[truth].mean() + (~seen[~truth]).mean()) / 2)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--segments", type=int, default=1, help="streets end to end (default 1)")
-    parser.add_argument("--points", type=int, default=400_000, help="points per street (default 400 000)")
-    parser.add_argument("--max-range", type=float, default=40.0)
-    parser.add_argument("--frames", type=int, default=24, help="frames timed one by one (default 24)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--truth", action="store_true", help="also score against ray casting (slow)")
-    args = parser.parse_args()
-
-    points, extrinsics, mesh = driving_log(args.segments, args.points, args.seed)
-    views = pinhole_frames(extrinsics, INTRINSIC, WIDTH, HEIGHT)
-    print(f"{len(points)} points, {len(views)} frames, {np.ptp(points[:, 0]):.0f} m long")
-    model = NeuralVisibility.pretrained()
-    fmap = FrameMap(points, max_range=args.max_range, model=model)
-    timed = views[:args.frames]
-    centres = fmap.tile_centres(timed)
+def _time_one_frame(model, points: np.ndarray, views, max_range: float, compare: bool) -> None:
+    """Prints the median time of one frame once its crop is encoded (and, with ``compare``, of a
+    range-cropped query of the whole map)."""
+    fmap = FrameMap(points, max_range=max_range, model=model)
+    centres = fmap.tile_centres(views)
     start = time.perf_counter()
-    fmap.frame(timed[0], centre=centres[0])  # encodes the map (or the first crop), and the scene field
+    fmap.frame(views[0], centre=centres[0])  # encodes the map (or the first crop), and the scene field
     print(f"encoding (map or first crop): {time.perf_counter() - start:.2f} s")
     after = []
-    for view, centre in zip(timed, centres):
+    for view, centre in zip(views, centres):
         fmap.frame(view, centre=centre)  # encodes the frame's crop where it is a new one
         start = time.perf_counter()
         fmap.frame(view, centre=centre)
         after.append(time.perf_counter() - start)
     print(f"one frame after its encoding, FrameMap.frame: {_median_ms(after)}")
-    if args.segments == 1:
+    if compare:
         field = model.encode(points)
-        field.query(_pinhole(timed[0]), max_range=args.max_range)
+        field.query(_pinhole(views[0]), max_range=max_range)
         before = []
-        for view in timed:
+        for view in views:
             start = time.perf_counter()
-            field.query(_pinhole(view), max_range=args.max_range)
+            field.query(_pinhole(view), max_range=max_range)
             before.append(time.perf_counter() - start)
         print(f"one frame, VisibilityField.query(max_range=...) of the whole map: {_median_ms(before)}")
+
+
+def _throughput(model, points: np.ndarray, views, max_range: float, ray_workers: list[int]) -> list:
+    """Prints the frames per second of ``frames()`` (encodings included) with 1 and 2 frames side by
+    side, and on a local Ray instance with each of ``ray_workers``; returns the frames answered."""
     for workers in (1, 2):
         start = time.perf_counter()
-        answered = list(FrameMap(points, max_range=args.max_range, model=model).frames(
+        answered = list(FrameMap(points, max_range=max_range, model=model).frames(
             views, workers=workers, progress=False))
-        elapsed = time.perf_counter() - start
-        print(f"frames(), {workers} side by side, encodings included: {len(views) / elapsed:.1f} frames/s")
+        print(f"frames(), {workers} side by side, encodings included: {len(views) / (time.perf_counter() - start):.1f}"
+              " frames/s")
+    if ray_workers:
+        import ray
+
+        from o3dvis.cluster import frames_on_ray
+
+        ray.init(num_cpus=max(ray_workers), include_dashboard=False, logging_level="ERROR")
+        for workers in ray_workers:
+            start = time.perf_counter()
+            count = sum(1 for _ in frames_on_ray(points, views, max_range=max_range, workers=workers))
+            print(f"frames_on_ray, {workers} workers, actors' start and encodings included: "
+                  f"{count / (time.perf_counter() - start):.1f} frames/s")
+        ray.shutdown()
+    return answered
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--segments", type=int, default=1, help="streets end to end (default 1)")
+    parser.add_argument("--points", type=int, default=400_000, help="points per street (default 400 000)")
+    parser.add_argument("--spacing", type=float, default=4.0, help="metres between frames (default 4)")
+    parser.add_argument("--max-range", type=float, default=40.0)
+    parser.add_argument("--frames", type=int, default=24, help="frames timed one by one (default 24)")
+    parser.add_argument("--ray-workers", type=str, default="", help="e.g. 1,2: also time Ray with these workers")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--truth", action="store_true", help="also score against ray casting (slow)")
+    args = parser.parse_args()
+
+    points, extrinsics, mesh = driving_log(args.segments, args.points, args.seed, args.spacing)
+    views = pinhole_frames(extrinsics, INTRINSIC, WIDTH, HEIGHT)
+    print(f"{len(points)} points, {len(views)} frames, {np.ptp(points[:, 0]):.0f} m long")
+    model = NeuralVisibility.pretrained()
+    _time_one_frame(model, points, views[:args.frames], args.max_range, args.segments == 1)
+    answered = _throughput(model, points, views, args.max_range, [int(w) for w in args.ray_workers.split(",") if w])
+    print(f"peak memory of this process: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
     if args.truth:
         accuracy, balanced = _scores(answered, views, points, mesh, args.max_range)
         print(f"frames: accuracy {100 * accuracy:.2f}, balanced {100 * balanced:.2f}")

@@ -132,8 +132,8 @@ class VisibilityField:
     to this cloud's margins in every frame (see :mod:`o3dvis.nn.calibration`).
     ``matmul_dtype``: the dtype of the per-view matrix products when no gradient
     is asked for (see ``NeuralVisibility(precision=...)``). ``noise``: the cloud's (2,)
-    noise cues, for a network that fuses its answers with the surfel z-buffer's
-    (see :mod:`o3dvis.nn.fusion`). ``scene``: makes the
+    noise cues (a network that fuses its answers with the surfel z-buffer's reads
+    them, see :mod:`o3dvis.nn.fusion`; so does :mod:`o3dvis.two_pass`). ``scene``: makes the
     field of the same cloud that answers the cameras inside its bounding box
     (encoded with a scene model, on the first such camera); None: this field
     answers every view.

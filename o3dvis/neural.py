@@ -335,11 +335,10 @@ class NeuralVisibility:
         precision = resolve_precision(self.precision, self.device)
         shared = {} if shared is None else shared
         with torch.no_grad(), products_in(precision):
-            noise = None
-            if network.config.noise_cues or calibrated or fused:
-                noise = shared.get("noise")
-                if noise is None:
-                    noise = shared["noise"] = network.cloud_noise(unit_points, ordered=True)
+            cues = shared.get("noise")  # the field keeps them: the two passes read the cloud's noise too
+            if cues is None:
+                cues = shared["noise"] = network.cloud_noise(unit_points, ordered=True)
+            noise = cues if network.config.noise_cues or calibrated or fused else None
             depths = (network.config.depth, network.config.full_depth)
             octree = shared.get(depths)
             if octree is None:
@@ -352,7 +351,7 @@ class NeuralVisibility:
                        if calibrated else None)
         return VisibilityField(network, features, unit_points, unit, frame, chunk_size=self.chunk_size, rank=rank,
                                rotated=rotated, calibration=calibration, matmul_dtype=precision, scene=scene,
-                               noise=None if noise is None else noise[0])
+                               noise=cues[0])
 
     @staticmethod
     def _rotated(network: VisibilityNetwork, unit_points: Tensor, normals: Tensor | None,

@@ -21,7 +21,6 @@ from torch import Tensor
 
 from .cameras import viewpoints_around
 from .neighbours import NeighbourSearch
-from .nn.noise import noise_cues
 from .orientation import facing_away, oriented_planes, surface_variation
 from .threads import workers_only
 
@@ -94,8 +93,7 @@ def estimated_normals(field: VisibilityField, points: np.ndarray, stored: bool =
         (N, 3) unit normals, or None (no plane fits, or a noisy cloud with ``clean_only``), and
         whether the cloud looks clean.
     """
-    noise = field.noise if field.noise is not None else noise_cues(field.points, ordered=True)
-    clean = float(noise[0]) < _ESTIMATE_MAX_NOISE
+    clean = float(field.noise[0]) < _ESTIMATE_MAX_NOISE
     if clean_only and not clean:
         return None, False
     # in the field's order along the Morton curve: neighbours close in memory make the KNN search

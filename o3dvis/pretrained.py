@@ -12,6 +12,7 @@ from pathlib import Path
 
 import torch
 
+from .models import is_shared
 from .neural import NeuralVisibility
 from .nn.network import VisibilityNetwork
 
@@ -47,6 +48,8 @@ def resolve_model(model, device: torch.device) -> NeuralVisibility:
         with _LOCK:
             held = _HELD.get(key)
             if held is None or any(a is not b for a, b in zip(held.networks(), fresh.networks())):
+                for stale in [k for k, m in _HELD.items() if not all(map(is_shared, m.networks()))]:
+                    del _HELD[stale]  # its networks were loaded anew: its files changed, or it did
                 held = _HELD[key] = fresh
             return held
     raise TypeError("model must be None, a model name or path, a NeuralVisibility or a "

@@ -1,5 +1,6 @@
 """Camera frames of a map on a local Ray instance with two workers: the single process's answers."""
 
+import signal
 import sys
 
 import numpy as np
@@ -37,6 +38,31 @@ def test_frames_on_ray_are_the_single_process_frames(ray_instance):
         assert len(expected[i]), i
         for name in ("indices", "pixels", "depths", "depth_image", "index_image"):
             np.testing.assert_array_equal(getattr(answered[i], name), getattr(expected[i], name),
+                                          err_msg=f"frame {i}: {name}")
+
+
+def test_a_worker_killed_mid_run_costs_no_frame(ray_instance):
+    import psutil
+
+    from o3dvis.cluster import frames_on_ray
+
+    points = box_surface([0, 0, 0], [60, 6, 3], 6_000, np.random.default_rng(2))
+    extrinsics = np.stack([look_at(np.array([x, 3.0, 1.5]), np.array([x + 10, 2.5, 1.0]))
+                           for x in np.arange(4, 34, 1.0)])
+    expected = list(FrameMap(points, max_range=8.0).frames(extrinsics, intrinsic=_K, width=_W, height=_H,
+                                                             progress=False))
+    answers = frames_on_ray(points, extrinsics, intrinsic=_K, width=_W, height=_H, max_range=8.0, workers=2,
+                            batch_size=1)
+    answered = dict([next(answers)])
+    actors = [process for process in psutil.process_iter(["cmdline"])
+              if any("FrameWorker" in part for part in process.info["cmdline"] or [])]
+    assert actors, "no actor process found"
+    actors[0].send_signal(signal.SIGKILL)  # Ray Data restarts the actor and answers its frames again
+    answered.update(answers)
+    assert sorted(answered) == list(range(len(extrinsics)))
+    for i, frame in answered.items():
+        for name in ("indices", "pixels", "depths"):
+            np.testing.assert_array_equal(getattr(frame, name), getattr(expected[i], name),
                                           err_msg=f"frame {i}: {name}")
 
 

@@ -39,7 +39,7 @@ def _one_view(camera_location, direction, frustum: bool) -> Views:
 
 
 def _visible_indices(pcd, views: Views, threshold: float, model, device, normals,
-                     max_range: float | None = None) -> np.ndarray:
+                     max_range: float | None = None, quality: str = "balanced") -> np.ndarray:
     """Sorted int64 indices of the points of ``pcd`` visible from the one view ``views``.
 
     With ``max_range``, only the points within it of the camera are encoded and
@@ -48,7 +48,7 @@ def _visible_indices(pcd, views: Views, threshold: float, model, device, normals
     device = torch_device(device) if device is not None else cloud_device(pcd)
     model = resolve_model(model, device)
     if max_range is None:
-        field = encodings.encode(model, pcd, normals, views)
+        field = encodings.encode(model, pcd, normals, views, quality)
         return np.flatnonzero(field.query(views, threshold=threshold)[0]).astype(np.int64)
     if views.positions is None:
         raise ValueError("max_range needs a camera position, not a viewing direction")
@@ -58,7 +58,7 @@ def _visible_indices(pcd, views: Views, threshold: float, model, device, normals
         return np.zeros(0, dtype=np.int64)
     if normals is not None and not isinstance(normals, (bool, str)):  # explicit normals: those of the crop
         normals = unit_normals(normals, len(cloud.points)).index_select(0, near.to(cloud.points.device))
-    field = model.encode(cloud.crop(near), normals, views=views)
+    field = model.encode(cloud.crop(near), normals, views=views, quality=quality)
     return near.cpu().numpy()[np.flatnonzero(field.query(views, threshold=threshold)[0])].astype(np.int64)
 
 
@@ -95,7 +95,7 @@ def _checked_radius(radius) -> None:
 def hidden_point_removal_neural(pcd, camera_location=None, radius: float | None = None, *,
                                 direction=None, threshold: float = 0.5, model=None, device=None,
                                 triangulate: bool = False, max_range: float | None = None, normals=None,
-                                frustum: bool = True):
+                                frustum: bool = True, quality: str = "balanced"):
     """Removes hidden points with the neural network: a drop-in for ``hidden_point_removal``.
 
     Returns what Open3D's ``PointCloud.hidden_point_removal`` returns, so
@@ -112,6 +112,10 @@ def hidden_point_removal_neural(pcd, camera_location=None, radius: float | None 
     and they face out (unoriented ones are estimated anew, with a warning);
     ``normals="estimate"`` estimates oriented normals in a first pass instead
     (more accurate on dense, clean clouds; see :meth:`NeuralVisibility.encode`).
+    ``quality`` trades time for accuracy in one word: ``"fast"`` one pass,
+    ``"balanced"`` two passes over clouds without normals of 100 000 points or
+    more, ``"best"`` two passes wherever they pay and four turned copies of
+    the cloud.
     Called again with the same, unchanged cloud (another camera), it reuses the
     cloud's encoding (see :mod:`o3dvis.encodings`) and costs a query only.
 
@@ -145,6 +149,8 @@ def hidden_point_removal_neural(pcd, camera_location=None, radius: float | None 
             oriented normals in a first pass where that is more accurate;
             False ignores normals.
         frustum: False ignores the image bounds of a pinhole camera.
+        quality: ``"fast"``, ``"balanced"`` (default) or ``"best"``, as in
+            :meth:`NeuralVisibility.encode`.
 
     Returns:
         ``(mesh, pt_map)``: for a legacy cloud an ``o3d.geometry.TriangleMesh``
@@ -154,7 +160,7 @@ def hidden_point_removal_neural(pcd, camera_location=None, radius: float | None 
     Raises:
         ValueError: an empty cloud, NaN/Inf, a camera on a point of the cloud,
             more than one camera, both or neither of a camera and a direction,
-            a max_range that is not positive.
+            a max_range that is not positive, an unknown quality.
         RadiusError: a radius that is not positive and finite (a ``ValueError``
             and, as Open3D raises, a ``RuntimeError``).
         TypeError: ``pcd`` is not an Open3D PointCloud, or bad dtypes.
@@ -164,7 +170,7 @@ def hidden_point_removal_neural(pcd, camera_location=None, radius: float | None 
         raise TypeError(f"pcd must be an Open3D PointCloud (legacy or tensor), got {type(pcd).__name__}")
     _checked_radius(radius)
     views = _one_view(camera_location, direction, frustum)
-    index = _visible_indices(pcd, views, threshold, model, device, normals, max_range)
+    index = _visible_indices(pcd, views, threshold, model, device, normals, max_range, quality)
     return _hpr_result(pcd, index, views if triangulate else None)
 
 
@@ -191,7 +197,8 @@ def _hpr_result(pcd, index: np.ndarray, views: Views | None):
 
 
 def select_visible(pcd, camera=None, *, direction=None, threshold: float = 0.5, model=None,
-                   device=None, normals=None, frustum: bool = True, max_range: float | None = None):
+                   device=None, normals=None, frustum: bool = True, max_range: float | None = None,
+                   quality: str = "balanced"):
     """The points of a cloud that one camera sees, as a point cloud.
 
     Colours, normals and every other per-point attribute are kept. Like
@@ -213,6 +220,8 @@ def select_visible(pcd, camera=None, *, direction=None, threshold: float = 0.5, 
         frustum: False ignores the image bounds of a pinhole camera.
         max_range: only the points within this distance of the camera are
             considered; None: all points. Camera positions only.
+        quality: ``"fast"``, ``"balanced"`` (default) or ``"best"``, as in
+            :meth:`NeuralVisibility.encode`.
 
     Returns:
         A cloud of the same kind as ``pcd`` (a legacy ``PointCloud`` for arrays)
@@ -220,11 +229,12 @@ def select_visible(pcd, camera=None, *, direction=None, threshold: float = 0.5, 
 
     Raises:
         ValueError: an empty cloud, NaN/Inf, a camera on a point of the cloud,
-            more than one camera, a max_range that is not positive or given with a direction.
+            more than one camera, a max_range that is not positive or given with a direction,
+            an unknown quality.
         TypeError: unsupported input types or dtypes.
     """
     views = _one_view(camera, direction, frustum)
-    index = _visible_indices(pcd, views, threshold, model, device, normals, max_range)
+    index = _visible_indices(pcd, views, threshold, model, device, normals, max_range, quality)
     if isinstance(pcd, o3d.geometry.PointCloud):
         return pcd.select_by_index(index.tolist())
     if isinstance(pcd, o3d.t.geometry.PointCloud):

@@ -6,7 +6,7 @@ costs a query only. An encoding is reused when the same cloud object is asked
 again, with the same model, unchanged (its settings, rotations and networks, none put in anew or
 taken out, and the weights of the networks the encoding came from, changed in place or put in anew
 by no one, an optimiser included; see :mod:`o3dvis.nn.state` for changes made through ``.data``),
-the same ``normals`` choice,
+the same ``normals`` choice and ``quality``,
 and its points (and normals) still equal, value for value, to those encoded: a
 cloud changed in place, or a new cloud at the address of a freed one, is encoded
 anew. With a scene network, a camera inside the cloud's bounding box and one
@@ -54,13 +54,13 @@ _last: _Entry | None = None
 _lock = threading.Lock()
 
 
-def _settings(model: "NeuralVisibility", normals) -> tuple:
-    """What an encoding depends on besides the cloud and the networks' weights: the networks the
-    model holds now (compared by identity: which of them a cloud is routed to follows from them)
-    and its rotations, value for value."""
+def _settings(model: "NeuralVisibility", normals, quality: str) -> tuple:
+    """What an encoding depends on besides the cloud and the networks' weights: the normals choice
+    and quality, the networks the model holds now (compared by identity: which of them a cloud is
+    routed to follows from them) and its rotations, value for value."""
     held = (model.network, model.normals_network, model.scene_network, model.small_network)
     rotations = tuple(model.rotations.flatten().tolist())
-    return normals, str(model.device), model.precision, model.chunk_size, held, rotations
+    return normals, quality, str(model.device), model.precision, model.chunk_size, held, rotations
 
 
 def _inside(model: "NeuralVisibility", field: "VisibilityField", views: "Views") -> bool:
@@ -84,16 +84,17 @@ def _holds(entry: _Entry | None, model: "NeuralVisibility", pcd, settings: tuple
             and entry.inside == _inside(model, entry.field, views))
 
 
-def encode(model: "NeuralVisibility", pcd, normals, views: "Views") -> "VisibilityField":
+def encode(model: "NeuralVisibility", pcd, normals, views: "Views", quality: str = "balanced") -> "VisibilityField":
     """The field the drop-ins query for one view: the one kept from the last call when it holds.
 
     Args:
         model: the network to encode with.
         pcd: a cloud, as :meth:`NeuralVisibility.encode` takes it.
-        normals: None, True or False are kept with the encoding; explicit normals
-            (an array) are encoded every time.
+        normals: None, True, False or ``"estimate"`` are kept with the encoding; explicit
+            normals (an array) are encoded every time.
         views: the view to come (:class:`~o3dvis.cameras.Views`): with a scene network, a
             camera inside the cloud's bounding box gets the scene model's field.
+        quality: as :meth:`NeuralVisibility.encode` takes it, kept with the encoding.
 
     Returns:
         The cloud's :class:`VisibilityField` (the kept one is shared: do not change it).
@@ -102,15 +103,15 @@ def encode(model: "NeuralVisibility", pcd, normals, views: "Views") -> "Visibili
         As :meth:`NeuralVisibility.encode`.
     """
     global _last
-    if normals is not None and not isinstance(normals, bool):
-        return model.encode(pcd, normals, views=views)
+    if normals is not None and not isinstance(normals, (bool, str)):
+        return model.encode(pcd, normals, views=views, quality=quality)
     cloud = cloud_arrays(pcd)
-    settings = _settings(model, normals)
+    settings = _settings(model, normals, quality)
     with _lock:
         last = _last
     if _holds(last, model, pcd, settings, *cloud, views):
         return last.field
-    field = model.encode(cloud, normals, views=views)
+    field = model.encode(cloud, normals, views=views, quality=quality)
     if len(cloud.points) <= MAX_POINTS:
         networks = list(field.encoders)
         entry = _Entry(id(pcd), model, settings, _inside(model, field, views), networks,

@@ -29,7 +29,10 @@ from .nn.predictor import resolve_precision
 from .threads import plan_threads, torch_threads
 from . import two_pass
 
-__all__ = ["NeuralVisibility"]
+__all__ = ["NeuralVisibility", "QUALITIES"]
+
+QUALITIES = ("fast", "balanced", "best")
+"""The accuracies :meth:`NeuralVisibility.encode` offers, from the cheapest (docs/results.md)."""
 
 _NORMALS_MODEL = "normals"
 _SCENE_MODEL = "scene"
@@ -38,6 +41,11 @@ _SMALL_MODEL = "small"
 # depth-6 octree, is as accurate as the default below it on the validation meshes, less accurate
 # above, and faster
 _SMALL_MAX_POINTS = 5500
+# quality="balanced" takes two passes over clouds without normals of at least this many points,
+# where they cost less than Open3D's hidden_point_removal of one view; "best" takes them over
+# every cloud where they pay, each pass the mean of _BEST_ROTATIONS turned copies of the cloud
+_BALANCED_MIN_POINTS = 100_000
+_BEST_ROTATIONS = 4
 
 
 class NeuralVisibility:
@@ -214,7 +222,7 @@ class NeuralVisibility:
             raise ValueError("normals were given but no loaded model takes normals")
         return takes_normals, unit_normals(normals, num_points)
 
-    def encode(self, pcd, normals=None, *, views: Views | None = None) -> VisibilityField:
+    def encode(self, pcd, normals=None, *, views: Views | None = None, quality: str = "balanced") -> VisibilityField:
         """Runs the U-Net over a cloud: once, or twice to estimate oriented normals first.
 
         With ``normals="estimate"``, a cloud is encoded in two passes where
@@ -238,6 +246,16 @@ class NeuralVisibility:
         where most lie on the estimates' side; else they are ignored, with a
         warning. ``normals=True`` or an array skips that check.
 
+        ``quality`` chooses how a cloud without normals (``normals=None``) is
+        answered: ``"fast"`` in one pass; ``"balanced"`` (default) in two
+        passes, as with ``"estimate"``, where the cloud has at least 100 000
+        points (where they cost less than Open3D's ``hidden_point_removal`` of
+        one view), else in one; ``"best"`` in two passes wherever they pay, each
+        pass (and any pass of ``normals=False`` or ``"estimate"``) the mean of
+        the network's answers for 4 turned copies of the cloud, as
+        ``num_rotations=4`` gives them (at least 4: a model with more keeps its
+        own). docs/results.md measures each level's accuracy and cost.
+
         On the CPU, its ops split over the threads that :mod:`o3dvis.threads`
         plans (one for small clouds or a busy machine).
 
@@ -256,6 +274,7 @@ class NeuralVisibility:
                 inside the cloud's bounding box and a scene model is loaded,
                 that model's encoding alone is made (the object model's is
                 never needed); None: any view may come.
+            quality: ``"fast"``, ``"balanced"`` or ``"best"`` (see above).
 
         Returns:
             A :class:`VisibilityField` to query with cameras; its ``normals`` are
@@ -263,11 +282,13 @@ class NeuralVisibility:
             row order.
 
         Raises:
-            ValueError: an empty cloud, NaN/Inf coordinates, a cloud wider than float64 holds, wrong shapes, or
+            ValueError: an empty cloud, NaN/Inf coordinates, a cloud wider than float64 holds, wrong shapes,
                 normals that the loaded models cannot use (``"estimate"``
-                without a normals model).
+                without a normals model), or an unknown ``quality``.
             TypeError: unsupported input types or dtypes.
         """
+        if quality not in QUALITIES:
+            raise ValueError(f"quality must be one of {', '.join(map(repr, QUALITIES))}, got {quality!r}")
         points, cloud_normals = cloud_arrays(pcd)
         views = None if views is None else as_views(views)
         estimate = isinstance(normals, str)
@@ -276,22 +297,28 @@ class NeuralVisibility:
         if estimate and self.normals_network is None:
             raise ValueError("normals='estimate' needs a normals model (NeuralVisibility.pretrained() "
                              "loads the shipped one)")
+        if normals is None and cloud_normals is None and self.normals_network is not None:
+            estimate = quality == "best" or (quality == "balanced" and points.shape[0] >= _BALANCED_MIN_POINTS)
+        rotations = (fixed_rotations(_BEST_ROTATIONS) if quality == "best" and len(self.rotations) < _BEST_ROTATIONS
+                     else self.rotations)
         network, unit = (self._points_network(points.shape[0]), None) if estimate else self._network_and_normals(
             cloud_normals, normals, points.shape[0])
         check = normals is None and unit is not None and network is self.normals_network
         if self.device.type != "cpu":
-            return self._encode_points(network, unit, points, views, estimate, check)
+            return self._encode_points(network, unit, points, views, estimate, check, rotations)
         # every cloud is encoded on the threads the load allows: two measured faster than one
         # down to 16 points (the U-Net's products split, its many small ops do not slow down)
         with torch_threads(plan_threads(points.shape[0], 1)):
-            return self._encode_points(network, unit, points, views, estimate, check)
+            return self._encode_points(network, unit, points, views, estimate, check, rotations)
 
     def _encode_points(self, network: VisibilityNetwork, unit: Tensor | None, points: Tensor,
-                       views: Views | None, estimate: bool = False, check: bool = False) -> VisibilityField:
+                       views: Views | None, estimate: bool = False, check: bool = False,
+                       rotations: Tensor | None = None) -> VisibilityField:
         """:meth:`encode` of checked points and unit normals (or None) with ``network``; ``estimate``:
         normals estimated in a first pass where that pays (see :meth:`encode`); ``check``: ``unit``
         are the cloud's own normals, estimated instead where they look unoriented
-        (:func:`~o3dvis.two_pass.facing_away_share`) and the estimates do not side with them."""
+        (:func:`~o3dvis.two_pass.facing_away_share`) and the estimates do not side with them;
+        ``rotations``: those each pass averages over (None: the model's)."""
         unit_points, keys, frame = CloudFrame.of(points.to(self.device))
         keys, order, rank = morton_sort(unit_points, keys=keys)
         unit_points = unit_points.index_select(0, order)
@@ -300,8 +327,8 @@ class NeuralVisibility:
         scene = None
         if self.scene_network is not None:
             if views is not None and views.positions is not None and bool(frame.contains(views.positions).all()):
-                return self._field(self.scene_network, None, *cloud)
-            scene = functools.partial(self._field, self.scene_network, None, *cloud)
+                return self._field(self.scene_network, None, *cloud, rotations=rotations)
+            scene = functools.partial(self._field, self.scene_network, None, *cloud, rotations=rotations)
         doubted, share = None, 0.0  # the cloud's own normals where they look unoriented, and why
         if check and frame.hull is None:
             share = two_pass.facing_away_share(
@@ -312,12 +339,12 @@ class NeuralVisibility:
         # a flat cloud hides nothing from off its plane: one pass is exact there
         twice = estimate and frame.hull is None and len(unit_points) >= two_pass.ESTIMATE_MIN_POINTS
         shared = {"keys": keys}
-        field = self._field(network, unit, *cloud, scene=scene, shared=shared)
+        field = self._field(network, unit, *cloud, scene=scene, shared=shared, rotations=rotations)
         if twice:
             unit, doubted = two_pass.second_pass_normals(field, points, order, doubted)
             if unit is not None:
                 first, field = field.network, self._field(self.normals_network, unit, *cloud, scene=scene,
-                                                          shared=shared)
+                                                          shared=shared, rotations=rotations)
                 field.encoders = (first, field.network)
         if doubted is not None:
             two_pass.warn_ignored(share)
@@ -325,12 +352,14 @@ class NeuralVisibility:
 
     def _field(self, network: VisibilityNetwork, unit: Tensor | None, unit_points: Tensor, frame: CloudFrame,
                rank: Tensor, scene: Callable[[], VisibilityField] | None = None,
-               shared: dict | None = None) -> VisibilityField:
+               shared: dict | None = None, rotations: Tensor | None = None) -> VisibilityField:
         """The field of ``network`` over the normalised, Morton-ordered points of :meth:`encode`.
 
         ``shared``: a dict that the passes over the same points fill and reuse: their noise cues
         and their octree per pair of depths, from the points' sorted Morton keys at
-        :data:`~o3dvis.nn.octree.MORTON_DEPTH` under ``"keys"`` where given (None: nothing kept)."""
+        :data:`~o3dvis.nn.octree.MORTON_DEPTH` under ``"keys"`` where given (None: nothing kept).
+        ``rotations``: the turns whose answers the field averages, the first none (None: the model's)."""
+        rotations = self.rotations if rotations is None else rotations
         calibrated, fused = network.calibration is not None, network.fusion is not None
         precision = resolve_precision(self.precision, self.device)
         shared = {} if shared is None else shared
@@ -346,7 +375,7 @@ class NeuralVisibility:
                 keys = None if keys is None else coarser_keys(keys, MORTON_DEPTH, network.config.depth)
                 octree = shared[depths] = network.octree(unit_points, keys=keys)
             features = network.encode_leaves(unit_points, normals=unit, noise=noise, octree=octree)
-            rotated = [self._rotated(network, unit_points, unit, r) for r in self.rotations[1:]]
+            rotated = [self._rotated(network, unit_points, unit, r) for r in rotations[1:]]
         calibration = (network.calibration.affine(calibration_terms(noise[0], len(unit_points)))
                        if calibrated else None)
         return VisibilityField(network, features, unit_points, unit, frame, chunk_size=self.chunk_size, rank=rank,

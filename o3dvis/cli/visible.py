@@ -30,6 +30,9 @@ def register(subparsers) -> None:
     parser.add_argument("--device", default=None, help="torch device, e.g. cuda (default: cpu)")
     parser.add_argument("--no-normals", action="store_true",
                         help="ignore the normals of the input cloud")
+    parser.add_argument("--quality", choices=("fast", "balanced", "best"), default="balanced",
+                        help="fast: one pass; balanced (default): two passes over clouds without normals of 100 000 "
+                             "points or more; best: two passes where they pay, four turned copies of the cloud")
     add_precision_flag(parser)
     parser.set_defaults(func=run)
 
@@ -58,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
         bar.update()
         visible = select_visible(pcd, args.camera, direction=args.direction, threshold=args.threshold,
                                  model=model, device=args.device,
-                                 normals=False if args.no_normals else None)
+                                 normals=False if args.no_normals else None, quality=args.quality)
         bar.update()
         if not visible.has_points():
             print(f"no point of {args.input} is visible; nothing written", file=sys.stderr)

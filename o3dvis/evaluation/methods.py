@@ -1,10 +1,11 @@
 """The benchmark's named visibility methods: ``hpr``, ``hpr-exp``, ``neural``, ``neural-normals``,
-``neural-estimate``.
+``neural-estimate``, ``neural-balanced``, ``neural-best``.
 
-``neural`` is one pass without normals; ``neural-normals`` gives the normals
+``neural`` is one pass without normals (``quality="fast"``); ``neural-normals`` gives the normals
 model the cloud's normals; ``neural-estimate`` estimates oriented normals in a
 first pass where that is more accurate and answers with the normals model
-(``NeuralVisibility.encode(normals="estimate")``).
+(``NeuralVisibility.encode(normals="estimate")``); ``neural-balanced`` and ``neural-best`` answer a
+cloud without normals at those qualities (``NeuralVisibility.encode(quality=...)``).
 
 :func:`resolve_methods` turns names into parameter sweeps ``{label: method}`` (a
 network method with ``needs_normals = True`` also takes ``normals=``;
@@ -28,8 +29,10 @@ from ..baselines import SWEEPS, Method, sweep
 
 __all__ = ["NeuralMethod", "neural_method", "resolve_methods", "METHOD_NAMES"]
 
-METHOD_NAMES = (*SWEEPS, "neural", "neural-normals", "neural-estimate")
-_NETWORK_VARIANT = re.compile(r"(neural(?:-normals|-estimate)?)(?:-x([1-9][0-9]*))?(?:-(float32|bfloat16))?")
+METHOD_NAMES = (*SWEEPS, "neural", "neural-normals", "neural-estimate", "neural-balanced", "neural-best")
+_QUALITY_OF = {"neural-balanced": "balanced", "neural-best": "best"}
+_NETWORK_VARIANT = re.compile(r"(neural(?:-normals|-estimate|-balanced|-best)?)(?:-x([1-9][0-9]*))?"
+                              r"(?:-(float32|bfloat16))?")
 
 
 class NeuralMethod:
@@ -42,15 +45,19 @@ class NeuralMethod:
             then called ``method(points, cameras, normals=normals)``.
         estimate: otherwise, ``encode(normals="estimate")``: normals estimated
             in a first pass (see ``NeuralVisibility.encode``).
+        quality: otherwise, the cloud without normals at this quality (``"fast"``: one pass).
     """
 
-    def __init__(self, visibility, identity: str, use_normals: bool = False, estimate: bool = False):
+    def __init__(self, visibility, identity: str, use_normals: bool = False, estimate: bool = False,
+                 quality: str = "fast"):
         self.visibility = visibility
         self.identity = identity
         self.needs_normals = use_normals
         self.estimate = estimate
+        self.quality = quality
         turns, precision = len(visibility.rotations), visibility.precision
-        mode = ", normals" if use_normals else ", estimated normals" if estimate else ""
+        mode = (", normals" if use_normals else ", estimated normals" if estimate
+                else f", {quality}" if quality != "fast" else "")
         self.__name__ = (f"neural({identity}{mode}"
                          f"{f', {turns} rotations' if turns > 1 else ''}"
                          f"{f', {precision}' if precision != 'auto' else ''})")
@@ -61,7 +68,7 @@ class NeuralMethod:
             raise ValueError(f"{self.__name__} needs the cloud's normals")
         return self.visibility.encode(np.asarray(points, dtype=np.float64),
                                       normals=np.asarray(normals, dtype=np.float64) if self.needs_normals
-                                      else "estimate" if self.estimate else False)
+                                      else "estimate" if self.estimate else None, quality=self.quality)
 
     def __call__(self, points: np.ndarray, cameras: np.ndarray, normals: np.ndarray | None = None) -> np.ndarray:
         return self.encode(points, normals).query(np.atleast_2d(np.asarray(cameras, dtype=np.float64)))
@@ -69,7 +76,7 @@ class NeuralMethod:
 
 def neural_method(checkpoint: str | Path | None = None, device: str | None = None,
                   use_normals: bool = False, num_rotations: int = 1, precision: str = "auto",
-                  estimate: bool = False) -> NeuralMethod:
+                  estimate: bool = False, quality: str = "fast") -> NeuralMethod:
     """The neural method from a checkpoint file or the shipped weights.
 
     Args:
@@ -79,7 +86,7 @@ def neural_method(checkpoint: str | Path | None = None, device: str | None = Non
         device: torch device (default: the API's choice).
         use_normals: give the network the cloud's normals (a model that takes them is needed).
         num_rotations, precision: see ``NeuralVisibility``.
-        estimate: see :class:`NeuralMethod`.
+        estimate, quality: see :class:`NeuralMethod`.
 
     Returns:
         A :class:`NeuralMethod`.
@@ -122,7 +129,7 @@ def neural_method(checkpoint: str | Path | None = None, device: str | None = Non
         raise LookupError(f"the weights ({identity}) need normals: use the method neural-normals")
     if estimate and not use_normals and visibility.normals_network is None:
         raise LookupError(f"the weights ({identity}) come with no normals model to estimate normals for")
-    return NeuralMethod(visibility, identity, use_normals, estimate)
+    return NeuralMethod(visibility, identity, use_normals, estimate, quality)
 
 
 def resolve_methods(names, checkpoint: str | Path | None = None,
@@ -158,7 +165,8 @@ def resolve_methods(names, checkpoint: str | Path | None = None,
             try:
                 methods[name] = {"": neural_method(checkpoint, use_normals=base == "neural-normals",
                                                    num_rotations=turns, precision=precision,
-                                                   estimate=base == "neural-estimate")}
+                                                   estimate=base == "neural-estimate",
+                                                   quality=_QUALITY_OF.get(base, "fast"))}
             except LookupError as e:
                 absent[name] = str(e)
         else:

@@ -402,16 +402,19 @@ def test_neural_estimate_encodes_with_normals_estimated_first(monkeypatch):
     pytest.importorskip("o3dvis.neural")
     from o3dvis.evaluation.methods import resolve_methods
 
-    methods, absent = resolve_methods(["neural-estimate", "neural"])
+    names = ["neural-estimate", "neural", "neural-balanced", "neural-best"]
+    methods, absent = resolve_methods(names)
     if absent:
         pytest.skip(f"no shipped weights: {absent}")
     asked = []
     for name in methods:
-        monkeypatch.setattr(methods[name][""].visibility, "encode", lambda points, normals=None: asked.append(normals))
-    methods["neural-estimate"][""].encode(np.zeros((4, 3)))
-    methods["neural"][""].encode(np.zeros((4, 3)))
-    assert asked[0] == "estimate" and asked[1] is False
+        monkeypatch.setattr(methods[name][""].visibility, "encode",
+                            lambda points, normals=None, quality=None: asked.append((normals, quality)))
+    for name in names:
+        methods[name][""].encode(np.zeros((4, 3)))
+    assert asked == [("estimate", "fast"), (None, "fast"), (None, "balanced"), (None, "best")]
     assert "estimated normals" in methods["neural-estimate"][""].__name__
+    assert "best" in methods["neural-best"][""].__name__
 
 
 def test_a_normals_checkpoint_answers_the_second_pass_after_the_shipped_first(tmp_path):

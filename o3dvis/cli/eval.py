@@ -57,7 +57,8 @@ _SCENE_HPR_K = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)  # inside a room the best radius i
 def _add_method_args(p: argparse.ArgumentParser, default: str) -> None:
     p.add_argument("--methods", type=_names, default=_names(default),
                    help=f"comma-separated: hpr, hpr-exp, zbuffer, neural, neural-normals, neural-estimate "
-                        f"(normals estimated in a first pass where that is more accurate); a neural one "
+                        f"(normals estimated in a first pass where that is more accurate), neural-balanced, "
+                        f"neural-best (those qualities; neural is fast); a neural one "
                         f"with -x<K> appended averages K rotations of each cloud, e.g. neural-x8 "
                         f"(default: {default})")
     p.add_argument("--model", "--checkpoint", dest="checkpoint", default=None, metavar="MODEL",

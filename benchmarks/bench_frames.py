@@ -7,12 +7,14 @@ Printed: the map's encoding time; the median time of one frame once its encoding
 ``o3dvis.frames`` answers it (``FrameMap.frame``) and, for comparison, as a query of the whole map
 with a range crop (``VisibilityField.query(camera, max_range=...)``); the throughput of ``frames()`` with 1 and 2
 frames side by side (and with ``--ray-workers``, of ``frames_on_ray`` on a local Ray instance); the
-process's peak memory; with ``--truth``, accuracy and balanced accuracy against ray casting, of the
+process's peak memory; with ``--baselines``, the time of a frame with Open3D's HPR and the surfel
+z-buffer on its points; with ``--truth``, accuracy and balanced accuracy against ray casting, of the
 frames and of the map encoded whole.
 
     nice -n 10 python3 benchmarks/bench_frames.py                       # the 400 k-point street
     python3 benchmarks/bench_frames.py --segments 10 --points 300000 --truth
-    python3 benchmarks/bench_frames.py --segments 10 --points 1000000 --spacing 1 --ray-workers 1,2  # 1 km, 10 M
+    python3 benchmarks/bench_frames.py --segments 10 --points 1000000 --spacing 1 --ray-workers 1,2 \
+        --baselines 50  # 1 km, 10 M points, 1 000 frames
 """
 
 from __future__ import annotations
@@ -122,6 +124,40 @@ def _time_one_frame(model, points: np.ndarray, views, max_range: float, compare:
         print(f"one frame, VisibilityField.query(max_range=...) of the whole map: {_median_ms(before)}")
 
 
+def _frame_points(points: np.ndarray, view, max_range: float) -> np.ndarray:
+    """Indices of the points within ``max_range`` of the view's camera and inside its image."""
+    near = np.flatnonzero(np.linalg.norm(points - view.location, axis=1) <= max_range)
+    uv, depth = view.project(points[near])
+    inside = (depth > 0) & (uv >= -0.5).all(axis=1) & (uv[:, 0] < WIDTH - 0.5) & (uv[:, 1] < HEIGHT - 0.5)
+    return near[inside]
+
+
+def _baseline_times(points: np.ndarray, views, max_range: float, count: int) -> None:
+    """Prints the median time a frame takes with Open3D's HPR (the radius tuned on the logs of
+    ``o3dvis eval-drives``) and with the surfel z-buffer, over ``count`` frames evenly spaced,
+    the selection of the frame's points (range and image) included."""
+    import open3d as o3d
+
+    from o3dvis.baselines import zbuffer_mask
+
+    chosen = [views[i] for i in np.linspace(0, len(views) - 1, min(count, len(views))).astype(int)]
+    times: dict[str, list[float]] = {"Open3D HPR": [], "surfel z-buffer": []}
+    for view in chosen:
+        start = time.perf_counter()
+        rows = _frame_points(points, view, max_range)
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[rows]))
+        radius = np.linalg.norm(np.ptp(points[rows], axis=0)) * 10 ** 3.25
+        cloud.hidden_point_removal(view.location, radius)
+        times["Open3D HPR"].append(time.perf_counter() - start)
+        start = time.perf_counter()
+        rows = _frame_points(points, view, max_range)
+        zbuffer_mask(points[rows], view.location[None], splat=1.0)
+        times["surfel z-buffer"].append(time.perf_counter() - start)
+    for name, spent in times.items():
+        print(f"one frame, {name} on its points ({len(chosen)} frames): {_median_ms(spent)}, "
+              f"{1 / np.median(spent):.1f} frames/s")
+
+
 def _throughput(model, points: np.ndarray, views, max_range: float, ray_workers: list[int]) -> list:
     """Prints the frames per second of ``frames()`` (encodings included) with 1 and 2 frames side by
     side, and on a local Ray instance with each of ``ray_workers``; returns the frames answered."""
@@ -155,6 +191,8 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=24, help="frames timed one by one (default 24)")
     parser.add_argument("--ray-workers", type=str, default="", help="e.g. 1,2: also time Ray with these workers")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--baselines", type=int, default=0, metavar="FRAMES",
+                        help="also time Open3D's HPR and the surfel z-buffer on this many frames")
     parser.add_argument("--truth", action="store_true", help="also score against ray casting (slow)")
     args = parser.parse_args()
 
@@ -164,6 +202,8 @@ def main() -> None:
     model = NeuralVisibility.pretrained()
     _time_one_frame(model, points, views[:args.frames], args.max_range, args.segments == 1)
     answered = _throughput(model, points, views, args.max_range, [int(w) for w in args.ray_workers.split(",") if w])
+    if args.baselines:
+        _baseline_times(points, views, args.max_range, args.baselines)
     print(f"peak memory of this process: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
     if args.truth:
         accuracy, balanced = _scores(answered, views, points, mesh, args.max_range)

@@ -114,7 +114,7 @@ def _time_one_frame(model, points: np.ndarray, views, max_range: float, compare:
         after.append(time.perf_counter() - start)
     print(f"one frame after its encoding, FrameMap.frame: {_median_ms(after)}")
     if compare:
-        field = model.encode(points, quality="fast")  # cameras inside: the scene model answers them
+        field = model.encode(points)
         field.query(_pinhole(views[0]), max_range=max_range)
         before = []
         for view in views:
@@ -208,7 +208,7 @@ def main() -> None:
     if args.truth:
         accuracy, balanced = _scores(answered, views, points, mesh, args.max_range)
         print(f"frames: accuracy {100 * accuracy:.2f}, balanced {100 * balanced:.2f}")
-        whole = FrameMap(model.encode(points, quality="fast"), max_range=args.max_range)
+        whole = FrameMap(model.encode(points), max_range=args.max_range)
         accuracy, balanced = _scores(whole.frames(views, progress=False), views, points, mesh, args.max_range)
         print(f"map encoded whole: accuracy {100 * accuracy:.2f}, balanced {100 * balanced:.2f}")
 

@@ -39,7 +39,7 @@ def _one_view(camera_location, direction, frustum: bool) -> Views:
 
 
 def _visible_indices(pcd, views: Views, threshold: float, model, device, normals,
-                     max_range: float | None = None, quality: str = "balanced") -> np.ndarray:
+                     max_range: float | None = None, quality: str = "fast") -> np.ndarray:
     """Sorted int64 indices of the points of ``pcd`` visible from the one view ``views``.
 
     With ``max_range``, only the points within it of the camera are encoded and
@@ -95,7 +95,7 @@ def _checked_radius(radius) -> None:
 def hidden_point_removal_neural(pcd, camera_location=None, radius: float | None = None, *,
                                 direction=None, threshold: float = 0.5, model=None, device=None,
                                 triangulate: bool = False, max_range: float | None = None, normals=None,
-                                frustum: bool = True, quality: str = "balanced"):
+                                frustum: bool = True, quality: str = "fast"):
     """Removes hidden points with the neural network: a drop-in for ``hidden_point_removal``.
 
     Returns what Open3D's ``PointCloud.hidden_point_removal`` returns, so
@@ -112,10 +112,9 @@ def hidden_point_removal_neural(pcd, camera_location=None, radius: float | None 
     and they face out (unoriented ones are estimated anew, with a warning);
     ``normals="estimate"`` estimates oriented normals in a first pass instead
     (more accurate on dense, clean clouds; see :meth:`NeuralVisibility.encode`).
-    ``quality`` trades time for accuracy in one word: ``"fast"`` one pass,
-    ``"balanced"`` two passes over clouds without normals of 100 000 points or
-    more, ``"best"`` two passes wherever they pay and four turned copies of
-    the cloud.
+    ``quality`` trades time for accuracy in one word: ``"fast"`` (default) one
+    pass, ``"balanced"`` two passes over a cloud without normals where they pay,
+    ``"best"`` those and four turned copies of the cloud.
     Called again with the same, unchanged cloud (another camera), it reuses the
     cloud's encoding (see :mod:`o3dvis.encodings`) and costs a query only.
 
@@ -149,7 +148,7 @@ def hidden_point_removal_neural(pcd, camera_location=None, radius: float | None 
             oriented normals in a first pass where that is more accurate;
             False ignores normals.
         frustum: False ignores the image bounds of a pinhole camera.
-        quality: ``"fast"``, ``"balanced"`` (default) or ``"best"``, as in
+        quality: ``"fast"`` (default), ``"balanced"`` or ``"best"``, as in
             :meth:`NeuralVisibility.encode`.
 
     Returns:
@@ -198,7 +197,7 @@ def _hpr_result(pcd, index: np.ndarray, views: Views | None):
 
 def select_visible(pcd, camera=None, *, direction=None, threshold: float = 0.5, model=None,
                    device=None, normals=None, frustum: bool = True, max_range: float | None = None,
-                   quality: str = "balanced"):
+                   quality: str = "fast"):
     """The points of a cloud that one camera sees, as a point cloud.
 
     Colours, normals and every other per-point attribute are kept. Like
@@ -220,7 +219,7 @@ def select_visible(pcd, camera=None, *, direction=None, threshold: float = 0.5, 
         frustum: False ignores the image bounds of a pinhole camera.
         max_range: only the points within this distance of the camera are
             considered; None: all points. Camera positions only.
-        quality: ``"fast"``, ``"balanced"`` (default) or ``"best"``, as in
+        quality: ``"fast"`` (default), ``"balanced"`` or ``"best"``, as in
             :meth:`NeuralVisibility.encode`.
 
     Returns:

@@ -84,7 +84,7 @@ def _holds(entry: _Entry | None, model: "NeuralVisibility", pcd, settings: tuple
             and entry.inside == _inside(model, entry.field, views))
 
 
-def encode(model: "NeuralVisibility", pcd, normals, views: "Views", quality: str = "balanced") -> "VisibilityField":
+def encode(model: "NeuralVisibility", pcd, normals, views: "Views", quality: str = "fast") -> "VisibilityField":
     """The field the drop-ins query for one view: the one kept from the last call when it holds.
 
     Args:

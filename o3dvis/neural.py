@@ -41,10 +41,7 @@ _SMALL_MODEL = "small"
 # depth-6 octree, is as accurate as the default below it on the validation meshes, less accurate
 # above, and faster
 _SMALL_MAX_POINTS = 5500
-# quality="balanced" takes two passes over clouds without normals of at least this many points,
-# where they cost less than Open3D's hidden_point_removal of one view; "best" takes them over
-# every cloud where they pay, each pass the mean of _BEST_ROTATIONS turned copies of the cloud
-_BALANCED_MIN_POINTS = 100_000
+# quality="best": each pass the mean of the answers for this many turned copies of the cloud
 _BEST_ROTATIONS = 4
 
 
@@ -222,7 +219,7 @@ class NeuralVisibility:
             raise ValueError("normals were given but no loaded model takes normals")
         return takes_normals, unit_normals(normals, num_points)
 
-    def encode(self, pcd, normals=None, *, views: Views | None = None, quality: str = "balanced") -> VisibilityField:
+    def encode(self, pcd, normals=None, *, views: Views | None = None, quality: str = "fast") -> VisibilityField:
         """Runs the U-Net over a cloud: once, or twice to estimate oriented normals first.
 
         With ``normals="estimate"``, a cloud is encoded in two passes where
@@ -247,14 +244,12 @@ class NeuralVisibility:
         warning. ``normals=True`` or an array skips that check.
 
         ``quality`` chooses how a cloud without normals (``normals=None``) is
-        answered: ``"fast"`` in one pass; ``"balanced"`` (default) in two
-        passes, as with ``"estimate"``, where the cloud has at least 100 000
-        points (where they cost less than Open3D's ``hidden_point_removal`` of
-        one view), else in one; ``"best"`` in two passes wherever they pay, each
-        pass (and any pass of ``normals=False`` or ``"estimate"``) the mean of
-        the network's answers for 4 turned copies of the cloud, as
-        ``num_rotations=4`` gives them (at least 4: a model with more keeps its
-        own). docs/results.md measures each level's accuracy and cost.
+        answered: ``"fast"`` (default) in one pass; ``"balanced"`` in two passes
+        where they pay, as with ``"estimate"``; ``"best"`` as ``"balanced"``,
+        each pass (and any pass of ``normals=False`` or ``"estimate"``) the mean
+        of the network's answers for 4 turned copies of the cloud, as
+        ``num_rotations=4`` gives them (a model with more keeps its own).
+        docs/results.md measures each level's accuracy and cost.
 
         On the CPU, its ops split over the threads that :mod:`o3dvis.threads`
         plans (one for small clouds or a busy machine).
@@ -274,7 +269,7 @@ class NeuralVisibility:
                 inside the cloud's bounding box and a scene model is loaded,
                 that model's encoding alone is made (the object model's is
                 never needed); None: any view may come.
-            quality: ``"fast"``, ``"balanced"`` or ``"best"`` (see above).
+            quality: ``"fast"`` (default), ``"balanced"`` or ``"best"`` (see above).
 
         Returns:
             A :class:`VisibilityField` to query with cameras; its ``normals`` are
@@ -298,7 +293,7 @@ class NeuralVisibility:
             raise ValueError("normals='estimate' needs a normals model (NeuralVisibility.pretrained() "
                              "loads the shipped one)")
         if normals is None and cloud_normals is None and self.normals_network is not None:
-            estimate = quality == "best" or (quality == "balanced" and points.shape[0] >= _BALANCED_MIN_POINTS)
+            estimate = quality != "fast"
         rotations = (fixed_rotations(_BEST_ROTATIONS) if quality == "best" and len(self.rotations) < _BEST_ROTATIONS
                      else self.rotations)
         network, unit = (self._points_network(points.shape[0]), None) if estimate else self._network_and_normals(

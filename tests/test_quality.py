@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import o3dvis
-from o3dvis import encodings, neural
+from o3dvis import encodings
 from o3dvis.cameras import viewpoints_around
 from o3dvis.cli import main
 from o3dvis.nn import NetworkConfig, VisibilityNetwork
@@ -46,23 +46,22 @@ def test_fast_is_one_pass_and_best_two_passes_over_four_turned_copies(paired, sp
     assert len(eight.encode(sphere, quality="best").rotated) == 7  # a model with more turns keeps them
 
 
-def test_balanced_takes_two_passes_from_the_size_where_they_cost_less_than_hpr(paired, sphere, monkeypatch):
-    monkeypatch.setattr(neural, "_BALANCED_MIN_POINTS", 15_000)
-    assert paired.encode(sphere[:14_999]).encoders == (paired.network,)
-    assert paired.encode(sphere).encoders == (paired.network, paired.normals_network)
-    assert paired.encode(sphere, quality="balanced").encoders == paired.encode(sphere).encoders  # the default
-    assert paired.encode(sphere, normals=False).encoders == (paired.network,)
-    given = paired.encode(sphere, normals=sphere)  # a cloud's own normals: used, at any quality
+def test_balanced_takes_two_passes_where_they_pay_and_fast_is_the_default(paired, sphere):
+    two = (paired.network, paired.normals_network)
+    assert paired.encode(sphere).encoders == (paired.network,)  # by default, fast
+    balanced = paired.encode(sphere, quality="balanced")
+    assert balanced.encoders == two and not balanced.rotated
+    cameras = viewpoints_around(sphere, 6)
+    torch.testing.assert_close(balanced.probabilities(cameras),
+                               paired.encode(sphere, normals="estimate").probabilities(cameras))
+    noisy = sphere * (1 + 0.05 * np.random.default_rng(1).uniform(-1, 1, (len(sphere), 1)))
+    assert paired.encode(noisy, quality="balanced").encoders == (paired.network,)  # where they do not pay
+    assert paired.encode(sphere[:900], quality="best").encoders == (paired.network,)  # too sparse
+    assert paired.encode(sphere, normals=False, quality="balanced").encoders == (paired.network,)
+    given = paired.encode(sphere, normals=sphere, quality="balanced")  # a cloud's own normals: used
     assert given.encoders == (paired.normals_network,)
-    assert o3dvis.NeuralVisibility(paired.network).encode(sphere).encoders == (paired.network,)  # no normals model
-
-
-def test_the_shipped_default_takes_two_passes_from_100_000_points(vis):
-    points = np.random.default_rng(1).normal(size=(100_000, 3))
-    points /= np.linalg.norm(points, axis=1, keepdims=True)
-    assert len(vis.encode(points[:99_999]).encoders) == 1
-    assert len(vis.encode(points).encoders) == 2
-    assert len(vis.encode(points, quality="fast").encoders) == 1
+    alone = o3dvis.NeuralVisibility(paired.network)  # no normals model: one pass
+    assert alone.encode(sphere, quality="balanced").encoders == (paired.network,)
 
 
 def test_an_unknown_quality_is_refused_everywhere(paired, sphere, tmp_path, capsys):
@@ -92,11 +91,11 @@ def test_the_drop_in_keeps_an_encoding_per_quality_and_normals_choice(paired, sp
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sphere))
     cameras = [_camera(sphere, d) for d in ((0, 0, 1), (1, 0, 0), (0, 1, 1))]
     estimated = [o3dvis.hidden_point_removal_neural(cloud, c, model=paired, normals="estimate")[1] for c in cameras]
-    assert calls == ["balanced"]  # a loop over cameras with normals="estimate" encodes once
+    assert calls == ["fast"]  # a loop over cameras with normals="estimate" encodes once
     best = [o3dvis.hidden_point_removal_neural(cloud, c, model=paired, quality="best")[1] for c in cameras]
-    assert calls == ["balanced", "best"]
-    o3dvis.hidden_point_removal_neural(cloud, cameras[0], model=paired, quality="fast")
-    assert calls == ["balanced", "best", "fast"]
+    assert calls == ["fast", "best"]
+    o3dvis.hidden_point_removal_neural(cloud, cameras[0], model=paired, quality="balanced")
+    assert calls == ["fast", "best", "balanced"]
     encodings.clear()
     monkeypatch.setattr(o3dvis.NeuralVisibility, "encode", encode)
     for c, two, turned in zip(cameras, estimated, best):

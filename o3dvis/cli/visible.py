@@ -30,9 +30,9 @@ def register(subparsers) -> None:
     parser.add_argument("--device", default=None, help="torch device, e.g. cuda (default: cpu)")
     parser.add_argument("--no-normals", action="store_true",
                         help="ignore the normals of the input cloud")
-    parser.add_argument("--quality", choices=("fast", "balanced", "best"), default="balanced",
-                        help="fast: one pass; balanced (default): two passes over clouds without normals of 100 000 "
-                             "points or more; best: two passes where they pay, four turned copies of the cloud")
+    parser.add_argument("--quality", choices=("fast", "balanced", "best"), default="fast",
+                        help="fast (default): one pass; balanced: two passes over a cloud without normals where "
+                             "they pay; best: those and four turned copies of the cloud")
     add_precision_flag(parser)
     parser.set_defaults(func=run)
 

@@ -107,7 +107,7 @@ def _o3dvis(model, crop: float | None) -> MapMethod:
 
 def _o3dvis_whole(model) -> MapMethod:
     def prepare(points: np.ndarray) -> FrameAnswer:
-        field = model.encode(points.astype(np.float64), quality="fast")  # the scene model answers the frames
+        field = model.encode(points.astype(np.float64))
         return lambda frame, indices, max_range: field.query(frame, max_range=max_range, indices=indices)[0]
     return prepare
 

@@ -13,8 +13,8 @@ frames and of the map encoded whole.
 
     nice -n 10 python3 benchmarks/bench_frames.py                       # the 400 k-point street
     python3 benchmarks/bench_frames.py --segments 10 --points 300000 --truth
-    python3 benchmarks/bench_frames.py --segments 10 --points 1000000 --spacing 1 --ray-workers 1,2 \
-        --baselines 50  # 1 km, 10 M points, 1 000 frames
+    python3 benchmarks/bench_frames.py --segments 10 --points 1000000 --spacing 0.87 --ray-workers 1,2 \
+        --baselines 50  # 1 km, 10 M points, 1 001 frames
 """
 
 from __future__ import annotations

@@ -88,10 +88,7 @@ def _scores(frames, views, points: np.ndarray, mesh, max_range: float) -> tuple[
     points each frame's image holds within range."""
     seen, truth = [], []
     for frame, view in zip(frames, views):
-        uv, depth = view.project(points)
-        near = np.linalg.norm(points - view.location, axis=1) <= max_range
-        rows = np.flatnonzero(near & (depth > 0) & (uv >= -0.5).all(axis=1) & (uv[:, 0] < WIDTH - 0.5)
-                              & (uv[:, 1] < HEIGHT - 0.5))
+        rows = _frame_points(points, view, max_range)
         truth.append(visibility_from_mesh(mesh, points[rows], view.location)[0])
         seen.append(np.isin(rows, frame.indices))
     seen, truth = np.concatenate(seen), np.concatenate(truth)
